@@ -1,0 +1,16 @@
+# Sourced by serve.sh and test.sh: create .venv at the repository root and install the
+# project into it on first use (or when pyproject.toml changed since the last install).
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="$ROOT/.venv"
+PY="${PYTHON:-python3}"
+if [ ! -x "$VENV/bin/python" ]; then
+  "$PY" -m venv "$VENV"
+  "$VENV/bin/python" -m pip install -q --upgrade pip
+fi
+STAMP="$VENV/.installed-$1"
+if [ ! -f "$STAMP" ] || [ "$ROOT/pyproject.toml" -nt "$STAMP" ]; then
+  if [ "$1" = "test" ]; then EXTRA="[test]"; else EXTRA=""; fi
+  "$VENV/bin/python" -m pip install -q -e "$ROOT$EXTRA"
+  touch "$STAMP"
+fi
