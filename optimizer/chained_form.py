@@ -1,0 +1,318 @@
+"""Chained form of the n-joint arm: q <-> z and the input map u <-> v (paper eq 4-5, NOTES §2-3).
+
+Coordinates (n joints, chained state ``z = [z1, ..., z_{n+1}]``)::
+
+    z1      = phi
+    z_{n+1} = th_n
+    z_k     = L_g1 z_{k+1}          (k = n, ..., 2)
+    v1      = u1
+    v2      = (L_g1 z2) u1 + (L_g2 z2) u2
+
+so that ``z1' = v1, z2' = v2, z_{k+1}' = z_k v1``.
+
+Structure used for the inverse map: ``z_k`` depends on ``th_{k-1}, ..., th_{n-1}`` only and is
+affine in ``w_k = cos(th_{k-1})^{m_k}``::
+
+    z_k = a_k(th_k..th_{n-1}) * w_k + b_k(th_k..th_{n-1})
+    a_k = K_k * d z_{k+1} / d th_k,   b_k = sum_{j>k} d z_{k+1}/d th_j * K_j cos(th_{j-1})^{m_j}
+
+Going down from ``th_n = z_{n+1}``, each ``th_{k-1} = arccos(w_k^(1/m_k))`` with
+``w_k = (z_k - b_k) / a_k``. The map is a diffeomorphism on the region where every ``w_k`` lies
+in (0, 1), i.e. ``th_1, ..., th_{n-1}`` in (0, pi/2) (``th_n`` is free): see :mod:`.region`.
+
+Two implementations: a closed form for ``n = 3`` (numpy) and, for any ``n``, expressions derived
+symbolically with CasADi (Lie derivatives along g1) and compiled once per robot.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from .model import Robot
+
+#: Boundary tolerance on w_k = cos(th_{k-1})^{m_k}: a point with w_k within this of 0 or 1 is
+#: treated as on the boundary (outside the open region).
+W_TOL = 1e-12
+
+
+@dataclass(frozen=True)
+class InverseResult:
+    """Result of the inverse map z -> q for a batch of points.
+
+    Attributes
+    ----------
+    q : ndarray, shape (N, n+1)
+        Joint-space points; rows that are not valid are filled with zeros (never NaN).
+    w : ndarray, shape (N, n-1)
+        ``w_k = cos(th_{k-1})^{m_k}`` for k = 2..n (column k-2); valid iff all in (0, 1).
+        Entries after the first failing level (going down from k = n) are 0.
+    valid : ndarray of bool, shape (N,)
+    failed_level : ndarray of int, shape (N,)
+        The joint index ``i`` (1..n-1) whose angle would leave (0, pi/2) first, 0 when valid.
+    """
+
+    q: np.ndarray
+    w: np.ndarray
+    valid: np.ndarray
+    failed_level: np.ndarray
+
+    def reasons(self) -> list[str | None]:
+        """A human-readable reason per point (``None`` for valid points)."""
+        out: list[str | None] = []
+        for ok, lvl, wrow in zip(self.valid, self.failed_level, self.w):
+            if ok:
+                out.append(None)
+                continue
+            k = int(lvl) + 1
+            wk = float(wrow[k - 2])
+            side = "<= 0" if not wk > W_TOL else ">= 1"
+            out.append(f"z{k} maps to cos(th{lvl})^m = {wk:.6g} {side}: th{lvl} would leave (0, pi/2)"
+                       if np.isfinite(wk) else
+                       f"z{k} cannot be inverted: th{lvl} undefined (a joint at 0 or pi/2)")
+        return out
+
+
+class ChainedForm:
+    """The chained-form transform of one robot, compiled once.
+
+    Parameters
+    ----------
+    robot : Robot
+    backend : {"auto", "closed", "casadi"}
+        ``"closed"`` uses the n = 3 closed form (numpy), ``"casadi"`` the symbolic derivation;
+        ``"auto"`` picks the closed form when ``n == 3``.
+    """
+
+    def __init__(self, robot: Robot, backend: str = "auto") -> None:
+        if backend not in ("auto", "closed", "casadi"):
+            raise ValueError(f"unknown backend {backend!r}")
+        if backend == "closed" and robot.n != 3:
+            raise ValueError("the closed form exists for n = 3 only")
+        self.robot = robot
+        self.n = robot.n
+        self.backend = "closed" if (backend == "closed" or (backend == "auto" and robot.n == 3)) \
+            else "casadi"
+        self._sym = _symbolic(robot.gains, robot.exponents)
+
+    # ------------------------------------------------------------------ forward
+    def to_chained(self, q: np.ndarray) -> np.ndarray:
+        """Map joint-space points to chained coordinates (eq 4).
+
+        Parameters
+        ----------
+        q : array_like, shape (n+1,) or (N, n+1)
+            ``[phi, th1, ..., thn]``.
+
+        Returns
+        -------
+        z : ndarray, same shape as ``q``
+        """
+        q = np.asarray(q, dtype=float)
+        qq = np.atleast_2d(q)
+        if self.backend == "closed":
+            z = _closed_forward(self.robot, qq)
+        else:
+            z = np.asarray(self._sym.forward(qq.T)).T.reshape(qq.shape)
+        return z.reshape(q.shape)
+
+    def input_coefficients(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``alpha = L_g1 z2`` and ``beta = L_g2 z2`` (eq 5): ``v2 = alpha u1 + beta u2``."""
+        q = np.asarray(q, dtype=float)
+        qq = np.atleast_2d(q)
+        if self.backend == "closed":
+            al, be = _closed_input(self.robot, qq)
+        else:
+            al = np.asarray(self._sym.alpha(qq.T)).ravel()
+            be = np.asarray(self._sym.beta(qq.T)).ravel()
+        if q.ndim == 1:
+            return al[:1].copy()[0], be[:1].copy()[0]
+        return al, be
+
+    def v_from_u(self, q: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Chained inputs from actuator inputs (eq 5)."""
+        u = np.asarray(u, dtype=float)
+        al, be = self.input_coefficients(q)
+        v = np.empty_like(u)
+        v[..., 0] = u[..., 0]
+        v[..., 1] = al * u[..., 0] + be * u[..., 1]
+        return v
+
+    def u_from_v(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Actuator inputs from chained inputs (eq 5 inverted); needs ``L_g2 z2 != 0``."""
+        v = np.asarray(v, dtype=float)
+        al, be = self.input_coefficients(q)
+        u = np.empty_like(v)
+        u[..., 0] = v[..., 0]
+        u[..., 1] = (v[..., 1] - al * v[..., 0]) / be
+        return u
+
+    # ------------------------------------------------------------------ inverse
+    def from_chained(self, z: np.ndarray) -> InverseResult:
+        """Map chained coordinates back to joint space, saying where that is impossible.
+
+        Parameters
+        ----------
+        z : array_like, shape (n+1,) or (N, n+1)
+
+        Returns
+        -------
+        InverseResult
+            Always finite; ``valid`` is False where some ``th_i`` (i < n) would leave
+            (0, pi/2), and ``failed_level`` names that joint.
+        """
+        zz = np.atleast_2d(np.asarray(z, dtype=float))
+        N, n = zz.shape[0], self.n
+        q = np.zeros((N, n + 1))
+        w = np.zeros((N, n - 1))
+        valid = np.isfinite(zz).all(axis=1)
+        failed = np.zeros(N, dtype=int)
+        failed[~valid] = n - 1
+        q[valid, 0] = zz[valid, 0]
+        q[valid, n] = zz[valid, n]
+        for k in range(n, 1, -1):  # z_k gives th_{k-1}
+            idx = np.nonzero(valid)[0]
+            if idx.size == 0:
+                break
+            if self.backend == "closed":
+                a, b = _closed_ab(self.robot, k, q[idx])
+            else:
+                a = np.asarray(self._sym.a[k](q[idx].T)).ravel()
+                b = np.asarray(self._sym.b[k](q[idx].T)).ravel()
+            with np.errstate(divide="ignore", invalid="ignore"):
+                wk = (zz[idx, k - 1] - b) / a
+            good = np.isfinite(wk) & (wk > W_TOL) & (wk < 1.0 - W_TOL)
+            w[idx, k - 2] = np.where(np.isfinite(wk), wk, 0.0)
+            bad = idx[~good]
+            valid[bad] = False
+            failed[bad] = k - 1
+            gi = idx[good]
+            q[gi, k - 1] = np.arccos(wk[good] ** (1.0 / self.robot.exponents[k - 2]))
+        q[~valid] = 0.0
+        return InverseResult(q=q, w=w, valid=valid, failed_level=failed)
+
+    # ------------------------------------------------------------------ symbolic
+    @property
+    def symbolic(self) -> "SymbolicChainedForm":
+        """The CasADi expressions and Functions (for NLPs built on top of the transform)."""
+        return self._sym
+
+
+# ---------------------------------------------------------------------- closed form n = 3
+def _closed_forward(robot: Robot, q: np.ndarray) -> np.ndarray:
+    K2, K3 = robot.gains
+    m2, m3 = robot.exponents
+    c1, c2 = np.cos(q[:, 1]), np.cos(q[:, 2])
+    s2 = np.sin(q[:, 2])
+    z = np.empty_like(q)
+    z[:, 0] = q[:, 0]
+    z[:, 1] = -m3 * K2 * K3 * c1 ** m2 * c2 ** (m3 - 1) * s2
+    z[:, 2] = K3 * c2 ** m3
+    z[:, 3] = q[:, 3]
+    return z
+
+
+def _closed_input(robot: Robot, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    K2, K3 = robot.gains
+    m2, m3 = robot.exponents
+    c1, s1 = np.cos(q[:, 1]), np.sin(q[:, 1])
+    c2, s2 = np.cos(q[:, 2]), np.sin(q[:, 2])
+    alpha = -m3 * K2 ** 2 * K3 * c1 ** (2 * m2) * (c2 ** m3 - (m3 - 1) * c2 ** (m3 - 2) * s2 ** 2)
+    beta = m2 * m3 * K2 * K3 * c1 ** (m2 - 1) * s1 * c2 ** (m3 - 1) * s2
+    return alpha, beta
+
+
+def _closed_ab(robot: Robot, k: int, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    K2, K3 = robot.gains
+    m3 = robot.exponents[1]
+    if k == 3:
+        return np.full(q.shape[0], K3), np.zeros(q.shape[0])
+    c2, s2 = np.cos(q[:, 2]), np.sin(q[:, 2])
+    return -m3 * K2 * K3 * c2 ** (m3 - 1) * s2, np.zeros(q.shape[0])
+
+
+# ---------------------------------------------------------------------- symbolic, any n
+class SymbolicChainedForm:
+    """CasADi derivation of the chained form by Lie derivatives along g1 (NOTES §3).
+
+    Attributes
+    ----------
+    q : casadi.SX, (n+1,)
+        The symbolic state.
+    z : casadi.SX, (n+1,)
+        The chained coordinates as expressions of ``q``.
+    forward, alpha, beta : casadi.Function
+        ``q -> z``, ``q -> L_g1 z2``, ``q -> L_g2 z2``.
+    a, b : dict of casadi.Function
+        ``a[k](q)``, ``b[k](q)`` for k = 2..n (see the module docstring).
+    """
+
+    def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...]) -> None:
+        n = len(gains) + 1
+        q = ca.SX.sym("q", n + 1)
+        th = [None] + [q[i] for i in range(1, n + 1)]  # th[i] = theta_i (1-based)
+
+        def g1_entry(j: int) -> ca.SX:  # d th_j / d u1 for j >= 2
+            return gains[j - 2] * ca.cos(th[j - 1]) ** exponents[j - 2]
+
+        g1 = ca.vertcat(1, 0, *[g1_entry(j) for j in range(2, n + 1)])
+        g2 = ca.vertcat(0, 1, *([0] * (n - 1)))
+        zs: dict[int, ca.SX] = {n + 1: th[n]}
+        a_expr: dict[int, ca.SX] = {}
+        b_expr: dict[int, ca.SX] = {}
+        for k in range(n, 1, -1):
+            zk1 = zs[k + 1]
+            zs[k] = ca.jtimes(zk1, q, g1)  # L_g1 z_{k+1}
+            a_expr[k] = gains[k - 2] * ca.jacobian(zk1, th[k])
+            b = ca.SX(0)
+            for j in range(k + 1, n):  # z_{k+1} depends on th_k..th_{n-1}
+                b = b + ca.jacobian(zk1, th[j]) * g1_entry(j)
+            b_expr[k] = b
+        z = ca.vertcat(q[0], *[zs[k] for k in range(2, n + 2)])
+        self.n = n
+        self.q = q
+        self.z = z
+        self.forward = ca.Function("chained_forward", [q], [z])
+        z2 = zs[2]
+        self.alpha_expr = ca.jtimes(z2, q, g1)
+        self.beta_expr = ca.jtimes(z2, q, g2)
+        self.alpha = ca.Function("lie_g1_z2", [q], [self.alpha_expr])
+        self.beta = ca.Function("lie_g2_z2", [q], [self.beta_expr])
+        self.a = {k: ca.Function(f"a{k}", [q], [a_expr[k]]) for k in a_expr}
+        self.b = {k: ca.Function(f"b{k}", [q], [b_expr[k]]) for k in b_expr}
+        self.gains = gains
+        self.exponents = exponents
+
+    def inverse_expr(self, z: ca.MX | ca.SX) -> tuple[list, list]:
+        """Symbolic inverse map for NLPs: ``(th, w)`` with ``th[i-1] = theta_i`` and
+        ``w[k-2] = cos(th_{k-1})^{m_k}`` (k = 2..n), computed top-down from ``z``.
+
+        The caller must keep every ``w`` inside (0, 1) (that is the region), otherwise the
+        fractional powers and arccos are undefined.
+        """
+        n = self.n
+        qsym: list = [z[0]] + [0] * n
+        qsym[n] = z[n]
+        ws: list = [None] * (n - 1)
+        for k in range(n, 1, -1):
+            qvec = ca.vertcat(*qsym)
+            a = self.a[k](qvec)
+            b = self.b[k](qvec)
+            wk = (z[k - 1] - b) / a
+            ws[k - 2] = wk
+            qsym[k - 1] = ca.acos(wk ** (1.0 / self.exponents[k - 2]))
+        return qsym[1:], ws
+
+
+@functools.lru_cache(maxsize=64)
+def _symbolic(gains: tuple[float, ...], exponents: tuple[int, ...]) -> SymbolicChainedForm:
+    return SymbolicChainedForm(gains, exponents)
+
+
+@functools.lru_cache(maxsize=64)
+def chained_form(robot: Robot) -> ChainedForm:
+    """The (cached) :class:`ChainedForm` of ``robot`` with the default backend."""
+    return ChainedForm(robot)

@@ -1,0 +1,305 @@
+"""Open-loop steering of the chained form with time-polynomial inputs (paper eq 8-12).
+
+Everything is computed in normalised time ``tau = t / T`` in [0, 1], where the chained system
+reads ``dz1/dtau = V1``, ``dz2/dtau = V2``, ``dz_{k+1}/dtau = z_k V1`` with ``V(tau) = T v(T tau)``.
+With the paper's constant ``v1 = b0`` one has ``V1 = b0 T = dphi``: the geometric path depends on
+``dphi`` only, ``T`` merely re-scales time (NOTES §4), and the linear systems stay well
+conditioned whatever ``T`` is.
+
+Inputs are piecewise polynomials in ``tau`` (one piece for the paper's family; several pieces let
+``phi`` reverse). The chained state is then piecewise polynomial too, and exact.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from numpy.polynomial import polynomial as P
+
+from .errors import InvalidRequestError, SingularSystemError
+
+#: Below this |dphi| (rad) the steering matrix M is treated as singular (Remark 2).
+MIN_ABS_DPHI = 1e-6
+#: Condition number of the (scaled) steering matrix above which it is singular.
+MAX_CONDITION = 1e12
+
+
+@dataclass(frozen=True)
+class ConstraintPoint:
+    """A constraint point of eq (9)-(11): the chained state ``z_state`` passes ``value`` at ``time``.
+
+    Parameters
+    ----------
+    time : float
+        Seconds, strictly inside (0, T).
+    state : int
+        Chained index in 2..n+1 (``z2`` is 2).
+    value : float
+    """
+
+    time: float
+    state: int
+    value: float
+
+
+@dataclass(frozen=True)
+class InputSchedule:
+    """Chained inputs as piecewise polynomials of normalised time.
+
+    Attributes
+    ----------
+    breaks : ndarray, shape (S+1,)
+        ``0 = tau_0 < ... < tau_S = 1``.
+    v1, v2 : tuple of ndarray
+        Per piece, coefficients (increasing powers of ``tau - tau_s``) of ``V1 = dz1/dtau``
+        and ``V2 = dz2/dtau``.
+    duration : float
+        ``T`` in seconds.
+    """
+
+    breaks: np.ndarray
+    v1: tuple[np.ndarray, ...]
+    v2: tuple[np.ndarray, ...]
+    duration: float
+
+    @classmethod
+    def single(cls, v1: Sequence[float], v2: Sequence[float], duration: float) -> "InputSchedule":
+        """One polynomial piece on [0, 1]."""
+        return cls(np.array([0.0, 1.0]), (np.asarray(v1, float),), (np.asarray(v2, float),),
+                   float(duration))
+
+    @property
+    def pieces(self) -> int:
+        return len(self.v1)
+
+    def piece_index(self, tau: np.ndarray) -> np.ndarray:
+        """Index of the piece holding each ``tau`` (right-continuous, last piece closed)."""
+        idx = np.searchsorted(self.breaks, tau, side="right") - 1
+        return np.clip(idx, 0, self.pieces - 1)
+
+    def V(self, tau: np.ndarray) -> np.ndarray:
+        """``[V1, V2]`` at normalised times, shape (N, 2)."""
+        tau = np.atleast_1d(np.asarray(tau, float))
+        out = np.empty((tau.size, 2))
+        idx = self.piece_index(tau)
+        for s in range(self.pieces):
+            m = idx == s
+            if m.any():
+                x = tau[m] - self.breaks[s]
+                out[m, 0] = P.polyval(x, self.v1[s])
+                out[m, 1] = P.polyval(x, self.v2[s])
+        return out
+
+    def v(self, t: np.ndarray) -> np.ndarray:
+        """Physical chained inputs ``[v1, v2]`` (rad/s) at times ``t`` (s), shape (N, 2)."""
+        T = self.duration
+        return self.V(np.asarray(t, float) / T) / T
+
+    def physical_coefficients(self) -> list[dict[str, object]]:
+        """Per piece: start and end times (s) and coefficients of ``v1``, ``v2`` in powers of
+        ``(t - t_start)`` seconds (the paper's ``b0`` and ``c_i``, ``d_j``)."""
+        T = self.duration
+        out = []
+        for s in range(self.pieces):
+            scale1 = T ** -(np.arange(self.v1[s].size) + 1.0)
+            scale2 = T ** -(np.arange(self.v2[s].size) + 1.0)
+            out.append({"t_start": float(self.breaks[s] * T), "t_end": float(self.breaks[s + 1] * T),
+                        "v1": (self.v1[s] * scale1).tolist(), "v2": (self.v2[s] * scale2).tolist()})
+        return out
+
+    @property
+    def constant_v1(self) -> bool:
+        """True for the paper's family: one piece and ``v1`` constant."""
+        return self.pieces == 1 and bool(np.all(self.v1[0][1:] == 0.0))
+
+    @property
+    def phi_change(self) -> float:
+        """Total change of phi, ``dphi = integral of V1``."""
+        tot = 0.0
+        for s in range(self.pieces):
+            h = self.breaks[s + 1] - self.breaks[s]
+            tot += float(P.polyval(h, P.polyint(self.v1[s])))
+        return tot
+
+
+@dataclass(frozen=True)
+class ChainedPath:
+    """The exact chained trajectory ``z(tau)`` produced by an :class:`InputSchedule` from ``z0``.
+
+    Attributes
+    ----------
+    z0 : ndarray, shape (n+1,)
+    inputs : InputSchedule
+    polys : tuple of ndarray, shape (S,) of (n+1, deg+1)
+        Per piece, polynomial coefficients (in ``tau - tau_s``) of each ``z_k``.
+    """
+
+    z0: np.ndarray
+    inputs: InputSchedule
+    polys: tuple[np.ndarray, ...] = field(repr=False)
+
+    @classmethod
+    def from_inputs(cls, z0: np.ndarray, inputs: InputSchedule) -> "ChainedPath":
+        z0 = np.asarray(z0, float)
+        nz = z0.size
+        pieces = []
+        zs = z0.copy()
+        for s in range(inputs.pieces):
+            h = inputs.breaks[s + 1] - inputs.breaks[s]
+            v1, v2 = inputs.v1[s], inputs.v2[s]
+            cs: list[np.ndarray] = [P.polyint(v1, k=zs[0]), P.polyint(v2, k=zs[1])]
+            for k in range(2, nz):
+                cs.append(P.polyint(P.polymul(cs[k - 1], v1), k=zs[k]))
+            deg = max(c.size for c in cs)
+            arr = np.zeros((nz, deg))
+            for k, c in enumerate(cs):
+                arr[k, :c.size] = c
+            pieces.append(arr)
+            zs = np.array([P.polyval(h, c) for c in arr])
+        return cls(z0, inputs, tuple(pieces))
+
+    def z(self, tau: np.ndarray) -> np.ndarray:
+        """Chained state at normalised times, shape (N, n+1)."""
+        tau = np.atleast_1d(np.asarray(tau, float))
+        out = np.empty((tau.size, self.z0.size))
+        idx = self.inputs.piece_index(tau)
+        for s, arr in enumerate(self.polys):
+            m = idx == s
+            if m.any():
+                x = tau[m] - self.inputs.breaks[s]
+                out[m] = P.polyval(x, arr.T).T
+        return out
+
+    def z_end(self) -> np.ndarray:
+        return self.z(np.array([1.0]))[0]
+
+    def component_pieces(self, k: int) -> list[tuple[float, float, np.ndarray]]:
+        """``[(tau_start, tau_end, coefficients in (tau - tau_start))]`` of ``z_{k+1}`` (0-based k)."""
+        b = self.inputs.breaks
+        return [(float(b[s]), float(b[s + 1]), arr[k]) for s, arr in enumerate(self.polys)]
+
+
+# ---------------------------------------------------------------------- the paper's family
+def affine_basis(dphi: float, n: int, z0: np.ndarray, p: int,
+                 tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The chained state under ``V1 = dphi`` is affine in the ``p`` coefficients of ``V2`` (eq 10).
+
+    Parameters
+    ----------
+    dphi : float
+    n : int
+        Number of joints (chained states ``z2..z_{n+1}``).
+    z0 : ndarray, shape (n+1,)
+    p : int
+        Number of ``V2`` coefficients (powers 0..p-1 of tau).
+    tau : ndarray, shape (N,)
+
+    Returns
+    -------
+    free : ndarray, shape (N, n)
+        ``z_{k}(tau)`` for k = 2..n+1 with ``V2 = 0``: ``sum_l (dphi tau)^(k-l)/(k-l)! z_l(0)``.
+    basis : ndarray, shape (N, n, p)
+        ``d z_k(tau) / d a_i = dphi^(k-2) i! tau^(i+k-1) / (i+k-1)!``.
+    """
+    tau = np.atleast_1d(np.asarray(tau, float))
+    x = dphi * tau
+    free = np.zeros((tau.size, n))
+    basis = np.zeros((tau.size, n, p))
+    for kk in range(n):  # kk = k - 2
+        for ll in range(kk + 1):
+            free[:, kk] += x ** (kk - ll) / math.factorial(kk - ll) * z0[ll + 1]
+        for i in range(p):
+            basis[:, kk, i] = (dphi ** kk * math.factorial(i) / math.factorial(i + kk + 1)
+                               * tau ** (i + kk + 1))
+    return free, basis
+
+
+def steering_system(dphi: float, n: int, z0: np.ndarray, zT: np.ndarray, p: int,
+                    points: Sequence[ConstraintPoint] = (), duration: float = 1.0
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The linear equality ``M a = r`` of eq (11): hit ``z(T) = zT`` and pass the constraint points.
+
+    Returns ``M`` of shape (n + m, p) and ``r`` of shape (n + m,), for ``V2`` coefficients ``a``.
+    """
+    taus = np.array([1.0] + [cp.time / duration for cp in points])
+    free, basis = affine_basis(dphi, n, z0, p, taus)
+    rows = [basis[0]]
+    rhs = [np.asarray(zT, float)[1:] - free[0]]
+    for j, cp in enumerate(points):
+        kk = cp.state - 2
+        rows.append(basis[j + 1, kk][None, :])
+        rhs.append(np.array([cp.value - free[j + 1, kk]]))
+    return np.vstack(rows), np.concatenate(rhs)
+
+
+def validate_constraint_points(points: Sequence[ConstraintPoint], n: int, duration: float) -> None:
+    """Raise :class:`InvalidRequestError` for a point outside (0, T), a bad state index,
+    a non-finite value or two points on the same state at the same time."""
+    seen = set()
+    for j, cp in enumerate(points):
+        f = f"constraint_points[{j}]"
+        if not (math.isfinite(cp.time) and 0.0 < cp.time < duration):
+            raise InvalidRequestError(f"{f}.time = {cp.time!r} must lie strictly inside (0, T = {duration})",
+                                      field=f"{f}.time")
+        if not 2 <= cp.state <= n + 1:
+            raise InvalidRequestError(f"{f}.state = {cp.state!r} must be a chained index in 2..{n + 1}",
+                                      field=f"{f}.state")
+        if not math.isfinite(cp.value):
+            raise InvalidRequestError(f"{f}.value must be finite", field=f"{f}.value")
+        key = (cp.state, round(cp.time / duration, 12))
+        if key in seen:
+            raise InvalidRequestError(f"{f} repeats the time and state of an earlier point",
+                                      field=f)
+        seen.add(key)
+
+
+def solve_polynomial(dphi: float, n: int, z0: np.ndarray, zT: np.ndarray, duration: float = 1.0,
+                     points: Sequence[ConstraintPoint] = ()) -> InputSchedule:
+    """The paper's inputs (eq 8-9): ``v1 = b0``, ``v2`` of degree ``n - 1 + m``; solve eq (11).
+
+    Parameters
+    ----------
+    dphi : float
+        Total change of phi (``b0 T``), rad.
+    n : int
+        Number of joints.
+    z0, zT : ndarray, shape (n+1,)
+        Start and goal in chained coordinates (``z1`` entries are ignored).
+    duration : float
+        ``T``, s.
+    points : sequence of ConstraintPoint
+
+    Returns
+    -------
+    InputSchedule
+
+    Raises
+    ------
+    SingularSystemError
+        ``|dphi|`` below :data:`MIN_ABS_DPHI` (Remark 2), or constraint times making M singular.
+    """
+    if not math.isfinite(dphi) or abs(dphi) < MIN_ABS_DPHI:
+        raise SingularSystemError(
+            f"phi_change = {dphi!r}: the steering matrix M(T) is singular when dphi = 0 "
+            f"(paper Remark 2); |phi_change| must be at least {MIN_ABS_DPHI} rad",
+            field="phi_change")
+    p = n + len(points)
+    M, r = steering_system(dphi, n, z0, zT, p, points, duration)
+    # Column scaling: the powers of dphi make the raw matrix badly scaled for large n.
+    scale = np.linalg.norm(M, axis=0)
+    scale[scale == 0.0] = 1.0
+    Ms = M / scale
+    cond = np.linalg.cond(Ms)
+    if not np.isfinite(cond) or cond > MAX_CONDITION:
+        raise SingularSystemError(
+            f"the steering matrix M(T) is singular (condition number {cond:.3g}): check that the "
+            "constraint points have distinct times or states and that phi_change is not 0",
+            field="constraint_points" if points else "phi_change",
+            diagnostics={"condition_number": float(cond) if np.isfinite(cond) else None})
+    a = np.linalg.solve(Ms, r) / scale
+    v1 = np.zeros(1)
+    v1[0] = dphi
+    return InputSchedule.single(v1, a, duration)
