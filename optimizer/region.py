@@ -136,8 +136,15 @@ class Region:
             bad = np.nonzero(~v)[0]
             lvl = inv.failed_level[bad]
             wk = inv.w[bad, lvl - 1]
-            out[bad] = np.where(np.isfinite(wk), np.minimum(wk, 1.0 - wk), -1.0)
-            out[bad] = np.minimum(out[bad], 0.0)
+            m = np.array(self.robot.exponents)[lvl - 1]
+            # Outside, extend the angle margin by its local shape at the boundary:
+            # th ~ pi/2 - w^(1/m) near w = 0 and th ~ sqrt(2 (1 - w) / m) near w = 1, so the
+            # margin stays continuous (and of one scale) across the boundary.
+            with np.errstate(invalid="ignore", over="ignore"):
+                below = -np.abs(wk) ** (1.0 / m)
+                above = -np.sqrt(2.0 * np.abs(wk - 1.0) / m)
+            ext = np.where(wk <= 0.5, below, above)
+            out[bad] = np.where(np.isfinite(ext), np.minimum(ext, 0.0), -HALF_PI)
         return out
 
     # --------------------------------------------------------------- paths

@@ -1,0 +1,137 @@
+"""Singularity-free ``dphi`` intervals of the paper's family (input-parameter adjustment, §3.4).
+
+``F(dphi)`` = the region margin of the member's continuous path (see :mod:`optimizer.region`);
+the feasible set is ``{F > 0}``. It is found in three steps:
+
+1. a scan of ``F`` on a grid of ``dphi`` (coarse time grid, vectorised), giving brackets;
+2. every sign change of ``F`` between grid nodes is refined with Brent's method on the exact
+   (continuous-path) margin, to ``xtol`` = 1e-10 rad;
+3. every grid local maximum of ``F`` that is not positive is refined by bounded scalar
+   maximisation of the exact margin between its neighbours; a positive maximum is a window the
+   grid missed, whose two ends are then refined like step 2.
+
+Narrow windows: a window of any width is found as long as ``F`` is unimodal between three
+adjacent grid nodes around it (its peak then shows as a grid local maximum, step 3). The grid
+step is 0.25 deg; the tests include 4-joint goals feasible only in windows of hundredths of a
+degree.
+
+For n = 3 under ``z2`` the margin is exact (the maximum of the cubic ``z2(t)``, eq 14-16); for the
+full condition the polynomial conditions are exact and ``th1 > 0`` is refined numerically.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.optimize import brentq, minimize_scalar
+
+from ..steering import MIN_ABS_DPHI
+from .family import PolynomialFamily
+
+GRID_STEP = math.radians(0.25)
+HALF_PI = 0.5 * math.pi
+XTOL = 1e-10
+
+
+def _grid(lo: float, hi: float) -> np.ndarray:
+    """Grid over [lo, hi] that avoids dphi = 0 (Remark 2) by splitting around it."""
+    pieces = []
+    eps = 10 * MIN_ABS_DPHI
+    for a, b in ((lo, min(hi, -eps)), (max(lo, eps), hi)):
+        if b > a:
+            k = max(2, int(math.ceil((b - a) / GRID_STEP)) + 1)
+            pieces.append(np.linspace(a, b, k))
+    return np.concatenate(pieces) if pieces else np.zeros(0)
+
+
+def feasible_intervals(family: PolynomialFamily, lo: float, hi: float
+                       ) -> list[tuple[float, float]]:
+    """All maximal sub-intervals of [lo, hi] where the family's path is singularity-free.
+
+    Parameters
+    ----------
+    family : PolynomialFamily
+    lo, hi : float
+        Search bounds for ``dphi`` (rad).
+
+    Returns
+    -------
+    list of (float, float)
+        Sorted, disjoint closed intervals (ends refined to 1e-10 rad; an end equal to a search
+        bound is that bound).
+    """
+    grid = _grid(lo, hi)
+    if grid.size == 0:
+        return []
+    coarse = family.coarse_margins(grid)
+    exact = {}
+
+    def F(d: float) -> float:
+        d = float(d)
+        if d not in exact:
+            exact[d] = family.margin(d)
+        return exact[d]
+
+    # Candidate nodes: exact margin at nodes that are coarse-positive or next to them, and at
+    # coarse local maxima (the coarse margin is an upper bound of the exact one).
+    N = grid.size
+    cand = set()
+    for i in range(N):
+        if coarse[i] > 0:
+            cand.update({max(i - 1, 0), i, min(i + 1, N - 1)})
+        left = coarse[i - 1] if i > 0 else -np.inf
+        right = coarse[i + 1] if i < N - 1 else -np.inf
+        if coarse[i] >= left and coarse[i] >= right and coarse[i] > -HALF_PI:
+            cand.add(i)
+    sign = np.full(N, False)
+    for i in sorted(cand):
+        sign[i] = F(grid[i]) > 0.0
+
+    # Step 3: local maxima of the exact margin at candidate nodes that are not positive.
+    extra_windows: list[tuple[float, float]] = []
+    for i in sorted(cand):
+        if sign[i]:
+            continue
+        a = grid[max(i - 1, 0)]
+        b = grid[min(i + 1, N - 1)]
+        if a < 0.0 < b:
+            continue
+        res = minimize_scalar(lambda d: -F(d), bounds=(a, b), method="bounded",
+                              options={"xatol": 1e-9, "maxiter": 100})
+        if -res.fun > 0.0:
+            peak = float(res.x)
+            left = brentq(F, a, peak, xtol=XTOL) if F(a) <= 0.0 else a
+            right = brentq(F, peak, b, xtol=XTOL) if F(b) <= 0.0 else b
+            extra_windows.append((float(left), float(right)))
+
+    # Step 2: runs of positive nodes, ends refined between the node and its neighbour.
+    intervals: list[tuple[float, float]] = []
+    i = 0
+    while i < N:
+        if not sign[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < N and sign[j + 1] and not (grid[j] < 0.0 < grid[j + 1]):
+            j += 1
+        a = grid[i]
+        if i > 0 and not (grid[i - 1] < 0.0 < grid[i]):
+            a = float(brentq(F, grid[i - 1], grid[i], xtol=XTOL))
+        b = grid[j]
+        if j < N - 1 and not (grid[j] < 0.0 < grid[j + 1]):
+            b = float(brentq(F, grid[j], grid[j + 1], xtol=XTOL))
+        intervals.append((float(a), float(b)))
+        i = j + 1
+    intervals.extend(extra_windows)
+    return _merge(sorted(intervals))
+
+
+def _merge(iv: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    out: list[tuple[float, float]] = []
+    for a, b in iv:
+        if out and a <= out[-1][1] + 1e-12 and not (out[-1][1] < 0.0 < a):
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out

@@ -1,0 +1,332 @@
+"""One entry point: a plan request -> a verified plan, or a typed, explained failure.
+
+Methods
+-------
+``polynomial``
+    The paper's family (``v1 = b0``, ``v2`` polynomial with the request's constraint points):
+    singularity-free ``dphi`` intervals (§3.4), then the objective (§4, §5.3).
+``constraint_points``
+    Constraint-point synthesis as a QP (:mod:`.convex`), replacing the paper's trial and error.
+``penalty``
+    The penalty-function NLP (:mod:`.penalty`, Remark 3) with a varying ``v1`` (phi may reverse).
+``auto``
+    polynomial, then constraint points, then penalty; with ``tp_then_da`` the penalty method is
+    also tried from the polynomial optimum and the better plan by (t_p, d_a) is returned.
+
+Every plan, whatever the method, goes through :func:`finish_plan`: continuous region check,
+sampling, indicators and re-integration of the original model. A plan that fails there is never
+returned.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from ..chained_form import chained_form
+from ..errors import (InfeasibleError, NumericalError, PlannerError, SingularSystemError,
+                      SolverTimeoutError)
+from ..indicators import compute_indicators
+from ..problem import PlanRequest
+from ..region import Region
+from ..results import Plan, SampledPath
+from ..steering import ChainedPath, InputSchedule
+from ..verify import PlannedInputs, verify_plan
+from .family import SEARCH_SAMPLES, PolynomialFamily
+from .intervals import feasible_intervals
+from .objectives import optimise
+
+#: A plan is verified when the re-integrated original model ends this close to the goal (rad).
+TERMINAL_TOLERANCE = 1e-6
+#: Normalised-time samples used to find the peak actuator rates for duration scaling.
+RATE_SAMPLES = 2001
+
+
+class Deadline:
+    """Wall-clock budget of one solve; :meth:`check` raises :class:`SolverTimeoutError`."""
+
+    def __init__(self, seconds: float) -> None:
+        self.start = time.perf_counter()
+        self.seconds = float(seconds)
+
+    @property
+    def remaining(self) -> float:
+        return self.seconds - (time.perf_counter() - self.start)
+
+    def check(self, stage: str) -> None:
+        if self.remaining <= 0.0:
+            raise SolverTimeoutError(f"the solve exceeded its time limit of {self.seconds:g} s "
+                                     f"during {stage}", diagnostics={"stage": stage,
+                                                                     "time_limit": self.seconds})
+
+
+def make_region(req: PlanRequest, criterion: str | None = None) -> Region:
+    return Region(req.robot, criterion or req.singularity, req.joint_bounds)
+
+
+def check_endpoints(req: PlanRequest, region: Region) -> None:
+    """Start and goal must be inside the (full) region: there the transform exists."""
+    region.check_point_q(np.array((0.0,) + req.start), "start")
+    region.check_point_q(np.array((0.0,) + req.goal), "goal")
+
+
+def direction_conflict(req: PlanRequest) -> str | None:
+    """Why the constant-v1 family cannot reach the goal, or None.
+
+    With ``v1`` constant every ``th_i`` (i >= 2) moves monotonically in the direction of
+    ``dphi`` (``th_i' = K_i cos(th_{i-1})^m_i u1`` with a positive factor in the region).
+    """
+    d = np.array(req.goal[1:]) - np.array(req.start[1:])
+    up = [i + 2 for i, x in enumerate(d) if x > 0]
+    down = [i + 2 for i, x in enumerate(d) if x < 0]
+    if up and down:
+        return (f"joints th{up[0]} and th{down[0]} must move in opposite directions: with a "
+                "constant v1 every joint th2..thn moves in the direction of phi, so phi must "
+                "reverse (use method 'penalty' or 'auto')")
+    if not up and not down:
+        return ("joints th2..thn do not move, which needs dphi = 0 where the steering system is "
+                "singular (Remark 2); phi must go and come back (use method 'penalty' or 'auto')")
+    return None
+
+
+def phi_search_bounds(req: PlanRequest) -> tuple[float, float]:
+    """The request's ``dphi`` bounds, cut to the sign the joints' motion demands."""
+    lo, hi = req.phi_change_bounds
+    d = np.array(req.goal[1:]) - np.array(req.start[1:])
+    if np.all(d >= 0):
+        lo = max(lo, 0.0)
+    elif np.all(d <= 0):
+        hi = min(hi, 0.0)
+    return lo, hi
+
+
+def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
+                feasible: list[tuple[float, float]], timing: dict[str, float],
+                diagnostics: dict[str, Any]) -> Plan:
+    """Scale, sample, check, measure and verify a candidate; return it as a :class:`Plan`.
+
+    Raises
+    ------
+    InfeasibleError
+        The continuous path leaves the region, or the actuator limits cannot be met.
+    NumericalError
+        The original model driven by the planned inputs does not reach the goal.
+    """
+    t0 = time.perf_counter()
+    robot = req.robot
+    cf = chained_form(robot)
+    q0 = req.q_start()
+    z0 = cf.to_chained(q0)
+    chained = ChainedPath.from_inputs(z0, inputs)
+    full = make_region(req, "full")
+    chk = full.check_path(chained)
+    if not chk.ok:
+        when = chk.first_crossing_tau
+        raise InfeasibleError(
+            "the path leaves the singularity-free region"
+            + (f" at t/T = {when:.6g}" if when is not None else ""),
+            diagnostics={"margin": chk.margin, "first_crossing_tau": when})
+    # Duration: the geometric path depends on tau only; T rescales the rates.
+    T = _duration(req, cf, chained)
+    inputs = InputSchedule(inputs.breaks, inputs.v1, inputs.v2, T)
+    chained = ChainedPath(chained.z0, inputs, chained.polys)
+    planned = PlannedInputs(cf, chained)
+    t = np.linspace(0.0, T, int(req.samples))
+    tau = t / T
+    z = chained.z(tau)
+    inv = cf.from_chained(z)
+    if not inv.valid.all():
+        raise InfeasibleError("the sampled path leaves the singularity-free region",
+                              diagnostics={"margin": chk.margin})
+    q = inv.q
+    v = inputs.v(t)
+    u = cf.u_from_v(q, v)
+    dphi = inputs.phi_change
+    # indicators on a dense grid (at least the search density), independent of `samples`
+    # (the same normalised grid as the searches, so t_p and d_a agree with what was optimised)
+    td = np.linspace(0.0, T, SEARCH_SAMPLES)
+    qd = cf.from_chained(chained.z(td / T)).q
+    ud = cf.u_from_v(qd, inputs.v(td))
+    ind = compute_indicators(td, qd, ud)
+    timing["sampling"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    ver = verify_plan(robot, planned, q0, np.array(req.goal), req.phi_start + dphi, t, q)
+    timing["verification"] = time.perf_counter() - t1
+    if ver.singular or not ver.terminal_error <= TERMINAL_TOLERANCE:
+        raise NumericalError(
+            "the planned inputs do not steer the original model to the goal "
+            f"(terminal error {ver.terminal_error:.3g} rad, singular={ver.singular})",
+            diagnostics={"terminal_error": ver.terminal_error, "singular": ver.singular,
+                         "method": method})
+    return Plan(robot=robot, method=method, phi_change=float(dphi), duration=T, inputs=inputs,
+                chained=chained, feasible_phi_changes=feasible, indicators=ind,
+                margin=float(chk.margin), path=SampledPath(t=t, q=q, z=z, u=u, v=v),
+                verification=ver, timing=timing, diagnostics=diagnostics)
+
+
+def _duration(req: PlanRequest, cf: Any, chained: ChainedPath) -> float:
+    limits = (req.max_u1, req.max_u2)
+    if all(x is None for x in limits):
+        return req.duration_or_default
+    tau = np.linspace(0.0, 1.0, RATE_SAMPLES)
+    q = cf.from_chained(chained.z(tau)).q
+    U = cf.u_from_v(q, chained.inputs.V(tau))  # rates per unit normalised time
+    need = 0.0
+    for j, lim in enumerate(limits):
+        if lim is not None:
+            need = max(need, float(np.max(np.abs(U[:, j]))) / lim)
+    if req.duration is None:
+        if req.constraint_points:
+            raise InfeasibleError("constraint point times are in seconds: give a duration when "
+                                  "actuator limits are set", diagnostics={})
+        return max(need, 1e-3)
+    if req.duration < need * (1 - 1e-12):
+        raise InfeasibleError(
+            f"duration {req.duration:g} s is too short for the actuator limits: the shortest "
+            f"duration that respects them is {need:.6g} s",
+            diagnostics={"shortest_duration": need})
+    return float(req.duration)
+
+
+# ---------------------------------------------------------------------- methods
+def plan_polynomial(req: PlanRequest, deadline: Deadline) -> Plan:
+    """The paper's method: intervals of dphi, then the objective."""
+    timing: dict[str, float] = {}
+    conflict = direction_conflict(req)
+    if conflict:
+        raise InfeasibleError(conflict, diagnostics={"blocking": "opposite_joint_motion"})
+    region = make_region(req)
+    fam = PolynomialFamily(req.robot, req.q_start(), req.q_goal(0.0), req.duration_or_default,
+                           req.constraint_points, region)
+    t0 = time.perf_counter()
+    if req.phi_change is not None:
+        e = fam.evaluate(float(req.phi_change))
+        timing["search"] = time.perf_counter() - t0
+        if not e.ok:
+            chk = fam.check(float(req.phi_change))
+            raise InfeasibleError(
+                f"phi_change = {req.phi_change:.6g} rad gives a path that leaves the "
+                f"singularity-free region ({req.singularity} criterion)"
+                + (f" at t/T = {chk.first_crossing_tau:.6g}"
+                   if chk.first_crossing_tau is not None else ""),
+                diagnostics={"margin": chk.margin, "first_crossing_tau": chk.first_crossing_tau,
+                             "blocking": "singularity"})
+        feasible: list[tuple[float, float]] = []
+        best = e
+    else:
+        lo, hi = phi_search_bounds(req)
+        feasible = feasible_intervals(fam, lo, hi)
+        timing["intervals"] = time.perf_counter() - t0
+        deadline.check("the interval search")
+        if not feasible:
+            raise InfeasibleError(
+                f"no phi_change in [{lo:.6g}, {hi:.6g}] rad gives a singularity-free path of "
+                "the polynomial family", diagnostics={"blocking": "no_feasible_phi_change",
+                                                      "searched": [lo, hi]})
+        t1 = time.perf_counter()
+        best_e = optimise(fam, feasible, req.objective, req.weights)
+        timing["objective"] = time.perf_counter() - t1
+        deadline.check("the objective search")
+        if best_e is None:
+            raise InfeasibleError("the feasible intervals are too narrow to hold a path",
+                                  diagnostics={"feasible_phi_changes": feasible})
+        best = best_e
+    inputs = fam.inputs(best.dphi)
+    return finish_plan(req, inputs, "polynomial", feasible, timing,
+                       {"objective": req.objective, "singularity": req.singularity})
+
+
+def _method(name: str) -> Callable[[PlanRequest, Deadline], Plan]:
+    if name == "polynomial":
+        return plan_polynomial
+    if name == "constraint_points":
+        from .convex import plan_constraint_points
+        return plan_constraint_points
+    if name == "penalty":
+        from .penalty import plan_penalty
+        return plan_penalty
+    raise ValueError(name)
+
+
+def better(a: Plan, b: Plan, objective: str) -> Plan:
+    """The better of two plans by the request's rule (ties keep ``a``)."""
+    ia, ib = a.indicators, b.indicators
+    if objective == "tp_then_sensitivity":
+        ka, kb = (ia.t_p, ia.sensitivity), (ib.t_p, ib.sensitivity)
+    else:
+        ka, kb = (ia.t_p, ia.d_a), (ib.t_p, ib.d_a)
+    return b if kb < ka else a
+
+
+def plan(req: PlanRequest) -> Plan:
+    """Plan a singularity-free path for ``req``.
+
+    Returns
+    -------
+    Plan
+        Verified on the original model (terminal error <= 1e-6 rad).
+
+    Raises
+    ------
+    InvalidRequestError, InfeasibleError, SolverTimeoutError, NumericalError
+    """
+    deadline = Deadline(req.time_limit)
+    t0 = time.perf_counter()
+    check_endpoints(req, make_region(req, "full"))
+    if req.method != "auto":
+        result = _method(req.method)(req, deadline)
+    else:
+        result = _plan_auto(req, deadline)
+    result.timing["total"] = time.perf_counter() - t0
+    return result
+
+
+def _plan_auto(req: PlanRequest, deadline: Deadline) -> Plan:
+    failures: dict[str, str] = {}
+    poly: Plan | None = None
+    try:
+        poly = plan_polynomial(req, deadline)
+    except (InfeasibleError, NumericalError) as exc:
+        failures["polynomial"] = exc.message
+    if poly is None and not req.constraint_points and direction_conflict(req) is None:
+        try:
+            cp = _method("constraint_points")(req, deadline)
+            cp.diagnostics["auto"] = {"tried": ["polynomial", "constraint_points"],
+                                      "failures": failures}
+            return cp
+        except (InfeasibleError, NumericalError) as exc:
+            failures["constraint_points"] = exc.message
+    if poly is not None and req.objective != "tp_then_da":
+        poly.diagnostics["auto"] = {"tried": ["polynomial"], "failures": failures}
+        return poly
+    deadline.check("auto")
+    try:
+        pen = _method("penalty")(req, deadline)
+    except SolverTimeoutError:
+        if poly is None:
+            raise
+        pen = None
+    except (InfeasibleError, NumericalError) as exc:
+        failures["penalty"] = exc.message
+        pen = None
+    if poly is None and pen is None:
+        raise InfeasibleError("no method found a singularity-free path: "
+                              + "; ".join(f"{k}: {v}" for k, v in failures.items()),
+                              diagnostics={"failures": failures})
+    if poly is not None and pen is not None:
+        chosen = better(poly, pen, req.objective)
+    else:
+        chosen = poly if poly is not None else pen  # type: ignore[assignment]
+    assert chosen is not None
+    chosen.diagnostics["auto"] = {
+        "tried": [k for k in ("polynomial", "constraint_points", "penalty")
+                  if k in failures or (k == "polynomial" and poly is not None)
+                  or (k == "penalty" and pen is not None)],
+        "failures": failures,
+        "chosen": chosen.method,
+        "rule": "fewest t_p, then smallest d_a" if req.objective == "tp_then_da" else req.objective,
+    }
+    return chosen

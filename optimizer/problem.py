@@ -1,0 +1,222 @@
+"""A plan request as the library sees it (validated, radians and seconds).
+
+The service translates its JSON models into :class:`PlanRequest`; the CLI reads the same JSON.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from .errors import InvalidRequestError
+from .model import Robot
+from .steering import ConstraintPoint, validate_constraint_points
+
+METHODS = ("auto", "polynomial", "constraint_points", "penalty")
+OBJECTIVES = ("tp_then_da", "tp_then_sensitivity", "weighted")
+CRITERIA = ("full", "z2")
+
+#: Library-level limits (the service may set tighter ones).
+MAX_SAMPLES = 20001
+MIN_SAMPLES = 2
+MAX_CONSTRAINT_POINTS = 8
+MAX_DURATION = 1e4
+MIN_DURATION = 1e-3
+MAX_TIME_LIMIT = 600.0
+
+
+@dataclass(frozen=True)
+class Weights:
+    """Weights of the ``weighted`` objective: ``w_da d_a + w_s ||J_R(T)||_F + w_e energy``.
+
+    Plus ``tp`` (weight on t_p, default large so that reversals dominate unless told otherwise).
+    """
+
+    d_a: float = 1.0
+    sensitivity: float = 0.0
+    energy: float = 0.0
+    t_p: float = 0.0
+
+
+@dataclass(frozen=True)
+class PlanRequest:
+    """Everything a plan needs.
+
+    Parameters
+    ----------
+    start, goal : tuple of float
+        Joint angles ``th_1..th_n`` (rad).
+    robot : Robot
+    phi_start : float
+        Initial ``phi`` (rad).
+    phi_change : float or None
+        Fixes ``dphi = phi(T) - phi(0)``; ``None`` searches ``phi_change_bounds``.
+    phi_change_bounds : (float, float)
+    duration : float or None
+        ``T`` (s). ``None`` with actuator limits: the shortest ``T`` that respects them;
+        ``None`` without: 1 s.
+    method, objective, singularity : str
+    weights : Weights
+    constraint_points : tuple of ConstraintPoint
+    samples : int
+        Number of time samples in the returned path.
+    time_limit : float
+        Seconds for the whole solve.
+    max_u1, max_u2 : float or None
+        Actuator rate limits (rad/s).
+    joint_bounds : tuple of (lo, hi) or None
+    v1_degree, v2_degree : int or None
+        Input degrees of the penalty method (None: its defaults).
+    """
+
+    start: tuple[float, ...]
+    goal: tuple[float, ...]
+    robot: Robot = field(default_factory=Robot)
+    phi_start: float = 0.0
+    phi_change: float | None = None
+    phi_change_bounds: tuple[float, float] = (-math.pi, math.pi)
+    duration: float | None = None
+    method: str = "auto"
+    objective: str = "tp_then_da"
+    singularity: str = "full"
+    weights: Weights = field(default_factory=Weights)
+    constraint_points: tuple[ConstraintPoint, ...] = ()
+    samples: int = 201
+    time_limit: float = 10.0
+    max_u1: float | None = None
+    max_u2: float | None = None
+    joint_bounds: tuple[tuple[float, float] | None, ...] | None = None
+    v1_degree: int | None = None
+    v2_degree: int | None = None
+
+    def __post_init__(self) -> None:
+        n = self.robot.n
+        for name in ("start", "goal"):
+            val = tuple(float(x) for x in getattr(self, name))
+            if len(val) != n:
+                raise InvalidRequestError(f"{name} has {len(val)} joint angles but the robot has "
+                                          f"n = {n} joints", field=name)
+            for i, x in enumerate(val):
+                if not math.isfinite(x):
+                    raise InvalidRequestError(f"{name}[{i}] must be a finite number (rad)",
+                                              field=f"{name}[{i}]")
+            object.__setattr__(self, name, val)
+        _finite(self.phi_start, "phi_start")
+        if self.phi_change is not None:
+            _finite(self.phi_change, "phi_change")
+        lo, hi = (float(x) for x in self.phi_change_bounds)
+        _finite(lo, "phi_change_bounds[0]")
+        _finite(hi, "phi_change_bounds[1]")
+        if not lo < hi or max(abs(lo), abs(hi)) > 4 * math.pi:
+            raise InvalidRequestError(
+                f"phi_change_bounds = [{lo}, {hi}] must satisfy lo < hi within [-4 pi, 4 pi] rad",
+                field="phi_change_bounds")
+        object.__setattr__(self, "phi_change_bounds", (lo, hi))
+        if self.duration is not None:
+            _finite(self.duration, "duration")
+            if not MIN_DURATION <= self.duration <= MAX_DURATION:
+                raise InvalidRequestError(
+                    f"duration = {self.duration} s must lie in [{MIN_DURATION}, {MAX_DURATION}] s",
+                    field="duration")
+        for name, allowed in (("method", METHODS), ("objective", OBJECTIVES),
+                              ("singularity", CRITERIA)):
+            if getattr(self, name) not in allowed:
+                raise InvalidRequestError(f"{name} = {getattr(self, name)!r} must be one of "
+                                          f"{list(allowed)}", field=name)
+        w = self.weights
+        for k in ("d_a", "sensitivity", "energy", "t_p"):
+            x = getattr(w, k)
+            if not (math.isfinite(x) and x >= 0):
+                raise InvalidRequestError(f"weights.{k} = {x} must be finite and >= 0",
+                                          field=f"weights.{k}")
+        if self.objective == "weighted" and w.d_a + w.sensitivity + w.energy + w.t_p <= 0:
+            raise InvalidRequestError("weights must not all be 0 for the weighted objective",
+                                      field="weights")
+        if not MIN_SAMPLES <= int(self.samples) <= MAX_SAMPLES:
+            raise InvalidRequestError(f"samples = {self.samples} must lie in [{MIN_SAMPLES}, "
+                                      f"{MAX_SAMPLES}]", field="samples")
+        if not (math.isfinite(self.time_limit) and 0 < self.time_limit <= MAX_TIME_LIMIT):
+            raise InvalidRequestError(f"time_limit = {self.time_limit} s must lie in (0, "
+                                      f"{MAX_TIME_LIMIT}] s", field="time_limit")
+        for name in ("max_u1", "max_u2"):
+            x = getattr(self, name)
+            if x is not None and not (math.isfinite(x) and x > 0):
+                raise InvalidRequestError(f"{name} = {x} must be finite and > 0 (rad/s)",
+                                          field=name)
+        if len(self.constraint_points) > MAX_CONSTRAINT_POINTS:
+            raise InvalidRequestError(f"at most {MAX_CONSTRAINT_POINTS} constraint_points",
+                                      field="constraint_points")
+        if self.constraint_points:
+            validate_constraint_points(self.constraint_points, n, self.duration_or_default)
+        for name in ("v1_degree", "v2_degree"):
+            x = getattr(self, name)
+            if x is not None and not 0 <= int(x) <= 12:
+                raise InvalidRequestError(f"{name} = {x} must lie in [0, 12]", field=name)
+
+    @property
+    def n(self) -> int:
+        return self.robot.n
+
+    @property
+    def duration_or_default(self) -> float:
+        return 1.0 if self.duration is None else float(self.duration)
+
+    def q_start(self) -> np.ndarray:
+        return np.array((self.phi_start,) + self.start)
+
+    def q_goal(self, dphi: float) -> np.ndarray:
+        return np.array((self.phi_start + dphi,) + self.goal)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "PlanRequest":
+        """Build from the JSON shape of ``POST /v1/plans`` (unknown keys are an error)."""
+        d = dict(data)
+        known = {f for f in cls.__dataclass_fields__}
+        unknown = set(d) - known
+        if unknown:
+            raise InvalidRequestError(f"unknown field(s): {sorted(unknown)}", field=sorted(unknown)[0])
+        if "start" not in d or "goal" not in d:
+            raise InvalidRequestError("start and goal are required", field="start")
+        rob = d.pop("robot", None)
+        if rob is None:
+            d["robot"] = Robot.default(len(d["start"])) if len(d["start"]) != 3 else Robot()
+        elif isinstance(rob, Robot):
+            d["robot"] = rob
+        else:
+            rob = dict(rob)
+            if rob.get("gains") is None and rob.get("exponents") is None:
+                d["robot"] = Robot.default(len(d["start"]))
+            else:
+                d["robot"] = Robot(tuple(rob.get("gains") or ()), tuple(rob.get("exponents") or ()))
+        if "weights" in d and d["weights"] is not None and not isinstance(d["weights"], Weights):
+            d["weights"] = Weights(**dict(d["weights"]))
+        elif d.get("weights") is None:
+            d.pop("weights", None)
+        cps = d.pop("constraint_points", None) or ()
+        d["constraint_points"] = tuple(
+            cp if isinstance(cp, ConstraintPoint) else
+            ConstraintPoint(float(cp["time"]), int(cp["state"]), float(cp["value"])) for cp in cps)
+        if d.get("phi_change_bounds") is None:
+            d.pop("phi_change_bounds", None)
+        if d.get("joint_bounds") is not None:
+            d["joint_bounds"] = tuple(None if b is None else (float(b[0]), float(b[1]))
+                                      for b in d["joint_bounds"])
+        for k in ("start", "goal"):
+            d[k] = tuple(d[k])
+        for k in ("method", "objective", "singularity", "samples", "time_limit", "phi_start"):
+            if k in d and d[k] is None:
+                d.pop(k)
+        return cls(**d)
+
+
+def _finite(x: float, name: str) -> None:
+    if not isinstance(x, (int, float)) or not math.isfinite(float(x)):
+        raise InvalidRequestError(f"{name} must be a finite number", field=name)
+
+
+def constraint_points_from(seq: Sequence[Mapping[str, Any]]) -> tuple[ConstraintPoint, ...]:
+    """Constraint points from dicts with ``time``, ``state``, ``value``."""
+    return tuple(ConstraintPoint(float(c["time"]), int(c["state"]), float(c["value"])) for c in seq)

@@ -1,0 +1,155 @@
+"""Result objects of the planner: a verified plan, sampled paths, and their JSON shape."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .indicators import Indicators
+from .model import Robot
+from .steering import ChainedPath, InputSchedule
+from .verify import Verification
+
+
+@dataclass(frozen=True)
+class SampledPath:
+    """Time samples of a plan.
+
+    Attributes
+    ----------
+    t : ndarray (N,)
+        s.
+    q : ndarray (N, n+1)
+        ``[phi, th1..thn]``, rad.
+    z : ndarray (N, n+1)
+        Chained state.
+    u : ndarray (N, 2)
+        Actuator rates ``[u1, u2]``, rad/s.
+    v : ndarray (N, 2)
+        Chained inputs ``[v1, v2]``.
+    """
+
+    t: np.ndarray
+    q: np.ndarray
+    z: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A verified, singularity-free plan.
+
+    Attributes
+    ----------
+    robot : Robot
+    method : str
+        The method that produced it (``polynomial``, ``constraint_points``, ``penalty``).
+    phi_change : float
+        ``dphi`` (rad).
+    duration : float
+        ``T`` (s).
+    inputs : InputSchedule
+        The chained inputs (coefficients), enough to regenerate everything.
+    chained : ChainedPath
+    feasible_phi_changes : list of (float, float)
+        Singularity-free ``dphi`` intervals of the paper's family (empty when not computed).
+    indicators : Indicators
+    margin : float
+        Region margin of the continuous path (rad, full criterion).
+    path : SampledPath
+    verification : Verification
+    timing : dict of str to float
+        Seconds per stage.
+    diagnostics : dict
+        Extra facts (which start won, solver status, ...).
+    """
+
+    robot: Robot
+    method: str
+    phi_change: float
+    duration: float
+    inputs: InputSchedule
+    chained: ChainedPath
+    feasible_phi_changes: list[tuple[float, float]]
+    indicators: Indicators
+    margin: float
+    path: SampledPath
+    verification: Verification
+    timing: dict[str, float] = field(default_factory=dict)
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def b0(self) -> float | None:
+        """The paper's constant ``v1 = b0 = dphi / T`` (None when ``v1`` varies)."""
+        return self.phi_change / self.duration if self.inputs.constant_v1 else None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON shape of a successful ``POST /v1/plans`` response (finite numbers only)."""
+        ind = self.indicators
+        ver = self.verification
+        out = {
+            "status": "success",
+            "method": self.method,
+            "robot": self.robot.as_dict(),
+            "phi_change": self.phi_change,
+            "b0": self.b0,
+            "duration": self.duration,
+            "feasible_phi_changes": [[a, b] for a, b in self.feasible_phi_changes],
+            "coefficients": {
+                "basis": "v1(t), v2(t) as power series in (t - t_start), t in s",
+                "segments": self.inputs.physical_coefficients(),
+            },
+            "indicators": {
+                "d_a": ind.d_a,
+                "d_a_per_joint": list(ind.d_a_per_joint),
+                "d_a_joint_space": ind.d_a_joint_space,
+                "t_p": ind.t_p,
+                "phi_reversals": ind.phi_reversals,
+                "sensitivity": ind.sensitivity,
+                "sensitivity_max": ind.sensitivity_max,
+                "energy": ind.energy,
+                "margin": self.margin,
+            },
+            "path": {
+                "t": self.path.t.tolist(),
+                "q": self.path.q.tolist(),
+                "z": self.path.z.tolist(),
+                "u": self.path.u.tolist(),
+                "v": self.path.v.tolist(),
+            },
+            "validation": {
+                "terminal_error": ver.terminal_error,
+                "phi_error": ver.phi_error,
+                "max_deviation": ver.max_deviation,
+                "singular": ver.singular,
+                "final": list(ver.final),
+                "integrator": "scipy DOP853 on the original model",
+                "rtol": ver.rtol,
+                "atol": ver.atol,
+            },
+            "timing": dict(self.timing),
+            "diagnostics": dict(self.diagnostics),
+        }
+        return json_safe(out)
+
+
+def json_safe(obj: Any) -> Any:
+    """Recursively convert numpy types to Python and refuse non-finite floats (-> None)."""
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        x = float(obj)
+        return x if math.isfinite(x) else None
+    return obj
