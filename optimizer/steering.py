@@ -204,16 +204,28 @@ def affine_basis(dphi: float, n: int, z0: np.ndarray, p: int,
     basis : ndarray, shape (N, n, p)
         ``d z_k(tau) / d a_i = dphi^(k-2) i! tau^(i+k-1) / (i+k-1)!``.
     """
+    free, basis = affine_basis_batch(np.array([dphi], float), n, z0, p, tau)
+    return free[0], basis[0]
+
+
+def affine_basis_batch(dphi: np.ndarray, n: int, z0: np.ndarray, p: int,
+                       tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`affine_basis` for many ``dphi`` at once: shapes (D, N, n) and (D, N, n, p)."""
+    dphi = np.asarray(dphi, float)
     tau = np.atleast_1d(np.asarray(tau, float))
-    x = dphi * tau
-    free = np.zeros((tau.size, n))
-    basis = np.zeros((tau.size, n, p))
+    z0 = np.asarray(z0, float)
+    x = dphi[:, None] * tau[None, :]                       # (D, N)
+    free = np.zeros((dphi.size, tau.size, n))
     for kk in range(n):  # kk = k - 2
         for ll in range(kk + 1):
-            free[:, kk] += x ** (kk - ll) / math.factorial(kk - ll) * z0[ll + 1]
-        for i in range(p):
-            basis[:, kk, i] = (dphi ** kk * math.factorial(i) / math.factorial(i + kk + 1)
-                               * tau ** (i + kk + 1))
+            free[:, :, kk] += x ** (kk - ll) / math.factorial(kk - ll) * z0[ll + 1]
+    kk = np.arange(n)[:, None]
+    ii = np.arange(p)[None, :]
+    fact = np.vectorize(math.factorial)
+    const = fact(ii) / fact(ii + kk + 1)                   # (n, p)
+    powers = tau[:, None, None] ** (ii + kk + 1)[None]      # (N, n, p)
+    dpow = dphi[:, None] ** np.arange(n)[None, :]          # (D, n)
+    basis = dpow[:, None, :, None] * (const[None] * powers)[None]
     return free, basis
 
 

@@ -16,7 +16,8 @@ from ..chained_form import ChainedForm, chained_form
 from ..indicators import count_reversals, line_deviation, sensitivity_frobenius
 from ..model import Robot
 from ..region import PathCheck, Region
-from ..steering import ChainedPath, ConstraintPoint, InputSchedule, solve_polynomial
+from ..steering import (MAX_CONDITION, MIN_ABS_DPHI, ChainedPath, ConstraintPoint, InputSchedule,
+                        affine_basis_batch, solve_polynomial, steering_system)
 from ..errors import SingularSystemError
 
 #: Normalised-time samples used to evaluate indicators inside searches.
@@ -86,28 +87,47 @@ class PolynomialFamily:
             return PathCheck(False, -np.inf, 0.0, 0.0)
 
     def margin(self, dphi: float) -> float:
-        m = self.check(dphi).margin
+        try:
+            m = self.region.check_path(self.path(dphi), locate=False).margin
+        except SingularSystemError:
+            return -np.pi
         return float(m) if np.isfinite(m) else -np.pi
+
+    def batch_z(self, dphis: np.ndarray, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Chained states of many members at once: ``z`` of shape (D, G, n+1) and a mask of
+        members whose steering system is regular (eq 10-11 solved as a stack)."""
+        dphis = np.asarray(dphis, float)
+        n, p = self.n, self.n + len(self.points)
+        ok = np.abs(dphis) >= MIN_ABS_DPHI
+        d = np.where(ok, dphis, 1.0)
+        # steering systems for all members (the rows are powers of dphi times constants)
+        Ms, rs = [], []
+        for x in d:
+            M, r = steering_system(float(x), n, self.z0, self.zT, p, self.points, self.duration)
+            Ms.append(M)
+            rs.append(r)
+        M = np.array(Ms)
+        r = np.array(rs)
+        scale = np.linalg.norm(M, axis=1, keepdims=True)
+        scale[scale == 0.0] = 1.0
+        Mscaled = M / scale
+        cond = np.linalg.cond(Mscaled)
+        ok &= np.isfinite(cond) & (cond < MAX_CONDITION)
+        Mscaled[~ok] = np.eye(p)
+        a = np.linalg.solve(Mscaled, r[..., None])[..., 0] / scale[:, 0, :]
+        free, basis = affine_basis_batch(d, n, self.z0, p, taus)
+        z = np.empty((d.size, taus.size, n + 1))
+        z[:, :, 0] = self.z0[0] + d[:, None] * taus[None, :]
+        z[:, :, 1:] = free + np.einsum("dgki,di->dgk", basis, a)
+        return z, ok
 
     def coarse_margins(self, dphis: np.ndarray, grid: int = 97) -> np.ndarray:
         """Region margin on a coarse time grid for many ``dphi`` at once (an upper bound of the
         continuous margin; used only to find brackets, never as the answer)."""
-        out = np.full(dphis.size, -np.pi)
         taus = np.linspace(0.0, 1.0, grid)
-        zs = []
-        keep = []
-        for i, d in enumerate(dphis):
-            try:
-                zs.append(self.path(float(d)).z(taus))
-                keep.append(i)
-            except SingularSystemError:
-                continue
-        if not keep:
-            return out
-        Z = np.concatenate(zs)
-        h = self.region.signed_margin_z(Z).reshape(len(keep), grid)
-        out[np.array(keep)] = h.min(axis=1)
-        return out
+        z, ok = self.batch_z(dphis, taus)
+        h = self.region.signed_margin_z(z.reshape(-1, self.n + 1)).reshape(dphis.size, grid)
+        return np.where(ok, h.min(axis=1), -np.pi)
 
     def _evaluate(self, dphi: float) -> MemberEval:
         inf = float("inf")
