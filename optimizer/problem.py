@@ -126,6 +126,12 @@ class PlanRequest:
             if getattr(self, name) not in allowed:
                 raise InvalidRequestError(f"{name} = {getattr(self, name)!r} must be one of "
                                           f"{list(allowed)}", field=name)
+        if isinstance(self.weights, Mapping):
+            unknown = set(self.weights) - {"d_a", "sensitivity", "energy", "t_p"}
+            if unknown:
+                raise InvalidRequestError(f"unknown weights {sorted(unknown)}", field="weights")
+            object.__setattr__(self, "weights", Weights(**{k: float(v) for k, v in
+                                                            self.weights.items()}))
         w = self.weights
         for k in ("d_a", "sensitivity", "energy", "t_p"):
             x = getattr(w, k)
@@ -151,6 +157,9 @@ class PlanRequest:
                                       field="constraint_points")
         if self.constraint_points:
             validate_constraint_points(self.constraint_points, n, self.duration_or_default)
+        if self.joint_bounds is not None:
+            from .region import Region  # validates shape and that bounds lie in the region
+            Region(self.robot, "full", self.joint_bounds)
         for name in ("v1_degree", "v2_degree"):
             x = getattr(self, name)
             if x is not None and not 0 <= int(x) <= 12:

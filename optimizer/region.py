@@ -224,7 +224,8 @@ class Region:
         i = int(np.argmax(z2))
         margin = -float(z2[i])
         crossing = None
-        bad = np.nonzero(z2 >= 0.0)[0]
+        # the exact roots of z2 are among taus; allow for their rounding when locating
+        bad = np.nonzero(z2 >= -1e-13)[0]
         if bad.size:
             crossing = float(taus[bad[0]])
         return PathCheck(ok=margin > 0.0, margin=margin, argmin_tau=float(taus[i]),

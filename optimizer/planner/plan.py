@@ -203,6 +203,7 @@ def plan_polynomial(req: PlanRequest, deadline: Deadline) -> Plan:
                            req.constraint_points, region)
     t0 = time.perf_counter()
     if req.phi_change is not None:
+        fam.inputs(float(req.phi_change))  # raises SingularSystemError for dphi = 0 (Remark 2)
         e = fam.evaluate(float(req.phi_change))
         timing["search"] = time.perf_counter() - t0
         if not e.ok:

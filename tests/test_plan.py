@@ -1,0 +1,161 @@
+"""Plans end to end: verified on the original model (independently), bad input, infeasibility."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from optimizer.chained_form import chained_form
+from optimizer.errors import InfeasibleError, InvalidRequestError, SolverTimeoutError
+from optimizer.model import Robot
+from optimizer.planner.plan import plan
+from optimizer.steering import ChainedPath, InputSchedule
+from optimizer.problem import PlanRequest
+from optimizer.verify import PlannedInputs
+
+from reference import integrate_model
+
+D = np.deg2rad
+
+
+def _independent_final(p, req):
+    """Integrate the original model (test's own rhs) under the plan's u(t)."""
+    inputs = PlannedInputs(chained_form(p.robot), p.chained)
+    sol = integrate_model(lambda t: inputs.u(np.array([t]))[0], req.q_start(), p.duration,
+                          p.robot.gains, p.robot.exponents)
+    return sol.y[:, -1], sol
+
+
+def _random_feasible(n, seed, count):
+    """Random requests that the polynomial family can plan, made by running a random member of
+    the family forward from a random start: draw dphi and v2's n coefficients, keep the draw
+    when the path stays well inside the region (dense independent check), and ask for the goal
+    it reaches. The planner must then find an interval (containing that dphi) by itself."""
+    rng = np.random.default_rng(seed)
+    robot = Robot.default(n)
+    cf = chained_form(robot)
+    tau = np.linspace(0, 1, 4001)
+    found = []
+    for _ in range(2000):
+        q0 = np.concatenate([[0.0], D(rng.uniform(10, 80, n))])
+        dphi = float(rng.uniform(0.2, 1.2) * rng.choice([-1, 1]))
+        v2 = rng.normal(scale=0.3, size=n)
+        path = ChainedPath.from_inputs(cf.to_chained(q0), InputSchedule.single([dphi], v2, 1.0))
+        inv = cf.from_chained(path.z(tau))
+        th = inv.q[:, 1:n]
+        if not (inv.valid.all() and th.min() > D(3) and th.max() < D(87)):
+            continue
+        goal = inv.q[-1, 1:]
+        req = PlanRequest(start=tuple(q0[1:]), goal=tuple(goal), robot=robot,
+                          method="polynomial", duration=float(rng.uniform(0.5, 5.0)))
+        found.append((req, dphi, plan(req)))
+        if len(found) == count:
+            break
+    assert len(found) == count
+    return found
+
+
+@pytest.mark.parametrize("n, seed, count", [(3, 1, 6), (4, 2, 4)])
+def test_random_feasible_requests_reach_goal_on_original_model(n, seed, count):
+    for req, dphi_drawn, p in _random_feasible(n, seed, count):
+        assert any(a <= dphi_drawn <= b for a, b in p.feasible_phi_changes)
+        final, sol = _independent_final(p, req)
+        assert np.max(np.abs(final[1:] - np.array(req.goal))) < 1e-6
+        assert abs(final[0] - (req.phi_start + p.phi_change)) < 1e-6
+        assert p.verification.terminal_error < 1e-6
+        assert not p.verification.singular and p.margin > 0
+        # the sampled path starts and ends where it should, and stays in the region
+        np.testing.assert_allclose(p.path.q[0, 1:], req.start, atol=1e-9)
+        np.testing.assert_allclose(p.path.q[-1, 1:], req.goal, atol=1e-9)
+        assert np.all(p.path.q[:, 1:n] > 0) and np.all(p.path.q[:, 1:n] < math.pi / 2)
+        # b0 is dphi / T (NOTES §4)
+        assert p.b0 == pytest.approx(p.phi_change / req.duration)
+
+
+def test_plan_json_is_finite_and_complete():
+    p = plan(PlanRequest(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])),
+                         samples=51))
+    d = p.to_dict()
+    assert d["status"] == "success" and d["method"] in ("polynomial", "penalty")
+    assert len(d["path"]["t"]) == 51 and len(d["path"]["q"][0]) == 4
+    import json
+    json.dumps(d, allow_nan=False)
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    (dict(start=(0.1, 0.2), goal=(0.3, 0.4)), "start"),
+    (dict(start=(0.1, 0.2, float("nan")), goal=(0.3, 0.4, 0.5)), "start[2]"),
+    (dict(start=(0.1, 0.2, 0.3), goal=(0.3, float("inf"), 0.5)), "goal[1]"),
+    (dict(start=(-0.1, 0.2, 0.3), goal=(0.3, 0.4, 0.5)), "start[0]"),
+    (dict(start=(0.1, 0.2, 0.3), goal=(0.3, 1.6, 0.5)), "goal[1]"),
+    (dict(start=(0.1, 0.2, 0.3), goal=(0.3, 0.4, 0.5), phi_change=0.0, method="polynomial"),
+     "phi_change"),
+    (dict(start=(0.1, 0.2, 0.3), goal=(0.3, 0.4, 0.5), samples=10 ** 6), "samples"),
+    (dict(start=(0.1, 0.2, 0.3), goal=(0.3, 0.4, 0.5), duration=-1.0), "duration"),
+    (dict(start=(0.1, 0.2, 0.3), goal=(0.3, 0.4, 0.5), method="magic"), "method"),
+    (dict(start=(0.1, 0.2, 0.3), goal=(0.3, 0.4, 0.5), time_limit=0.0), "time_limit"),
+])
+def test_bad_input_raises_typed_error_naming_the_field(kwargs, field):
+    with pytest.raises(InvalidRequestError) as exc:
+        plan(PlanRequest(**kwargs))
+    assert exc.value.field == field
+    assert exc.value.message
+
+
+def test_opposite_joint_motions_are_infeasible_for_the_polynomial_family():
+    with pytest.raises(InfeasibleError) as exc:
+        plan(PlanRequest(start=tuple(D([10, 20, 30])), goal=tuple(D([40, 25, 15])),
+                         method="polynomial"))
+    assert "opposite directions" in exc.value.message
+    assert exc.value.diagnostics["blocking"] == "opposite_joint_motion"
+
+
+def test_fixed_phi_change_outside_interval_is_infeasible_with_crossing_time():
+    with pytest.raises(InfeasibleError) as exc:
+        plan(PlanRequest(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])),
+                         method="polynomial", phi_change=float(D(37.5))))
+    assert exc.value.diagnostics["margin"] < 0
+    assert 0 <= exc.value.diagnostics["first_crossing_tau"] <= 1
+
+
+def test_no_interval_in_bounds_is_infeasible():
+    with pytest.raises(InfeasibleError) as exc:
+        plan(PlanRequest(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])),
+                         method="polynomial", phi_change_bounds=(D(10.0), D(30.0))))
+    assert exc.value.diagnostics["blocking"] == "no_feasible_phi_change"
+
+
+def test_actuator_limits_give_shortest_duration():
+    """The path depends on dphi only: with rate limits the plan is the unit-time plan slowed
+    down just enough; the returned rates touch a limit and never exceed it."""
+    base = dict(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])), method="polynomial")
+    p1 = plan(PlanRequest(**base))
+    u_peak = np.abs(p1.path.u).max(axis=0)
+    lim = (0.2, 0.5)
+    p = plan(PlanRequest(**base, max_u1=lim[0], max_u2=lim[1], samples=2001))
+    assert p.phi_change == pytest.approx(p1.phi_change, abs=1e-9)
+    assert p.duration == pytest.approx(max(u_peak[0] / lim[0], u_peak[1] / lim[1]), rel=1e-3)
+    peak = np.abs(p.path.u).max(axis=0)
+    assert np.all(peak <= np.array(lim) * (1 + 1e-6))
+    assert np.any(peak >= np.array(lim) * (1 - 1e-3))
+    with pytest.raises(InfeasibleError) as exc:
+        plan(PlanRequest(**base, max_u1=lim[0], max_u2=lim[1], duration=0.5 * p.duration))
+    assert exc.value.diagnostics["shortest_duration"] == pytest.approx(p.duration, rel=1e-2)
+
+
+def test_joint_bounds_are_respected():
+    base = dict(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])), method="polynomial")
+    free = plan(PlanRequest(**base))
+    lo1 = float(np.min(free.path.q[:, 1])) + D(0.5)
+    p = plan(PlanRequest(**base, joint_bounds=((lo1 - D(1.0), D(60.0)), None, None)))
+    assert np.all(p.path.q[:, 1] >= lo1 - D(1.0))
+    with pytest.raises(InvalidRequestError):
+        PlanRequest(**base, joint_bounds=((-0.1, 1.0), None, None))
+
+
+def test_time_limit_is_checked():
+    with pytest.raises(SolverTimeoutError):
+        plan(PlanRequest(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])),
+                         method="polynomial", time_limit=1e-4))
