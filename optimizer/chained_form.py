@@ -180,8 +180,8 @@ class ChainedForm:
             if self.backend == "closed":
                 a, b = _closed_ab(self.robot, k, q[idx])
             else:
-                a = np.asarray(self._sym.a[k](q[idx].T)).ravel()
-                b = np.asarray(self._sym.b[k](q[idx].T)).ravel()
+                ab = np.asarray(self._sym.ab[k](q[idx].T))
+                a, b = ab[0], ab[1]
             with np.errstate(divide="ignore", invalid="ignore"):
                 wk = (zz[idx, k - 1] - b) / a
             good = np.isfinite(wk) & (wk > W_TOL) & (wk < 1.0 - W_TOL)
@@ -283,6 +283,9 @@ class SymbolicChainedForm:
         self.beta = ca.Function("lie_g2_z2", [q], [self.beta_expr])
         self.a = {k: ca.Function(f"a{k}", [q], [a_expr[k]]) for k in a_expr}
         self.b = {k: ca.Function(f"b{k}", [q], [b_expr[k]]) for k in b_expr}
+        # one call per level in the numeric inverse (the call overhead dominates)
+        self.ab = {k: ca.Function(f"ab{k}", [q], [ca.vertcat(a_expr[k], b_expr[k])])
+                   for k in a_expr}
         self.gains = gains
         self.exponents = exponents
 

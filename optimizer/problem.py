@@ -190,6 +190,10 @@ class PlanRequest:
         if "start" not in d or "goal" not in d:
             raise InvalidRequestError("start and goal are required", field="start")
         rob = d.pop("robot", None)
+        n_start = len(d["start"]) if isinstance(d["start"], (list, tuple)) else -1
+        if not 3 <= n_start <= 8 and (rob is None or not dict(rob).get("gains")):
+            raise InvalidRequestError(f"start has {n_start} joint angles: the number of joints "
+                                      "must lie in [3, 8]", field="start")
         if rob is None:
             d["robot"] = Robot.default(len(d["start"])) if len(d["start"]) != 3 else Robot()
         elif isinstance(rob, Robot):
