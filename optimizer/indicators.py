@@ -89,6 +89,15 @@ def count_reversals(x: np.ndarray, dead_band: float = REVERSAL_DEAD_BAND) -> int
     x = np.asarray(x, float)
     if x.size < 3:
         return 0
+    # Between local extrema the signal is monotone, so the hysteresis below only needs the
+    # turning points (found vectorised) and the ends.
+    d = np.diff(x)
+    nz = np.nonzero(d)[0]
+    if nz.size == 0:
+        return 0
+    sg = np.sign(d[nz])
+    turns = nz[1:][sg[1:] != sg[:-1]]
+    x = np.concatenate([[x[0]], x[turns], [x[-1]]])
     direction = 0
     ext = x[0]
     count = 0

@@ -17,7 +17,7 @@ from ..indicators import count_reversals, line_deviation, sensitivity_frobenius
 from ..model import Robot
 from ..region import PathCheck, Region
 from ..steering import (MAX_CONDITION, MIN_ABS_DPHI, ChainedPath, ConstraintPoint, InputSchedule,
-                        affine_basis_batch, solve_polynomial, steering_system)
+                        affine_basis_batch, solve_polynomial)
 from ..errors import SingularSystemError
 
 #: Normalised-time samples used to evaluate indicators inside searches.
@@ -93,21 +93,23 @@ class PolynomialFamily:
             return -np.pi
         return float(m) if np.isfinite(m) else -np.pi
 
-    def batch_z(self, dphis: np.ndarray, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Chained states of many members at once: ``z`` of shape (D, G, n+1) and a mask of
-        members whose steering system is regular (eq 10-11 solved as a stack)."""
+    def batch_z(self, dphis: np.ndarray, taus: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Chained states of many members at once: ``z`` of shape (D, G, n+1), a mask of
+        members whose steering system is regular (eq 10-11 solved as a stack), and the ``V2``
+        coefficients (D, p)."""
         dphis = np.asarray(dphis, float)
         n, p = self.n, self.n + len(self.points)
         ok = np.abs(dphis) >= MIN_ABS_DPHI
         d = np.where(ok, dphis, 1.0)
-        # steering systems for all members (the rows are powers of dphi times constants)
-        Ms, rs = [], []
-        for x in d:
-            M, r = steering_system(float(x), n, self.z0, self.zT, p, self.points, self.duration)
-            Ms.append(M)
-            rs.append(r)
-        M = np.array(Ms)
-        r = np.array(rs)
+        # steering systems (eq 11) of all members at once: terminal rows, then constraint rows
+        t_rows = np.array([1.0] + [cp.time / self.duration for cp in self.points])
+        free_r, basis_r = affine_basis_batch(d, n, self.z0, p, t_rows)
+        M = np.concatenate([basis_r[:, 0]] + [basis_r[:, 1 + j, cp.state - 2][:, None, :]
+                                              for j, cp in enumerate(self.points)], axis=1)
+        r = np.concatenate([self.zT[None, 1:] - free_r[:, 0]]
+                           + [cp.value - free_r[:, 1 + j, cp.state - 2][:, None]
+                              for j, cp in enumerate(self.points)], axis=1)
         scale = np.linalg.norm(M, axis=1, keepdims=True)
         scale[scale == 0.0] = 1.0
         Mscaled = M / scale
@@ -119,13 +121,13 @@ class PolynomialFamily:
         z = np.empty((d.size, taus.size, n + 1))
         z[:, :, 0] = self.z0[0] + d[:, None] * taus[None, :]
         z[:, :, 1:] = free + np.einsum("dgki,di->dgk", basis, a)
-        return z, ok
+        return z, ok, a
 
     def coarse_margins(self, dphis: np.ndarray, grid: int = 97) -> np.ndarray:
         """Region margin on a coarse time grid for many ``dphi`` at once (an upper bound of the
         continuous margin; used only to find brackets, never as the answer)."""
         taus = np.linspace(0.0, 1.0, grid)
-        z, ok = self.batch_z(dphis, taus)
+        z, ok, _ = self.batch_z(dphis, taus)
         h = self.region.signed_margin_z(z.reshape(-1, self.n + 1)).reshape(dphis.size, grid)
         return np.where(ok, h.min(axis=1), -np.pi)
 
@@ -154,3 +156,37 @@ class PolynomialFamily:
         energy = float(np.trapezoid(np.sum(U * U, axis=1), self.tau * self.duration))
         sens = float(sensitivity_frobenius(dphi, self.n))
         return MemberEval(dphi, True, chk.margin, t_p, d_a, sens, energy)
+
+    def screen(self, dphis: np.ndarray) -> list[MemberEval]:
+        """Indicators of many members on the search samples, vectorised; ``ok`` here means
+        valid at the samples only (the continuous check is :meth:`evaluate`'s)."""
+        dphis = np.asarray(dphis, float)
+        if dphis.size == 0:
+            return []
+        inf = float("inf")
+        G = self.tau.size
+        z, regular, a = self.batch_z(dphis, self.tau)
+        flat = z.reshape(-1, self.n + 1)
+        inv = self.cf.from_chained(flat)
+        valid = inv.valid.reshape(dphis.size, G).all(axis=1) & regular
+        marg = self.full.margin_q(inv.q).reshape(dphis.size, G).min(axis=1)
+        if self.region is not self.full:
+            marg = np.minimum(marg, -z[:, :, 1].max(axis=1))
+        q = inv.q.reshape(dphis.size, G, self.n + 1)
+        th1 = q[:, :, 1]
+        dev = th1 - (th1[:, :1] + self.tau[None, :] * (th1[:, -1:] - th1[:, :1]))
+        d_a = np.abs(dev).max(axis=1)
+        V2 = np.polynomial.polynomial.polyval(self.tau, a.T)          # (D, G)
+        V = np.stack([np.broadcast_to(dphis[:, None], V2.shape), V2], axis=-1)
+        U = self.cf.u_from_v(inv.q, V.reshape(-1, 2)).reshape(dphis.size, G, 2) / self.duration
+        with np.errstate(invalid="ignore", over="ignore"):
+            energy = np.trapezoid(np.sum(U * U, axis=2), self.tau * self.duration, axis=1)
+        out = []
+        for i, d in enumerate(dphis):
+            if not (valid[i] and marg[i] > 0):
+                out.append(MemberEval(float(d), False, float(marg[i]), 10 ** 6, inf, inf, inf))
+                continue
+            out.append(MemberEval(float(d), True, float(marg[i]), count_reversals(th1[i]),
+                                  float(d_a[i]), float(sensitivity_frobenius(d, self.n)),
+                                  float(energy[i])))
+        return out

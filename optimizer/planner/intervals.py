@@ -6,12 +6,14 @@ the feasible set is ``{F > 0}``. It is found in three steps:
 1. a scan of ``F`` on a grid of ``dphi`` (coarse time grid, vectorised), giving brackets;
 2. every sign change of ``F`` between grid nodes is refined with Brent's method on the exact
    (continuous-path) margin, to ``xtol`` = 1e-10 rad;
-3. every grid local maximum of ``F`` that is not positive is refined by bounded scalar
+3. every grid local maximum of ``F`` that is not positive, and that could reach 0 between
+   the nodes (node value + 3 x the steeper neighbouring rise > 0), is refined by bounded scalar
    maximisation of the exact margin between its neighbours; a positive maximum is a window the
    grid missed, whose two ends are then refined like step 2.
 
 Narrow windows: a window of any width is found as long as ``F`` is unimodal between three
-adjacent grid nodes around it (its peak then shows as a grid local maximum, step 3). The grid
+adjacent grid nodes around it (its peak then shows as a grid local maximum, step 3) and does not
+rise above the peak node by more than three times the steeper neighbouring rise. The grid
 step is 0.25 deg; the tests include 4-joint goals feasible only in windows of hundredths of a
 degree.
 
@@ -32,6 +34,7 @@ from .family import PolynomialFamily
 GRID_STEP = math.radians(0.25)
 HALF_PI = 0.5 * math.pi
 XTOL = 1e-10
+LIPSCHITZ_SAFETY = 3.0
 
 
 def _grid(lo: float, hi: float) -> np.ndarray:
@@ -73,26 +76,40 @@ def feasible_intervals(family: PolynomialFamily, lo: float, hi: float
             exact[d] = family.margin(d)
         return exact[d]
 
+    def G(d: float) -> float:
+        # same sign as F; the angle margin behaves like sqrt(distance) at the boundary, its
+        # signed square like the distance itself, where Brent's method converges fast
+        f = F(d)
+        return f * abs(f)
+
     # Candidate nodes: exact margin at nodes that are coarse-positive or next to them, and at
     # coarse local maxima (the coarse margin is an upper bound of the exact one).
     N = grid.size
     cand = set()
+    peaks = set()
     for i in range(N):
         if coarse[i] > 0:
             cand.update({max(i - 1, 0), i, min(i + 1, N - 1)})
         left = coarse[i - 1] if i > 0 else -np.inf
         right = coarse[i + 1] if i < N - 1 else -np.inf
         if coarse[i] >= left and coarse[i] >= right and coarse[i] > -HALF_PI:
-            cand.add(i)
+            # A peak between nodes can rise above the node by about the local slope times the
+            # step; with a safety factor of 3 on the steeper neighbouring slope, a local maximum
+            # that cannot reach 0 is not refined.
+            rise = max(coarse[i] - left if np.isfinite(left) else 0.0,
+                       coarse[i] - right if np.isfinite(right) else 0.0)
+            if coarse[i] + LIPSCHITZ_SAFETY * rise > 0.0:
+                cand.add(i)
+                peaks.add(i)
     sign = np.full(N, False)
     for i in sorted(cand):
         sign[i] = F(grid[i]) > 0.0
 
     # Step 3: local maxima of the exact margin at candidate nodes that are not positive.
     extra_windows: list[tuple[float, float]] = []
-    for i in sorted(cand):
-        if sign[i]:
-            continue
+    for i in sorted(peaks):
+        if sign[i] or (i > 0 and sign[i - 1]) or (i < N - 1 and sign[i + 1]):
+            continue  # next to a positive node: step 2 refines that run's ends
         a = grid[max(i - 1, 0)]
         b = grid[min(i + 1, N - 1)]
         if a < 0.0 < b:
@@ -101,8 +118,8 @@ def feasible_intervals(family: PolynomialFamily, lo: float, hi: float
                               options={"xatol": 1e-9, "maxiter": 100})
         if -res.fun > 0.0:
             peak = float(res.x)
-            left = brentq(F, a, peak, xtol=XTOL) if F(a) <= 0.0 else a
-            right = brentq(F, peak, b, xtol=XTOL) if F(b) <= 0.0 else b
+            left = brentq(G, a, peak, xtol=XTOL) if F(a) <= 0.0 else a
+            right = brentq(G, peak, b, xtol=XTOL) if F(b) <= 0.0 else b
             extra_windows.append((float(left), float(right)))
 
     # Step 2: runs of positive nodes, ends refined between the node and its neighbour.
@@ -117,10 +134,10 @@ def feasible_intervals(family: PolynomialFamily, lo: float, hi: float
             j += 1
         a = grid[i]
         if i > 0 and not (grid[i - 1] < 0.0 < grid[i]):
-            a = float(brentq(F, grid[i - 1], grid[i], xtol=XTOL))
+            a = float(brentq(G, grid[i - 1], grid[i], xtol=XTOL))
         b = grid[j]
         if j < N - 1 and not (grid[j] < 0.0 < grid[j + 1]):
-            b = float(brentq(F, grid[j], grid[j + 1], xtol=XTOL))
+            b = float(brentq(G, grid[j], grid[j + 1], xtol=XTOL))
         intervals.append((float(a), float(b)))
         i = j + 1
     intervals.extend(extra_windows)

@@ -50,11 +50,17 @@ def optimise(family: PolynomialFamily, intervals: list[tuple[float, float]], obj
         # stay a hair inside the closed interval: its ends are on the boundary (margin 0)
         eps = min(1e-7, 0.25 * (b - a))
         nodes.extend(_nodes(a + eps, b - eps).tolist())
-    evals = [family.evaluate(float(d)) for d in nodes]
+    evals = family.screen(np.array(nodes))
     feas = [(i, e) for i, e in enumerate(evals) if e.ok]
-    if not feas:
+    best_i, best = -1, None
+    # the screen is sampled: confirm the winner on the continuous path (else the next best)
+    for i, e in sorted(feas, key=lambda ie: score(ie[1])):
+        exact = family.evaluate(e.dphi)
+        if exact.ok:
+            best_i, best = i, exact
+            break
+    if best is None:
         return None
-    best_i, best = min(feas, key=lambda ie: score(ie[1]))
     tp_best = best.t_p
 
     def restricted(d: float) -> float:
