@@ -288,6 +288,15 @@ class SymbolicChainedForm:
                    for k in a_expr}
         self.gains = gains
         self.exponents = exponents
+        # u from (z, v) in one call (eq 5 inverted at q = Phi^-1(z)): the integrator's hot path
+        zs = ca.SX.sym("z", n + 1)
+        vs = ca.SX.sym("v", 2)
+        th, _ = self.inverse_expr(zs)
+        qz = ca.vertcat(zs[0], *th)
+        al = ca.substitute(self.alpha_expr, q, qz)
+        be = ca.substitute(self.beta_expr, q, qz)
+        self.u_from_zv = ca.Function("u_from_zv", [zs, vs],
+                                     [ca.vertcat(vs[0], (vs[1] - al * vs[0]) / be)])
 
     def inverse_expr(self, z: ca.MX | ca.SX) -> tuple[list, list]:
         """Symbolic inverse map for NLPs: ``(th, w)`` with ``th[i-1] = theta_i`` and

@@ -149,6 +149,12 @@ class PlannedInputs:
         self.cf = transform
         self.path = path
         self.T = path.inputs.duration
+        inp = path.inputs
+        # highest power first, for Horner's rule in u_scalar
+        self._z_rev = [arr[:, ::-1].T.copy() for arr in path.polys]
+        self._v_rev = [(inp.v1[s][::-1].copy(), inp.v2[s][::-1].copy()) for s in range(inp.pieces)]
+        self._breaks = inp.breaks
+        self._u_fn = transform.symbolic.u_from_zv
 
     def q(self, t: np.ndarray) -> np.ndarray:
         inv = self.cf.from_chained(self.path.z(np.asarray(t, float) / self.T))
@@ -162,7 +168,27 @@ class PlannedInputs:
         return self.cf.u_from_v(self.q(t), self.v(t))
 
     def u_scalar(self, t: float, _q: np.ndarray | None = None) -> np.ndarray:
-        return self.u(np.array([t]))[0]
+        """``u(t)`` for one time: the same mathematics as :meth:`u` (exact polynomial z and v,
+        the inverse map and eq 5), evaluated without batching overhead for the integrator."""
+        tau = t / self.T
+        s = int(np.searchsorted(self._breaks, tau, side="right")) - 1
+        s = min(max(s, 0), len(self._z_rev) - 1)
+        x = tau - self._breaks[s]
+        zc = self._z_rev[s]
+        z = zc[0].copy()
+        for row in zc[1:]:
+            z = z * x + row
+        c1, c2 = self._v_rev[s]
+        v1 = 0.0
+        for c in c1:
+            v1 = v1 * x + c
+        v2 = 0.0
+        for c in c2:
+            v2 = v2 * x + c
+        u = np.asarray(self._u_fn(z, np.array([v1, v2]))).ravel() / self.T
+        if not np.all(np.isfinite(u)):
+            raise FloatingPointError(f"the planned path is singular at t = {t:.6g} s")
+        return u
 
 
 def verify_plan(robot: Robot, inputs: PlannedInputs, q_start: np.ndarray, q_goal_th: np.ndarray,
