@@ -178,8 +178,9 @@ class PolynomialFamily:
         d_a = np.abs(dev).max(axis=1)
         V2 = np.polynomial.polynomial.polyval(self.tau, a.T)          # (D, G)
         V = np.stack([np.broadcast_to(dphis[:, None], V2.shape), V2], axis=-1)
-        U = self.cf.u_from_v(inv.q, V.reshape(-1, 2)).reshape(dphis.size, G, 2) / self.duration
-        with np.errstate(invalid="ignore", over="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            # invalid members' rows are garbage (q = 0 there) and are discarded below
+            U = self.cf.u_from_v(inv.q, V.reshape(-1, 2)).reshape(dphis.size, G, 2) / self.duration
             energy = np.trapezoid(np.sum(U * U, axis=2), self.tau * self.duration, axis=1)
         out = []
         for i, d in enumerate(dphis):
