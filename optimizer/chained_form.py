@@ -253,7 +253,7 @@ class SymbolicChainedForm:
     def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...]) -> None:
         n = len(gains) + 1
         q = ca.SX.sym("q", n + 1)
-        th = [None] + [q[i] for i in range(1, n + 1)]  # th[i] = theta_i (1-based)
+        th: list[ca.SX] = [q[0]] + [q[i] for i in range(1, n + 1)]  # th[i] = theta_i, i >= 1
 
         def g1_entry(j: int) -> ca.SX:  # d th_j / d u1 for j >= 2
             return gains[j - 2] * ca.cos(th[j - 1]) ** exponents[j - 2]
@@ -289,13 +289,13 @@ class SymbolicChainedForm:
         self.gains = gains
         self.exponents = exponents
         # u from (z, v) in one call (eq 5 inverted at q = Phi^-1(z)): the integrator's hot path
-        zs = ca.SX.sym("z", n + 1)
+        zsym = ca.SX.sym("z", n + 1)
         vs = ca.SX.sym("v", 2)
-        th, _ = self.inverse_expr(zs)
-        qz = ca.vertcat(zs[0], *th)
+        th_z, _ = self.inverse_expr(zsym)
+        qz = ca.vertcat(zsym[0], *th_z)
         al = ca.substitute(self.alpha_expr, q, qz)
         be = ca.substitute(self.beta_expr, q, qz)
-        self.u_from_zv = ca.Function("u_from_zv", [zs, vs],
+        self.u_from_zv = ca.Function("u_from_zv", [zsym, vs],
                                      [ca.vertcat(vs[0], (vs[1] - al * vs[0]) / be)])
 
     def inverse_expr(self, z: ca.MX | ca.SX) -> tuple[list, list]:

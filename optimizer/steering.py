@@ -219,11 +219,11 @@ def affine_basis_batch(dphi: np.ndarray, n: int, z0: np.ndarray, p: int,
     for kk in range(n):  # kk = k - 2
         for ll in range(kk + 1):
             free[:, :, kk] += x ** (kk - ll) / math.factorial(kk - ll) * z0[ll + 1]
-    kk = np.arange(n)[:, None]
-    ii = np.arange(p)[None, :]
+    kcol = np.arange(n)[:, None]
+    irow = np.arange(p)[None, :]
     fact = np.vectorize(math.factorial)
-    const = fact(ii) / fact(ii + kk + 1)                   # (n, p)
-    powers = tau[:, None, None] ** (ii + kk + 1)[None]      # (N, n, p)
+    const = fact(irow) / fact(irow + kcol + 1)             # (n, p)
+    powers = tau[:, None, None] ** (irow + kcol + 1)[None]  # (N, n, p)
     dpow = dphi[:, None] ** np.arange(n)[None, :]          # (D, n)
     basis = dpow[:, None, :, None] * (const[None] * powers)[None]
     return free, basis
@@ -312,6 +312,4 @@ def solve_polynomial(dphi: float, n: int, z0: np.ndarray, zT: np.ndarray, durati
             field="constraint_points" if points else "phi_change",
             diagnostics={"condition_number": float(cond) if np.isfinite(cond) else None})
     a = np.linalg.solve(Ms, r) / scale
-    v1 = np.zeros(1)
-    v1[0] = dphi
-    return InputSchedule.single(v1, a, duration)
+    return InputSchedule.single([float(dphi)], a.tolist(), duration)

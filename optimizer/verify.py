@@ -87,8 +87,8 @@ class Verification:
     atol: float
 
 
-def _singular_events(n: int) -> list[Callable[[float, np.ndarray], float]]:
-    events = []
+def _singular_events(n: int) -> list[Callable[..., float]]:
+    events: list[Callable[..., float]] = []
     for i in range(1, n):
         def lo(t: float, q: np.ndarray, i: int = i) -> float:
             return float(q[i])
