@@ -69,7 +69,11 @@ Choice of ``dphi``
 ``req.phi_change`` when given. Otherwise a scan inside the request's bounds cut to the motion's
 sign and to the open interval that a constant ``v1`` needs (:func:`necessary_dphi_range`: each
 th_i, i >= 2, moves monotonically with ``|th_i'| = K_i cos(th_{i-1})^m_i |u1|`` and th_{i-1}
-between its start and goal values for i >= 3); at most :data:`MAX_SCAN_NODES` interior nodes;
+between its start and goal values for i >= 3); :data:`MIN_SCAN_NODES` to :data:`MAX_SCAN_NODES`
+uniform interior nodes, plus three nodes inside each singularity-free interval of the paper's
+family (:func:`family_intervals`; they are part of the QP's feasible set, and for n >= 4 can be
+hundredths of a degree wide, too narrow for any uniform scan), so the method succeeds whenever
+the paper's does;
 each feasible node is ranked by the request's objective rule on its cheap indicators (t_p, d_a,
 |dphi|, energy, computed as finish_plan does), then the best is refined by bounded Brent
 minimisation between its neighbours (bisection toward the smallest ``|dphi|`` for
@@ -134,7 +138,8 @@ from ..region import PathCheck, Region
 from ..results import Plan
 from ..steering import (MIN_ABS_DPHI, ChainedPath, ConstraintPoint, InputSchedule, affine_basis,
                         solve_polynomial)
-from .family import SEARCH_SAMPLES
+from .family import SEARCH_SAMPLES, PolynomialFamily
+from .intervals import feasible_intervals
 from .plan import Deadline, direction_conflict, finish_plan, make_region, phi_search_bounds
 
 #: Extra V2 coefficients tried in turn until some dphi is feasible (the paper's m).
@@ -157,8 +162,9 @@ SIGN_FRACTION = 0.1
 MARGIN_KEEP = 0.9
 #: Relative shortfall of the angle margin tolerated without another cut round.
 MARGIN_SLACK = 0.1
-#: Scan spacing of dphi and the largest number of scan nodes.
-SCAN_STEP = math.radians(1.0)
+#: Scan spacing of dphi and the smallest and largest number of uniform scan nodes.
+SCAN_STEP = math.radians(0.5)
+MIN_SCAN_NODES = 8
 MAX_SCAN_NODES = 40
 #: Refinement of the best dphi node (rad) and its evaluation budget.
 REFINE_XATOL = 1e-5
@@ -949,6 +955,7 @@ def plan_constraint_points(req: PlanRequest, deadline: Deadline) -> Plan:
             diagnostics={"blocking": "no_feasible_phi_change", **necessary})
 
     attempts: list[dict[str, Any]] = []
+    seeds: list[tuple[float, float]] | None = None
     chosen: Synthesis | None = None
     qp: ConstraintPointQP | None = None
     scanned: dict[str, Any] = {}
@@ -962,7 +969,11 @@ def plan_constraint_points(req: PlanRequest, deadline: Deadline) -> Plan:
                 chosen = s
                 break
             continue
-        chosen, scanned = _search(qp, req, lo, hi, deadline)
+        if seeds is None:
+            t_fam = time.perf_counter()
+            seeds = family_intervals(req, lo, hi)
+            timing["family_intervals"] = time.perf_counter() - t_fam
+        chosen, scanned = _search(qp, req, lo, hi, deadline, seeds)
         attempts.append({"extra_degrees": m, "searched": [lo, hi], **scanned})
         if chosen is not None:
             break
@@ -984,16 +995,37 @@ def plan_constraint_points(req: PlanRequest, deadline: Deadline) -> Plan:
     assert chosen.inputs is not None
     diag = {"objective": req.objective, "singularity": req.singularity,
             "constraint_points": _report(qp, chosen, scanned, attempts)}
-    return finish_plan(req, chosen.inputs, "constraint_points", [], timing, diag)
+    return finish_plan(req, chosen.inputs, "constraint_points", list(seeds or []), timing, diag)
+
+
+def family_intervals(req: PlanRequest, lo: float, hi: float) -> list[tuple[float, float]]:
+    """The paper's family's singularity-free ``dphi`` intervals in [lo, hi] (full region).
+
+    Where the family is feasible so is the QP (its member is then the QP's optimum), so these
+    windows, which can be hundredths of a degree wide for n >= 4, seed the scan.
+    """
+    fam = PolynomialFamily(req.robot, req.q_start(), req.q_goal(0.0), req.duration_or_default,
+                           req.constraint_points, make_region(req, "full"))
+    try:
+        return feasible_intervals(fam, lo, hi)
+    except SingularSystemError:
+        return []
 
 
 def _search(qp: ConstraintPointQP, req: PlanRequest, lo: float, hi: float,
-            deadline: Deadline) -> tuple[Synthesis | None, dict[str, Any]]:
-    """Scan ``dphi`` in (lo, hi), keep the best feasible node by the request's rule, refine."""
-    k = int(min(MAX_SCAN_NODES, max(3, math.ceil((hi - lo) / SCAN_STEP) - 1)))
+            deadline: Deadline, seeds: Sequence[tuple[float, float]] = ()
+            ) -> tuple[Synthesis | None, dict[str, Any]]:
+    """Scan ``dphi`` in (lo, hi), keep the best feasible node by the request's rule, refine.
+
+    ``seeds`` are intervals known to be feasible (the paper's family): three nodes inside each
+    join the uniform ones, so that narrow windows are never missed.
+    """
+    k = int(min(MAX_SCAN_NODES, max(MIN_SCAN_NODES, math.ceil((hi - lo) / SCAN_STEP) - 1)))
     # interior nodes: the ends are the necessary bounds (infeasible) or the request's bounds
-    full = np.linspace(lo, hi, k + 2)
+    extra = [a + f * (b - a) for a, b in seeds for f in (0.25, 0.5, 0.75) if b > a]
+    full = np.unique(np.concatenate([np.linspace(lo, hi, k + 2), np.array(extra, float)]))
     nodes = full[1:-1]
+    k = int(nodes.size)
     evals: list[Synthesis] = []
     for d in nodes:
         deadline.check("the constraint-point dphi scan")
