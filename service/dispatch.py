@@ -1,0 +1,117 @@
+"""The routers' one way to the workers: validate, run a job, map every outcome to HTTP.
+
+A job's outcome becomes either its JSON-safe result or a :class:`ServiceProblem`:
+
+==============================  ===========================================================
+pool / worker outcome           problem
+==============================  ===========================================================
+``Overloaded``                  503 ``overloaded`` with ``Retry-After``
+``JobTimeout`` (worker killed)  504 ``timeout``
+``WorkerLost``                  422 ``numerical_failure``
+library ``PlannerError``        its own code (``invalid_request``, ``infeasible``,
+                                ``timeout``, ``numerical_failure``)
+==============================  ===========================================================
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable, TypeVar
+
+from fastapi import Request
+
+from optimizer.errors import PlannerError
+from optimizer.problem import PlanRequest
+
+from .jobs import robot_from
+from .problems import ServiceProblem
+from .settings import Settings
+from .workers import JobTimeout, Overloaded, WorkerLost, WorkerPool
+
+T = TypeVar("T")
+
+
+def request_id(request: Request) -> str | None:
+    """The request's id (set by the middleware)."""
+    return getattr(request.state, "request_id", None)
+
+
+def library_check(build: Callable[..., T], *args: Any, prefix: str = "") -> T:
+    """Run one of the library's cheap constructors/validators here, before queueing.
+
+    ``PlanRequest.from_dict`` and ``Robot`` validate the request as the workers will; a
+    failure is answered at once without occupying a worker. ``prefix`` is put before the
+    error's field (``plan.``, ``requests[3].``).
+    """
+    try:
+        return build(*args)
+    except PlannerError as exc:
+        field = exc.field
+        if prefix:
+            field = prefix + field if field else prefix.rstrip(".")
+        raise ServiceProblem("invalid_request", exc.message, field=field,
+                             diagnostics=exc.diagnostics) from None
+
+
+def check_plan(payload: dict[str, Any], prefix: str = "") -> None:
+    """Validate a plan-request dict with :meth:`optimizer.problem.PlanRequest.from_dict`."""
+    library_check(PlanRequest.from_dict, payload, prefix=prefix)
+
+
+def check_robot(spec: dict[str, Any] | None, n: int) -> None:
+    """Validate a robot spec for ``n`` joints with :class:`optimizer.model.Robot`."""
+    library_check(robot_from, spec, n)
+
+
+async def run_job(request: Request, kind: str, payload: dict[str, Any], time_limit: float, *,
+                  method: str, admit: bool = True) -> dict[str, Any]:
+    """Run ``kind`` on a worker with ``time_limit`` (+ grace) and return its result dict.
+
+    Parameters
+    ----------
+    request : Request
+    kind : str
+        ``plan``, ``sweep``, ``transform`` or ``robustness``.
+    payload : dict
+    time_limit : float
+        The job's own limit (s); the worker is killed ``timeout_grace`` s after it.
+    method : str
+        Label of the solve metric (the requested method, or the job kind).
+    admit : bool
+        Apply the queue bound (False for items of an admitted batch).
+
+    Raises
+    ------
+    ServiceProblem
+    """
+    pool: WorkerPool = request.app.state.pool
+    settings: Settings = request.app.state.settings
+    metrics = request.app.state.metrics
+    started = time.perf_counter()
+    try:
+        outcome = await pool.run(kind, payload, time_limit + settings.timeout_grace, admit=admit)
+    except Overloaded as exc:
+        raise overloaded(settings, str(exc)) from None
+    except JobTimeout:
+        metrics.observe_solve(kind, method, "timeout", time.perf_counter() - started)
+        raise ServiceProblem("timeout", f"the job exceeded its time limit of {time_limit:g} s "
+                             "and was stopped", field="time_limit",
+                             diagnostics={"time_limit": time_limit}) from None
+    except WorkerLost:
+        metrics.observe_solve(kind, method, "numerical_failure", time.perf_counter() - started)
+        raise ServiceProblem("numerical_failure", "the solver process ended unexpectedly; "
+                             "it was replaced") from None
+    seconds = float(outcome.get("seconds") or (time.perf_counter() - started))
+    if outcome["ok"]:
+        metrics.observe_solve(kind, method, "success", seconds)
+        return outcome["result"]
+    problem = ServiceProblem.from_error(outcome["error"])
+    metrics.observe_solve(kind, method, problem.code, seconds)
+    raise problem
+
+
+def overloaded(settings: Settings, why: str) -> ServiceProblem:
+    """The 503 problem with ``Retry-After``."""
+    return ServiceProblem("overloaded", f"the service is busy ({why}); retry later",
+                          headers={"Retry-After": str(settings.retry_after)},
+                          diagnostics={"retry_after": settings.retry_after})

@@ -1,0 +1,135 @@
+"""What a worker process runs: thin calls into :mod:`optimizer`, plain dicts in and out.
+
+Each job takes the JSON-shaped payload the router built and returns a JSON-safe dict
+(:func:`optimizer.results.json_safe`), so nothing heavy crosses the process boundary. No
+mathematics happens here: every number comes from the planning library.
+
+Outcome of :func:`run_job`::
+
+    {"ok": True, "result": {...}}
+    {"ok": False, "error": {"code", "message", "field", "diagnostics"}}
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any, Callable
+
+from optimizer import analysis
+from optimizer.chained_form import chained_form
+from optimizer.errors import PlannerError
+from optimizer.model import Robot
+from optimizer.planner.plan import plan
+from optimizer.problem import PlanRequest
+from optimizer.results import json_safe
+
+log = logging.getLogger("service.worker")
+
+Payload = dict[str, Any]
+
+
+def warm_up() -> dict[str, Any]:
+    """Build the default robot's chained form (CasADi functions) once, in this process.
+
+    Returns
+    -------
+    dict
+        ``robot`` (n) and ``seconds`` spent.
+    """
+    t0 = time.perf_counter()
+    robot = Robot.default(3)
+    cf = chained_form(robot)
+    cf.from_chained(cf.to_chained([0.0, 0.5, 0.5, 0.5]))
+    cf.symbolic.forward([0.0, 0.5, 0.5, 0.5])
+    return {"robot": robot.n, "seconds": time.perf_counter() - t0}
+
+
+def robot_from(spec: dict[str, Any] | None, n: int) -> Robot:
+    """The robot of a request: the given gains/exponents, else ``Robot.default(n)``.
+
+    Same rule as :meth:`optimizer.problem.PlanRequest.from_dict`.
+    """
+    if not spec or (spec.get("gains") is None and spec.get("exponents") is None):
+        return Robot.default(n)
+    return Robot(tuple(spec.get("gains") or ()), tuple(spec.get("exponents") or ()))
+
+
+def job_plan(payload: Payload) -> dict[str, Any]:
+    """``POST /v1/plans``: payload is the plan-request dict."""
+    return plan(PlanRequest.from_dict(payload)).to_dict()
+
+
+def job_sweep(payload: Payload) -> dict[str, Any]:
+    """``POST /v1/sweeps``: ``request`` (plan-request dict), ``lo``, ``hi``, ``points``,
+    ``intervals``."""
+    req = PlanRequest.from_dict(payload["request"])
+    out = analysis.sweep(req, float(payload["lo"]), float(payload["hi"]), int(payload["points"]),
+                         intervals=bool(payload.get("intervals", True)))
+    out["robot"] = req.robot.as_dict()
+    return out
+
+
+def job_transform(payload: Payload) -> dict[str, Any]:
+    """``POST /v1/transforms``: ``robot`` (or None), ``direction``, ``points`` (rows)."""
+    points = payload["points"]
+    robot = robot_from(payload.get("robot"), len(points[0]) - 1)
+    rows = analysis.transform(robot, payload["direction"], points)
+    return {
+        "direction": payload["direction"],
+        "robot": robot.as_dict(),
+        "points": [{"values": p.values, "valid": p.valid, "reason": p.reason} for p in rows],
+    }
+
+
+def job_robustness(payload: Payload) -> dict[str, Any]:
+    """``POST /v1/robustness``: plan, then replay it open loop from perturbed starts.
+
+    Payload: ``plan`` (plan-request dict), ``starts`` (rows) or ``random`` (``count``,
+    ``spread``, ``seed``), ``replay`` (``u`` or ``v``), ``include_paths``.
+    """
+    req = PlanRequest.from_dict(payload["plan"])
+    nominal = plan(req)
+    starts = payload.get("starts")
+    if starts is None:
+        rnd = payload["random"]
+        starts = analysis.perturbed_starts(req.start, int(rnd["count"]), float(rnd["spread"]),
+                                           int(rnd["seed"]))
+    out = analysis.robustness(nominal, starts, payload["replay"], req.goal)
+    if not payload.get("include_paths"):
+        for run in out["runs"]:
+            run.pop("path_q", None)
+    out["phi_change"] = nominal.phi_change
+    out["method"] = nominal.method
+    return out
+
+
+JOBS: dict[str, Callable[[Payload], dict[str, Any]]] = {
+    "plan": job_plan,
+    "sweep": job_sweep,
+    "transform": job_transform,
+    "robustness": job_robustness,
+}
+
+
+def run_job(kind: str, payload: Payload) -> dict[str, Any]:
+    """Run one job and report its outcome as a plain dict (never raises).
+
+    A :class:`optimizer.errors.PlannerError` becomes its ``code``/``message``/``field``/
+    ``diagnostics``; any other exception (a library bug, a missing module) is logged here with
+    its traceback and reported as ``numerical_failure`` without internal details.
+    """
+    t0 = time.perf_counter()
+    try:
+        result = JOBS[kind](payload)
+        return {"ok": True, "result": json_safe(result), "seconds": time.perf_counter() - t0}
+    except PlannerError as exc:
+        return {"ok": False, "seconds": time.perf_counter() - t0, "error": {
+            "code": exc.code, "message": exc.message, "field": exc.field,
+            "diagnostics": json_safe(exc.diagnostics)}}
+    except Exception as exc:  # noqa: BLE001 - the worker must answer whatever happens
+        log.exception("job %s failed unexpectedly", kind)
+        return {"ok": False, "seconds": time.perf_counter() - t0, "error": {
+            "code": "numerical_failure",
+            "message": "the solver failed unexpectedly; the failure was logged",
+            "field": None, "diagnostics": {"exception": type(exc).__name__}}}

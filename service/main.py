@@ -1,0 +1,219 @@
+"""The ASGI app of the planning service: ``service.main:app`` (``python -m service`` runs it).
+
+:func:`create_app` wires settings, the worker pool (started and stopped by the lifespan), the
+routers under ``/v1``, problem-document error handlers, the request middleware (request id,
+body limit, metrics, access log), offline docs pages and the OpenAPI document.
+"""
+
+from __future__ import annotations
+
+import secrets
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any, AsyncIterator
+
+from fastapi import Depends, FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import HTMLResponse
+from fastapi.security import APIKeyHeader
+from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.responses import Response
+
+from . import __version__
+from .dispatch import request_id
+from .metrics import Metrics
+from .middleware import RequestContextMiddleware
+from .problems import PROBLEM_MEDIA_TYPE, SafeJSONResponse, ServiceProblem
+from .routers import health, plans, robots, robustness, sweeps, transforms
+from .schemas import build_schemas
+from .settings import Settings
+from .workers import WorkerPool
+
+STATIC_DIR = Path(__file__).parent / "static"
+TITLE = "Chained-form motion planner"
+DESCRIPTION = """\
+Singularity-free motion planning for an underactuated n-joint manipulator whose kinematics
+convert to chained form.
+
+* JSON bodies, snake_case fields, **radians and seconds** everywhere.
+* Failures are `application/problem+json` documents with a machine-readable `code`:
+  `invalid_request` (422; 413 for an over-large body), `infeasible` (422),
+  `numerical_failure` (422: a solver failed numerically, the path failed verification on the
+  original model, or a solver process ended unexpectedly; the service never answers 500),
+  `timeout` (504), `overloaded` (503 with `Retry-After`), `unauthorized` (401).
+* No `NaN` or `Infinity` is ever sent: undefined numbers are `null`.
+* When the server has API keys configured, `/v1` needs an `X-API-Key` header (or
+  `Authorization: Bearer <key>`).
+"""
+
+api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False,
+                              description="Needed only when the server has API keys set.")
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the service.
+
+    Parameters
+    ----------
+    settings : Settings, optional
+        Default: read from the environment (``PLANNER_*``).
+
+    Returns
+    -------
+    FastAPI
+        ``app.state`` holds ``settings``, ``metrics`` and (while the lifespan runs) ``pool``.
+    """
+    settings = settings or Settings()
+    metrics = Metrics()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        pool = WorkerPool(settings.workers, settings.queue_size,
+                          start_method=settings.start_method, warmup=settings.warmup,
+                          start_timeout=settings.worker_start_timeout,
+                          log_level=settings.log_level,
+                          on_restart=lambda reason: metrics.restarts.labels(reason).inc())
+        app.state.pool = pool
+        metrics.bind_pool(pool.stats)
+        await pool.start()
+        try:
+            yield
+        finally:
+            await pool.close()
+
+    app = FastAPI(title=TITLE, version=__version__, description=DESCRIPTION,
+                  lifespan=lifespan, docs_url=None, redoc_url=None,
+                  default_response_class=SafeJSONResponse,
+                  generate_unique_id_function=lambda route: route.name)
+    app.state.settings = settings
+    app.state.metrics = metrics
+
+    schemas = build_schemas(settings.limits)
+    guard = [Depends(_api_key_guard(settings.api_keys))]
+    for router in (plans.build_router(schemas), sweeps.build_router(schemas),
+                   transforms.build_router(schemas), robustness.build_router(schemas),
+                   robots.build_router()):
+        app.include_router(router, prefix="/v1", dependencies=guard)
+    app.include_router(health.build_router())
+    _add_docs(app)
+    _add_error_handlers(app)
+    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
+
+    if settings.cors_origins:
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
+                           allow_methods=["GET", "POST"],
+                           allow_headers=["Content-Type", "X-API-Key", "Authorization",
+                                          "X-Request-ID"],
+                           expose_headers=["X-Request-ID", "Retry-After"])
+    app.add_middleware(RequestContextMiddleware, max_body_bytes=settings.max_body_bytes,
+                       metrics=metrics, known_paths=lambda: set(app.openapi()["paths"])
+                       | {"/docs", "/redoc", "/openapi.json"})
+    return app
+
+
+# ---------------------------------------------------------------------- auth
+def _api_key_guard(keys: list[str]) -> Any:
+    """A dependency accepting any of ``keys`` (everything when ``keys`` is empty)."""
+
+    async def guard(request: Request, api_key: str | None = Depends(api_key_header)) -> None:
+        if not keys:
+            return
+        given = api_key
+        auth = request.headers.get("authorization", "")
+        if not given and auth.lower().startswith("bearer "):
+            given = auth[7:].strip()
+        if not given or not any(secrets.compare_digest(given.encode(), k.encode())
+                                for k in keys):
+            raise ServiceProblem("unauthorized", "a valid API key is required (X-API-Key "
+                                 "header or Authorization: Bearer)",
+                                 headers={"WWW-Authenticate": "Bearer"})
+
+    return guard
+
+
+# ---------------------------------------------------------------------- errors
+def _add_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ServiceProblem)
+    async def on_problem(request: Request, exc: ServiceProblem) -> Response:
+        return exc.response(request_id(request))
+
+    @app.exception_handler(RequestValidationError)
+    async def on_validation(request: Request, exc: RequestValidationError) -> Response:
+        errors = [_validation_error(e) for e in exc.errors()]
+        first = errors[0] if errors else {"field": None, "message": "invalid request"}
+        detail = "; ".join(f"{e['field']}: {e['message']}" if e["field"] else e["message"]
+                           for e in errors[:5])
+        if len(errors) > 5:
+            detail += f"; and {len(errors) - 5} more"
+        return ServiceProblem("invalid_request", detail, field=first["field"],
+                              diagnostics={"errors": errors[:50]}).response(request_id(request))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def on_http(request: Request, exc: StarletteHTTPException) -> Response:
+        code = {401: "unauthorized", 404: "not_found", 405: "method_not_allowed",
+                503: "overloaded", 504: "timeout"}.get(exc.status_code, "invalid_request")
+        detail = exc.detail if isinstance(exc.detail, str) else "invalid request"
+        return ServiceProblem(code, detail, status=exc.status_code,
+                              headers=dict(exc.headers or {})).response(request_id(request))
+
+
+def _validation_error(err: dict[str, Any]) -> dict[str, Any]:
+    """One pydantic error as ``field``/``message``/``type`` (never the offending input)."""
+    loc = [p for p in err.get("loc", ()) if p not in ("body", "query", "path", "header")]
+    field = ""
+    for part in loc:
+        if isinstance(part, int):
+            field += f"[{part}]"
+        else:
+            field += ("." if field else "") + str(part)
+    msg = str(err.get("msg", "invalid value"))
+    if err.get("type") == "extra_forbidden":
+        msg = "unknown field"
+    return {"field": field or None, "message": msg, "type": err.get("type")}
+
+
+# ---------------------------------------------------------------------- docs and OpenAPI
+def _add_docs(app: FastAPI) -> None:
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/docs", include_in_schema=False)
+    async def swagger_ui() -> HTMLResponse:
+        return get_swagger_ui_html(openapi_url="/openapi.json", title=f"{TITLE} - Swagger UI",
+                                   swagger_js_url="/static/swagger-ui/swagger-ui-bundle.js",
+                                   swagger_css_url="/static/swagger-ui/swagger-ui.css",
+                                   swagger_favicon_url="/static/favicon.png",
+                                   swagger_ui_parameters={"validatorUrl": None})
+
+    @app.get("/redoc", include_in_schema=False)
+    async def redoc() -> HTMLResponse:
+        return get_redoc_html(openapi_url="/openapi.json", title=f"{TITLE} - ReDoc",
+                              redoc_js_url="/static/redoc/redoc.standalone.js",
+                              redoc_favicon_url="/static/favicon.png", with_google_fonts=False)
+
+
+def _openapi(app: FastAPI) -> dict[str, Any]:
+    """The OpenAPI document, with error answers typed ``application/problem+json``."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    doc = get_openapi(title=app.title, version=app.version, description=app.description,
+                      routes=app.routes)
+    for operations in doc.get("paths", {}).values():
+        for op in operations.values():
+            for status, response in op.get("responses", {}).items():
+                content = response.get("content", {})
+                if status.isdigit() and int(status) >= 400 and "application/json" in content:
+                    schema = content.pop("application/json")
+                    ref = schema.get("schema", {}).get("$ref", "")
+                    if ref.endswith("/Problem"):
+                        content[PROBLEM_MEDIA_TYPE] = schema
+                    else:
+                        content["application/json"] = schema
+    app.openapi_schema = doc
+    return doc
+
+
+app = create_app()

@@ -1,0 +1,69 @@
+"""Prometheus metrics of one app instance (its own registry, so apps never collide)."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import CONTENT_TYPE_LATEST
+
+from .workers import PoolStats
+
+LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0,
+                   120.0)
+
+
+class Metrics:
+    """The service's metrics.
+
+    ``planner_http_requests_total{route,method,status}``,
+    ``planner_http_request_duration_seconds{route,method,status}``,
+    ``planner_solve_duration_seconds{job,method,outcome}`` (wall time of a job on a worker;
+    ``outcome`` is ``success`` or the problem code), ``planner_worker_restarts_total{reason}``
+    and gauges of the pool (``planner_workers{state}``, ``planner_queue_waiting``).
+    """
+
+    content_type = CONTENT_TYPE_LATEST
+
+    def __init__(self, pool_stats: Callable[[], PoolStats] | None = None) -> None:
+        self.registry = CollectorRegistry()
+        self.requests = Counter("planner_http_requests", "HTTP requests by route and status.",
+                                ["route", "method", "status"], registry=self.registry)
+        self.latency = Histogram("planner_http_request_duration_seconds",
+                                 "HTTP request latency by route and status.",
+                                 ["route", "method", "status"], buckets=LATENCY_BUCKETS,
+                                 registry=self.registry)
+        self.solve = Histogram("planner_solve_duration_seconds",
+                               "Time of a job on a worker, by job, method and outcome.",
+                               ["job", "method", "outcome"], buckets=LATENCY_BUCKETS,
+                               registry=self.registry)
+        self.restarts = Counter("planner_worker_restarts", "Worker processes replaced.",
+                                ["reason"], registry=self.registry)
+        self.workers = Gauge("planner_workers", "Worker processes by state.", ["state"],
+                             registry=self.registry)
+        self.waiting = Gauge("planner_queue_waiting", "Requests waiting for a worker.",
+                             registry=self.registry)
+        self._pool_stats = pool_stats
+
+    def bind_pool(self, pool_stats: Callable[[], PoolStats]) -> None:
+        """Read the pool gauges from ``pool_stats`` at each scrape."""
+        self._pool_stats = pool_stats
+
+    def observe_request(self, route: str, method: str, status: int, seconds: float) -> None:
+        """Count one HTTP request and its latency."""
+        labels = (route, method, str(status))
+        self.requests.labels(*labels).inc()
+        self.latency.labels(*labels).observe(seconds)
+
+    def observe_solve(self, job: str, method: str, outcome: str, seconds: float) -> None:
+        """Record one job's time on a worker."""
+        self.solve.labels(job, method, outcome).observe(seconds)
+
+    def render(self) -> bytes:
+        """The text exposition format."""
+        if self._pool_stats is not None:
+            st = self._pool_stats()
+            self.workers.labels("idle").set(st.idle)
+            self.workers.labels("busy").set(st.busy)
+            self.waiting.set(st.waiting)
+        return generate_latest(self.registry)

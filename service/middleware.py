@@ -1,0 +1,154 @@
+"""One pure-ASGI middleware for every HTTP request: request id, body-size limit, metrics, access
+log, and a last-resort guard that turns any unhandled exception into a problem document.
+
+* ``X-Request-ID``: taken from the request when it is a short token (letters, digits, ``._-``),
+  otherwise generated; echoed on the response and available as ``request.state.request_id``.
+* Body limit: a ``Content-Length`` above ``max_body_bytes`` is refused at once (413, nothing is
+  read); a body without one is read up to the limit and then refused the same way. Accepted
+  bodies are buffered (they are small) and handed on unchanged.
+* Metrics and the access log label a request by its route (``/v1/plans``): one of the app's
+  known paths, ``/static`` for docs assets, ``unmatched`` for anything else (so that scanning
+  clients cannot inflate the metrics' cardinality). Bodies are never logged.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+import uuid
+from typing import Any, Awaitable, Callable
+
+from .metrics import Metrics
+from .problems import ServiceProblem
+
+Scope = dict[str, Any]
+Message = dict[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+access_log = logging.getLogger("service.access")
+error_log = logging.getLogger("service.error")
+
+_REQUEST_ID = re.compile(r"^[A-Za-z0-9._-]{1,128}$")
+
+
+class RequestContextMiddleware:
+    """See the module docstring.
+
+    Parameters
+    ----------
+    app : ASGI app
+    max_body_bytes : int
+    metrics : Metrics
+    known_paths : callable
+        Returns the app's route paths (called once, at the first request).
+    """
+
+    def __init__(self, app: ASGIApp, *, max_body_bytes: int, metrics: Metrics,
+                 known_paths: Callable[[], set[str]]) -> None:
+        self.app = app
+        self.max_body_bytes = max_body_bytes
+        self.metrics = metrics
+        self._known_paths = known_paths
+        self._known: set[str] | None = None
+
+    def route_label(self, path: str) -> str:
+        """The metrics/log label of a request path."""
+        if self._known is None:
+            self._known = set(self._known_paths())
+        if path in self._known:
+            return path
+        if path.startswith("/static/"):
+            return "/static"
+        return "unmatched"
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1")
+                   for k, v in scope.get("headers", [])}
+        given = headers.get("x-request-id", "")
+        request_id = given if _REQUEST_ID.match(given) else uuid.uuid4().hex
+        scope.setdefault("state", {})["request_id"] = request_id
+        started = time.perf_counter()
+        status: list[int] = []
+
+        async def send_with_id(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                status.append(int(message["status"]))
+                message.setdefault("headers", [])
+                message["headers"] = list(message["headers"]) + [
+                    (b"x-request-id", request_id.encode("latin-1"))]
+            await send(message)
+
+        try:
+            body_receive = await self._checked_body(headers, receive)
+            if body_receive is None:
+                await self._problem(send_with_id, ServiceProblem(
+                    "invalid_request", f"the request body exceeds {self.max_body_bytes} bytes",
+                    status=413, diagnostics={"max_body_bytes": self.max_body_bytes}),
+                    request_id)
+            else:
+                await self.app(scope, body_receive, send_with_id)
+        except Exception:  # noqa: BLE001 - last resort: never a 500 nor a stack trace
+            error_log.exception("unhandled error", extra={"request_id": request_id})
+            if not status:
+                await self._problem(send_with_id, ServiceProblem(
+                    "numerical_failure", "the request failed unexpectedly; the failure was "
+                    "logged with this request id"), request_id)
+        finally:
+            template = self.route_label(scope.get("path", ""))
+            code = status[0] if status else 0
+            seconds = time.perf_counter() - started
+            self.metrics.observe_request(template, scope.get("method", ""), code, seconds)
+            access_log.info("%s %s %s", scope.get("method"), template, code, extra={
+                "request_id": request_id, "method": scope.get("method"),
+                "path": scope.get("path"), "route": template, "status": code,
+                "duration_ms": round(seconds * 1000.0, 3)})
+
+    async def _checked_body(self, headers: dict[str, str], receive: Receive) -> Receive | None:
+        """A receive callable replaying the (size-checked) body, or None when it is too big."""
+        length = headers.get("content-length")
+        if length is not None:
+            if not length.isdigit() or int(length) > self.max_body_bytes:
+                return None
+        chunks: list[bytes] = []
+        size = 0
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":
+                # a disconnect before the body ended: hand it on as it came
+                return _replay([message], receive)
+            chunk = message.get("body", b"")
+            size += len(chunk)
+            if size > self.max_body_bytes:
+                return None
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                break
+        return _replay([{"type": "http.request", "body": b"".join(chunks), "more_body": False}],
+                       receive)
+
+    @staticmethod
+    async def _problem(send: Send, problem: ServiceProblem, request_id: str) -> None:
+        response = problem.response(request_id)
+
+        async def no_receive() -> Message:  # pragma: no cover - responses do not read
+            return {"type": "http.disconnect"}
+
+        await response({"type": "http"}, no_receive, send)
+
+
+def _replay(messages: list[Message], receive: Receive) -> Receive:
+    """A receive callable that yields ``messages`` first, then defers to ``receive``."""
+    pending = list(messages)
+
+    async def replay() -> Message:
+        if pending:
+            return pending.pop(0)
+        return await receive()
+
+    return replay

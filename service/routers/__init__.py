@@ -1,0 +1,22 @@
+"""HTTP routers; each ``build_router`` takes the app's request schemas (their bounds come from
+the settings)."""
+
+from typing import Any
+
+from ..schemas import Problem
+
+#: Error answers every ``/v1`` operation may give (documented as application/problem+json).
+ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    401: {"model": Problem, "description": "unauthorized: API keys are configured and the "
+                                           "request has no valid X-API-Key."},
+    413: {"model": Problem, "description": "invalid_request: the body is larger than the "
+                                           "service accepts."},
+    422: {"model": Problem, "description": "invalid_request (schema or library validation), "
+                                           "infeasible (no singularity-free path), or "
+                                           "numerical_failure (a solver failed, the path failed "
+                                           "verification, or a solver process ended)."},
+    503: {"model": Problem, "description": "overloaded: too many requests wait for a worker; "
+                                           "see Retry-After."},
+    504: {"model": Problem, "description": "timeout: the job ran past its time_limit and was "
+                                           "stopped."},
+}

@@ -1,0 +1,59 @@
+"""``POST /v1/plans`` and ``POST /v1/plans/batch``."""
+
+import asyncio
+from typing import Any
+
+from fastapi import APIRouter, Request
+from starlette.responses import Response
+
+from ..dispatch import check_plan, overloaded, request_id, run_job
+from ..problems import SafeJSONResponse, ServiceProblem
+from ..schemas import BatchResponse, PlanResponse, Schemas
+from ..workers import Overloaded
+from . import ERROR_RESPONSES
+
+
+def build_router(S: Schemas) -> APIRouter:
+    """The plan routes for the request models ``S``."""
+    router = APIRouter(tags=["plans"])
+
+    @router.post("/plans", response_model=PlanResponse, responses=ERROR_RESPONSES,
+                 summary="Plan a singularity-free motion",
+                 description="Plans a path from `start` to `goal` (joint angles, rad), verified "
+                             "by re-integrating the original model. A request that cannot be "
+                             "planned is answered with a problem document, never a 200.")
+    async def create_plan(body: S.PlanRequest, request: Request) -> Response:  # type: ignore[name-defined]
+        payload = body.to_library()
+        check_plan(payload)
+        result = await run_job(request, "plan", payload, body.time_limit, method=body.method)
+        return SafeJSONResponse(result)
+
+    @router.post("/plans/batch", response_model=BatchResponse, responses=ERROR_RESPONSES,
+                 summary="Plan many motions in parallel",
+                 description="Solves every request across the workers; the answer lists one "
+                             "item per request, in order, each with its plan or its problem. "
+                             "A batch is admitted (or refused with 503) as a whole; its items "
+                             "then wait for workers.")
+    async def create_plans(body: S.BatchRequest, request: Request) -> Response:  # type: ignore[name-defined]
+        try:
+            request.app.state.pool.admit()
+        except Overloaded as exc:
+            raise overloaded(request.app.state.settings, str(exc)) from None
+
+        async def one(index: int, item: Any) -> dict[str, Any]:
+            try:
+                payload = item.to_library()
+                check_plan(payload, prefix=f"requests[{index}].")
+                plan = await run_job(request, "plan", payload, item.time_limit,
+                                     method=item.method, admit=False)
+                return {"index": index, "status": "success", "plan": plan, "problem": None}
+            except ServiceProblem as problem:
+                return {"index": index, "status": "error", "plan": None,
+                        "problem": problem.body(request_id(request))}
+
+        results = await asyncio.gather(*(one(i, r) for i, r in enumerate(body.requests)))
+        ok = sum(r["status"] == "success" for r in results)
+        return SafeJSONResponse({"results": results, "succeeded": ok,
+                                 "failed": len(results) - ok})
+
+    return router

@@ -1,0 +1,28 @@
+"""``POST /v1/sweeps``."""
+
+from fastapi import APIRouter, Request
+from starlette.responses import Response
+
+from ..dispatch import check_plan, run_job
+from ..problems import SafeJSONResponse
+from ..schemas import Schemas, SweepResponse
+from . import ERROR_RESPONSES
+
+
+def build_router(S: Schemas) -> APIRouter:
+    """The sweep route for the request models ``S``."""
+    router = APIRouter(tags=["analysis"])
+
+    @router.post("/sweeps", response_model=SweepResponse, responses=ERROR_RESPONSES,
+                 summary="Indicators and feasibility as functions of dphi",
+                 description="Evaluates the polynomial family (v1 constant) at `points` evenly "
+                             "spaced dphi values in `phi_change_range` and, with `intervals`, "
+                             "the exact singularity-free dphi intervals there. The request's "
+                             "`time_limit` bounds the whole sweep.")
+    async def create_sweep(body: S.SweepRequest, request: Request) -> Response:  # type: ignore[name-defined]
+        payload = body.to_library()
+        check_plan(payload["request"])
+        result = await run_job(request, "sweep", payload, body.time_limit, method="sweep")
+        return SafeJSONResponse(result)
+
+    return router

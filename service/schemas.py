@@ -1,0 +1,509 @@
+"""Pydantic v2 models of every request and response of the service (they are the OpenAPI docs).
+
+Units: angles in radians, times in seconds, rates in rad/s. Requests forbid unknown fields and
+accept only JSON numbers for numeric fields (no strings, no ``NaN``/``Infinity``, no values
+that overflow to infinity).
+
+Some bounds come from the settings (``samples <= max_samples``, ``time_limit <= max_time_limit``,
+batch, sweep, robustness and transform sizes), so the models are built per :class:`Limits` by
+:func:`build_schemas` (cached: one set of classes per distinct limits).
+
+Response models document the bodies; the routes return the planning library's JSON-safe dicts
+directly (a test checks the bodies against these schemas).
+"""
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, Strict, model_validator
+
+from .settings import Limits
+
+PI = math.pi
+MAX_JOINTS = 8
+MIN_JOINTS = 3
+
+# ---------------------------------------------------------------------- scalar types
+#: A finite JSON number (ints accepted, strings/booleans/NaN/Infinity refused).
+Number = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+StrictInt = Annotated[int, Strict()]
+
+
+def num(lo: float | None = None, hi: float | None = None, *, gt: float | None = None,
+        description: str | None = None) -> Any:
+    """A finite number type with bounds."""
+    return Annotated[float, Strict(), Field(allow_inf_nan=False, ge=lo, le=hi, gt=gt,
+                                            description=description)]
+
+
+JointAngle = num(-2 * PI, 2 * PI, description="Joint angle (rad).")
+PhiAngle = num(-4 * PI, 4 * PI, description="Change of phi (rad).")
+Gain = num(hi=1e3, gt=0.0, description="Transmission gain K_i (> 0).")
+Exponent = Annotated[int, Strict(), Field(ge=1, le=12, description="Exponent m_i (1..12).")]
+Weight = num(0.0, 1e6, description="Weight (>= 0).")
+ProblemCode = Literal["invalid_request", "infeasible", "timeout", "numerical_failure",
+                      "overloaded", "unauthorized", "not_found", "method_not_allowed"]
+
+DEG = PI / 180.0
+WORKED_START = [round(10 * DEG, 9)] * 3
+WORKED_GOAL = [round(30 * DEG, 9)] * 3
+
+
+class RequestModel(BaseModel):
+    """Base of request models: unknown fields are an error."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+# ---------------------------------------------------------------------- fixed request parts
+class RobotSpec(RequestModel):
+    """The arm's constants. Omit both lists for the default robot of the request's n."""
+
+    gains: Optional[list[Gain]] = Field(  # type: ignore[valid-type]
+        None, min_length=MIN_JOINTS - 1, max_length=MAX_JOINTS - 1,
+        description="Gains K2..Kn (n - 1 entries, each > 0).", examples=[[0.88658, 0.7115]])
+    exponents: Optional[list[Exponent]] = Field(
+        None, min_length=MIN_JOINTS - 1, max_length=MAX_JOINTS - 1,
+        description="Integer exponents m2..mn of cos(th_{i-1}) (n - 1 entries, 1..12).",
+        examples=[[2, 3]])
+
+
+class Weights(RequestModel):
+    """Weights of the ``weighted`` objective: w_da d_a + w_s ||J_R||_F + w_e energy + w_tp t_p."""
+
+    d_a: Weight = Field(1.0, description="Weight of the approximation distance d_a.")  # type: ignore[valid-type]
+    sensitivity: Weight = Field(0.0, description="Weight of ||J_R(T)||_F.")  # type: ignore[valid-type]
+    energy: Weight = Field(0.0, description="Weight of the input energy.")  # type: ignore[valid-type]
+    t_p: Weight = Field(0.0, description="Weight of the number of phi passes t_p.")  # type: ignore[valid-type]
+
+
+class ConstraintPoint(RequestModel):
+    """A constraint point: the chained state ``z_state`` takes ``value`` at ``time``."""
+
+    time: num(0.0, 1e4, description="Time (s), inside (0, duration).") = Field(  # type: ignore[valid-type]
+        ..., examples=[5.0])
+    state: StrictInt = Field(..., ge=2, le=MAX_JOINTS + 1,
+                             description="Chained state index k of z_k, 2..n+1.")
+    value: num(-1e6, 1e6, description="Value of z_state at time.") = Field(...)  # type: ignore[valid-type]
+
+
+class RandomStarts(RequestModel):
+    """Perturbed starts drawn uniformly in ``start +- spread`` (reproducible by ``seed``)."""
+
+    count: StrictInt = Field(..., ge=1, description="Number of runs.")
+    spread: num(hi=1.0, gt=0.0, description="Half-width of the perturbation (rad).") = Field(  # type: ignore[valid-type]
+        ..., examples=[0.01])
+    seed: StrictInt = Field(0, ge=0, le=2 ** 32 - 1, description="Random seed.")
+
+
+# ---------------------------------------------------------------------- responses
+class RobotInfo(BaseModel):
+    """The robot a result was computed for."""
+
+    n: int = Field(..., description="Number of joints.")
+    gains: list[float] = Field(..., description="K2..Kn.")
+    exponents: list[int] = Field(..., description="m2..mn.")
+    assumed_constants: bool = Field(
+        ..., description="True when the constants are the assumed extension to n != 3 joints "
+                         "(the paper gives constants for n = 3 only).")
+
+
+class DefaultRobot(RobotInfo):
+    """``GET /v1/robots/default``."""
+
+    note: Optional[str] = Field(None, description="Why the constants are an assumption.")
+
+
+class Segment(BaseModel):
+    """One piece of the chained inputs, as power series in ``t - t_start`` (t in s)."""
+
+    t_start: float
+    t_end: float
+    v1: list[float] = Field(..., description="Coefficients of v1, lowest power first.")
+    v2: list[float] = Field(..., description="Coefficients of v2, lowest power first.")
+
+
+class Coefficients(BaseModel):
+    """The chained inputs of the plan (enough to regenerate it)."""
+
+    basis: str
+    segments: list[Segment]
+
+
+class Indicators(BaseModel):
+    """Quality indicators of the plan (``null`` where undefined)."""
+
+    d_a: Optional[float] = Field(None, description="Approximation distance d_a (rad).")
+    d_a_per_joint: list[Optional[float]] = Field(default_factory=list,
+                                                 description="d_a of each joint (rad).")
+    d_a_joint_space: Optional[float] = Field(None, description="Joint-space distance (rad).")
+    t_p: Optional[int] = Field(None, description="Number of passes of phi (1 = no reversal).")
+    phi_reversals: Optional[int] = Field(None, description="Reversals of phi.")
+    sensitivity: Optional[float] = Field(None, description="||J_R(T)||_F.")
+    sensitivity_max: Optional[float] = Field(None, description="max_t ||J_R(t)||_F.")
+    energy: Optional[float] = Field(None, description="Input energy.")
+    margin: Optional[float] = Field(None, description="Distance to the singular set (rad).")
+
+
+class PlanPath(BaseModel):
+    """The sampled path: one row per time sample."""
+
+    t: list[float] = Field(..., description="Times (s).")
+    q: list[list[Optional[float]]] = Field(..., description="Rows [phi, th1..thn] (rad).")
+    z: list[list[Optional[float]]] = Field(..., description="Chained state rows [z1..z_{n+1}].")
+    u: list[list[Optional[float]]] = Field(..., description="Actuator rates [u1, u2] (rad/s).")
+    v: list[list[Optional[float]]] = Field(..., description="Chained inputs [v1, v2].")
+
+
+class Validation(BaseModel):
+    """Re-integration of the original model driven by the planned inputs."""
+
+    terminal_error: Optional[float] = Field(None, description="max |th(T) - goal| (rad).")
+    phi_error: Optional[float] = Field(None, description="|phi(T) - planned phi(T)| (rad).")
+    max_deviation: Optional[float] = Field(None, description="Largest deviation from the "
+                                                             "planned path (rad).")
+    singular: bool = Field(..., description="True when the re-integration met a singularity.")
+    final: list[Optional[float]] = Field(..., description="Final state [phi, th1..thn] (rad).")
+    integrator: str
+    rtol: Optional[float] = None
+    atol: Optional[float] = None
+
+
+class PlanResponse(BaseModel):
+    """A verified, singularity-free plan."""
+
+    status: Literal["success"]
+    method: str = Field(..., description="Method that produced the plan.")
+    robot: RobotInfo
+    phi_change: float = Field(..., description="dphi = phi(T) - phi(0) (rad).")
+    b0: Optional[float] = Field(None, description="Constant v1 = dphi / T (rad/s), null when "
+                                                  "v1 varies.")
+    duration: float = Field(..., description="T (s).")
+    feasible_phi_changes: list[list[float]] = Field(
+        ..., description="Singularity-free dphi intervals [lo, hi] (rad) of the polynomial "
+                         "family (empty when not searched).")
+    coefficients: Coefficients
+    indicators: Indicators
+    path: PlanPath
+    validation: Validation
+    timing: dict[str, Optional[float]] = Field(..., description="Seconds per stage.")
+    diagnostics: dict[str, Any] = Field(..., description="Extra facts about the solve.")
+
+
+class Problem(BaseModel):
+    """An error (RFC 9457 problem details, ``application/problem+json``)."""
+
+    type: str = Field(..., description="URI identifying the problem type.")
+    title: str = Field(..., description="Short summary of the problem type.")
+    status: int = Field(..., description="HTTP status code.")
+    code: ProblemCode = Field(..., description="Machine-readable code.")
+    detail: str = Field(..., description="Human-readable explanation.")
+    field: Optional[str] = Field(None, description="The request field concerned, when known.")
+    diagnostics: dict[str, Any] = Field(default_factory=dict,
+                                        description="Machine-readable details.")
+    request_id: Optional[str] = Field(None, description="The request's X-Request-ID.")
+
+
+class SweepResponse(BaseModel):
+    """Indicators and feasibility of the polynomial family over dphi (lists share indices)."""
+
+    phi_change: list[float] = Field(..., description="dphi values (rad).")
+    feasible: list[bool]
+    margin: list[Optional[float]] = Field(..., description="Region margin (rad), null when "
+                                                            "undefined.")
+    d_a: list[Optional[float]] = Field(..., description="null where not feasible.")
+    t_p: list[Optional[int]] = Field(..., description="null where not feasible.")
+    sensitivity: list[Optional[float]]
+    energy: list[Optional[float]] = Field(..., description="null where not feasible.")
+    criterion: Literal["full", "z2"]
+    feasible_phi_changes: Optional[list[list[float]]] = Field(
+        None, description="Exact feasible intervals inside the range (null if not asked).")
+    robot: RobotInfo
+
+
+class TransformedPoint(BaseModel):
+    """One mapped point."""
+
+    values: list[float] = Field(..., description="z (to_chained) or q (from_chained); zeros "
+                                                 "where no inverse exists.")
+    valid: bool = Field(..., description="False outside the region where the transform is a "
+                                         "diffeomorphism.")
+    reason: Optional[str] = Field(None, description="Why the point is not valid.")
+
+
+class TransformResponse(BaseModel):
+    """``POST /v1/transforms``."""
+
+    direction: Literal["to_chained", "from_chained"]
+    robot: RobotInfo
+    points: list[TransformedPoint]
+
+
+class RobustnessRun(BaseModel):
+    """One open-loop replay from a perturbed start."""
+
+    start: list[float] = Field(..., description="th1..thn at the start (rad).")
+    final: list[Optional[float]] = Field(..., description="th1..thn at T (rad).")
+    terminal_error: Optional[float] = Field(None, description="max |th(T) - goal| (rad).")
+    d_a: Optional[float] = None
+    t_p: Optional[int] = None
+    singular: bool
+    singular_time: Optional[float] = Field(None, description="When a singularity was met (s).")
+    path_q: Optional[list[list[Optional[float]]]] = Field(
+        None, description="Rows [phi, th1..thn] (only with include_paths).")
+
+
+class RobustnessSummary(BaseModel):
+    """Aggregates of the runs."""
+
+    runs: int
+    singular_runs: int
+    terminal_error_max: Optional[float] = None
+    terminal_error_mean: Optional[float] = None
+    d_a_max: Optional[float] = None
+    t_p_max: Optional[int] = None
+    nominal_d_a: Optional[float] = None
+    nominal_t_p: Optional[int] = None
+    sensitivity: Optional[float] = None
+    replay: Literal["u", "v"]
+
+
+class RobustnessResponse(BaseModel):
+    """``POST /v1/robustness``."""
+
+    phi_change: float = Field(..., description="dphi of the nominal plan (rad).")
+    method: str = Field(..., description="Method of the nominal plan.")
+    runs: list[RobustnessRun]
+    summary: RobustnessSummary
+
+
+class BatchItem(BaseModel):
+    """The outcome of one request of a batch."""
+
+    index: int = Field(..., description="Position of the request in the batch.")
+    status: Literal["success", "error"]
+    plan: Optional[PlanResponse] = Field(None, description="The plan, on success.")
+    problem: Optional[Problem] = Field(None, description="The problem, on error.")
+
+
+class BatchResponse(BaseModel):
+    """``POST /v1/plans/batch``: one item per request, in order."""
+
+    results: list[BatchItem]
+    succeeded: int
+    failed: int
+
+
+class Health(BaseModel):
+    """``GET /healthz``."""
+
+    status: Literal["ok"]
+
+
+class Readiness(BaseModel):
+    """``GET /readyz``."""
+
+    status: Literal["ready", "starting", "stopping"]
+    workers: int = Field(..., description="Configured worker processes.")
+    idle: int
+    busy: int
+    waiting: int = Field(..., description="Requests waiting for a worker.")
+    restarts: int = Field(..., description="Workers replaced since start.")
+
+
+# ---------------------------------------------------------------------- limit-dependent requests
+@dataclass(frozen=True)
+class Schemas:
+    """The request models for one set of limits (responses are fixed)."""
+
+    limits: Limits
+    PlanRequest: type[BaseModel]
+    SweepRequest: type[BaseModel]
+    TransformRequest: type[BaseModel]
+    RobustnessRequest: type[BaseModel]
+    BatchRequest: type[BaseModel]
+
+
+@functools.lru_cache(maxsize=16)
+def build_schemas(limits: Limits) -> Schemas:
+    """Request models whose bounds come from ``limits``.
+
+    Parameters
+    ----------
+    limits : Limits
+
+    Returns
+    -------
+    Schemas
+    """
+    L = limits
+    TimeLimit = num(hi=L.max_time_limit, gt=0.0,
+                    description=f"Seconds for the whole solve (at most {L.max_time_limit:g}); "
+                                "the service stops waiting 0.5 s later and answers 504.")
+
+    class PlanRequest(RequestModel):
+        """A motion-planning request (radians, seconds)."""
+
+        model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+            {"start": WORKED_START, "goal": WORKED_GOAL, "method": "polynomial",
+             "objective": "tp_then_da", "samples": 51}]})
+
+        robot: Optional[RobotSpec] = Field(
+            None, description="Robot constants; default: the prototype for 3 joints, the "
+                              "assumed default for other n.")
+        start: list[JointAngle] = Field(  # type: ignore[valid-type]
+            ..., min_length=MIN_JOINTS, max_length=MAX_JOINTS,
+            description="Start joint angles th1..thn (rad), n in [3, 8].",
+            examples=[WORKED_START])
+        goal: list[JointAngle] = Field(  # type: ignore[valid-type]
+            ..., min_length=MIN_JOINTS, max_length=MAX_JOINTS,
+            description="Goal joint angles th1..thn (rad).", examples=[WORKED_GOAL])
+        phi_start: num(-1e3, 1e3, description="Initial phi (rad).") = 0.0  # type: ignore[valid-type]
+        phi_change: Optional[PhiAngle] = Field(  # type: ignore[valid-type]
+            None, description="Fixes dphi = phi(T) - phi(0) (rad); omitted: searched within "
+                              "phi_change_bounds.")
+        phi_change_bounds: Optional[list[PhiAngle]] = Field(  # type: ignore[valid-type]
+            None, min_length=2, max_length=2,
+            description="[lo, hi] search range of dphi (rad); default [-pi, pi].")
+        duration: Optional[num(1e-3, 1e4)] = Field(  # type: ignore[valid-type]
+            None, description="T (s); default 1 s, or the shortest T that respects max_u1/"
+                              "max_u2 when those are given.")
+        method: Literal["auto", "polynomial", "constraint_points", "penalty"] = Field(
+            "auto", description="auto tries polynomial, constraint points, then penalty.")
+        objective: Literal["tp_then_da", "tp_then_sensitivity", "weighted"] = Field(
+            "tp_then_da", description="How the best dphi / plan is chosen.")
+        weights: Optional[Weights] = Field(None, description="For objective = weighted.")
+        singularity: Literal["full", "z2"] = Field(
+            "full", description="Singularity criterion used in the search.")
+        constraint_points: Optional[list[ConstraintPoint]] = Field(
+            None, max_length=8, description="Constraint points (at most 8).")
+        samples: StrictInt = Field(201, ge=2, le=L.max_samples,
+                                   description=f"Time samples of the returned path (2.."
+                                               f"{L.max_samples}).")
+        time_limit: TimeLimit = Field(  # type: ignore[valid-type]
+            L.default_time_limit, description=f"Seconds for the whole solve (default "
+                                              f"{L.default_time_limit:g}, at most "
+                                              f"{L.max_time_limit:g}).")
+        max_u1: Optional[num(hi=1e6, gt=0.0)] = Field(  # type: ignore[valid-type]
+            None, description="Limit of |u1| = |phi'| (rad/s).")
+        max_u2: Optional[num(hi=1e6, gt=0.0)] = Field(  # type: ignore[valid-type]
+            None, description="Limit of |u2| = |th1'| (rad/s).")
+        joint_bounds: Optional[list[Optional[list[JointAngle]]]] = Field(  # type: ignore[valid-type]
+            None, max_length=MAX_JOINTS,
+            description="Per joint [lo, hi] (rad) or null; inside the region (0, pi/2).")
+        v1_degree: Optional[StrictInt] = Field(None, ge=0, le=12,
+                                               description="Degree of v1 (penalty method).")
+        v2_degree: Optional[StrictInt] = Field(None, ge=0, le=12,
+                                               description="Degree of v2 (penalty method).")
+
+        @model_validator(mode="after")
+        def _pairs(self) -> "PlanRequest":
+            for i, b in enumerate(self.joint_bounds or []):
+                if b is not None and len(b) != 2:
+                    raise ValueError(f"joint_bounds[{i}] must be [lo, hi] or null")
+            return self
+
+        def to_library(self) -> dict[str, Any]:
+            """The dict :meth:`optimizer.problem.PlanRequest.from_dict` takes."""
+            return self.model_dump(exclude_none=True)
+
+    class SweepRequest(PlanRequest):
+        """A plan request plus the dphi range and number of points of the sweep."""
+
+        model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+            {"start": WORKED_START, "goal": WORKED_GOAL, "phi_change_range": [0.5, 0.7],
+             "points": 21}]})
+
+        phi_change_range: list[PhiAngle] = Field(  # type: ignore[valid-type]
+            [-PI, PI], min_length=2, max_length=2, description="[lo, hi] of dphi (rad).")
+        points: StrictInt = Field(181, ge=2, le=L.max_sweep_points,
+                                  description=f"Evenly spaced dphi values (2.."
+                                              f"{L.max_sweep_points}).")
+        intervals: bool = Field(True, description="Also compute the exact feasible intervals.")
+
+        def to_library(self) -> dict[str, Any]:
+            d = self.model_dump(exclude_none=True)
+            lo, hi = d.pop("phi_change_range")
+            points = d.pop("points")
+            intervals = d.pop("intervals")
+            return {"request": d, "lo": lo, "hi": hi, "points": points, "intervals": intervals}
+
+    class TransformRequest(RequestModel):
+        """Points to map between joint space and chained coordinates."""
+
+        model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+            {"direction": "to_chained", "points": [[0.0] + [round(DEG, 9)] * 3,
+                                                   [0.0] + WORKED_GOAL]}]})
+
+        robot: Optional[RobotSpec] = Field(
+            None, description="Default: the default robot for n = row length - 1.")
+        direction: Literal["to_chained", "from_chained"] = Field(
+            ..., description="to_chained maps q = [phi, th1..thn] to z = [z1..z_{n+1}]; "
+                             "from_chained the inverse.")
+        points: list[list[Number]] = Field(  # type: ignore[valid-type]
+            ..., min_length=1, max_length=L.max_transform_points,
+            description="Rows of n + 1 numbers (all rows the same length).")
+        time_limit: TimeLimit = Field(L.default_time_limit)  # type: ignore[valid-type]
+
+        @model_validator(mode="after")
+        def _rows(self) -> "TransformRequest":
+            width = len(self.points[0])
+            if not MIN_JOINTS + 1 <= width <= MAX_JOINTS + 1:
+                raise ValueError(f"each point must have n + 1 entries with n in "
+                                 f"[{MIN_JOINTS}, {MAX_JOINTS}]")
+            if any(len(row) != width for row in self.points):
+                raise ValueError("all points must have the same number of entries")
+            return self
+
+        def to_library(self) -> dict[str, Any]:
+            return self.model_dump(exclude_none=True, exclude={"time_limit"})
+
+    class RobustnessRequest(RequestModel):
+        """A plan and perturbed starts to replay it from (open loop)."""
+
+        model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+            {"plan": {"start": WORKED_START, "goal": WORKED_GOAL, "method": "polynomial",
+                      "phi_change": 0.6034},
+             "random": {"count": 5, "spread": 0.01, "seed": 1}, "replay": "u"}]})
+
+        plan: PlanRequest = Field(..., description="The nominal plan (phi_change may fix dphi).")
+        starts: Optional[list[list[JointAngle]]] = Field(  # type: ignore[valid-type]
+            None, min_length=1, max_length=L.max_robustness_runs,
+            description="Perturbed start vectors th1..thn (rad).")
+        random: Optional[RandomStarts] = Field(None, description="Random perturbed starts.")
+        replay: Literal["u", "v"] = Field(
+            "u", description="Replay the actuator inputs u or the chained inputs v.")
+        include_paths: bool = Field(False, description="Return each run's path rows.")
+        time_limit: TimeLimit = Field(  # type: ignore[valid-type]
+            L.default_time_limit, description="Seconds for the whole job (plan and replays).")
+
+        @model_validator(mode="after")
+        def _one_source(self) -> "RobustnessRequest":
+            if (self.starts is None) == (self.random is None):
+                raise ValueError("give exactly one of starts and random")
+            if self.random is not None and self.random.count > L.max_robustness_runs:
+                raise ValueError(f"random.count must be at most {L.max_robustness_runs}")
+            return self
+
+        def to_library(self) -> dict[str, Any]:
+            d = self.model_dump(exclude_none=True, exclude={"time_limit"})
+            d["plan"]["time_limit"] = min(self.plan.time_limit, self.time_limit)
+            return d
+
+    class BatchRequest(RequestModel):
+        """Many plan requests, solved in parallel; answers come in the same order."""
+
+        model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+            {"requests": [{"start": WORKED_START, "goal": WORKED_GOAL, "method": "polynomial",
+                           "samples": 11},
+                          {"start": WORKED_START, "goal": WORKED_GOAL, "method": "polynomial",
+                           "phi_change": 0.6034, "samples": 11}]}]})
+
+        requests: list[PlanRequest] = Field(..., min_length=1, max_length=L.max_batch_size,
+                                            description=f"1..{L.max_batch_size} plan requests.")
+
+    return Schemas(limits=L, PlanRequest=PlanRequest, SweepRequest=SweepRequest,
+                   TransformRequest=TransformRequest, RobustnessRequest=RobustnessRequest,
+                   BatchRequest=BatchRequest)

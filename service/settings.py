@@ -1,0 +1,155 @@
+"""Settings of the planning service, read from the environment (prefix ``PLANNER_``).
+
+Every setting can be given as an environment variable, e.g. ``PLANNER_PORT=9000`` or
+``PLANNER_API_KEYS=key-one,key-two``. Lists accept a comma-separated string or a JSON array.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal
+
+from pydantic import Field, field_validator, model_validator
+from pydantic_settings import (BaseSettings, NoDecode, PydanticBaseSettingsSource,
+                               SettingsConfigDict)
+
+#: Hard limits of the planning library (``optimizer.problem``); settings may only tighten them.
+LIBRARY_MAX_SAMPLES = 20001
+LIBRARY_MAX_TIME_LIMIT = 600.0
+LIBRARY_MAX_SWEEP_POINTS = 5001
+
+
+def _cpu_count() -> int:
+    return max(1, os.cpu_count() or 1)
+
+
+class Settings(BaseSettings):
+    """Service configuration.
+
+    Attributes
+    ----------
+    host, port : str, int
+        Where ``python -m service`` listens.
+    workers : int
+        Solver worker processes (default: the number of CPUs).
+    queue_size : int
+        Requests that may wait for a worker; one more is answered 503 ``overloaded`` at once.
+    retry_after : int
+        Seconds advertised in ``Retry-After`` of a 503 answer.
+    max_body_bytes : int
+        Largest accepted request body (bytes); a larger one is answered 413.
+    max_samples : int
+        Upper bound of a plan's ``samples``.
+    max_batch_size, max_robustness_runs, max_sweep_points, max_transform_points : int
+        Upper bounds of ``/v1/plans/batch`` requests, robustness runs, sweep points and
+        transform points per request.
+    default_time_limit, max_time_limit : float
+        Seconds a solve may take when the request gives no ``time_limit``, and the largest
+        ``time_limit`` accepted. The service waits ``time_limit + timeout_grace`` at most.
+    timeout_grace : float
+        Seconds added to a job's time limit before its worker is killed.
+    worker_start_timeout : float
+        Seconds a new worker may take to start and warm up.
+    start_method : {"forkserver", "spawn"}
+        How worker processes are created (never plain ``fork`` of a threaded server).
+    warmup : bool
+        Build the default robot's chained form in every worker before it takes work.
+    api_keys : list of str
+        Accepted keys (``X-API-Key`` header or ``Authorization: Bearer``); empty: no auth.
+    cors_origins : list of str
+        Allowed CORS origins; empty: CORS off.
+    log_level : str
+    """
+
+    model_config = SettingsConfigDict(env_prefix="PLANNER_", extra="ignore")
+
+    host: str = Field("0.0.0.0", description="Listen address.")
+    port: int = Field(8000, ge=1, le=65535, description="Listen port.")
+    workers: int = Field(default_factory=_cpu_count, ge=1, le=256,
+                         description="Solver worker processes.")
+    queue_size: int = Field(64, ge=0, le=100_000, description="Requests allowed to wait.")
+    retry_after: int = Field(1, ge=1, le=3600, description="Retry-After seconds of a 503.")
+    max_body_bytes: int = Field(1 << 20, ge=1024, description="Largest request body, bytes.")
+    max_samples: int = Field(LIBRARY_MAX_SAMPLES, ge=2, le=LIBRARY_MAX_SAMPLES)
+    max_batch_size: int = Field(64, ge=1, le=10_000)
+    max_robustness_runs: int = Field(200, ge=1, le=100_000)
+    max_sweep_points: int = Field(2001, ge=2, le=LIBRARY_MAX_SWEEP_POINTS)
+    max_transform_points: int = Field(10_000, ge=1, le=1_000_000)
+    default_time_limit: float = Field(10.0, gt=0, le=LIBRARY_MAX_TIME_LIMIT)
+    max_time_limit: float = Field(60.0, gt=0, le=LIBRARY_MAX_TIME_LIMIT)
+    timeout_grace: float = Field(0.5, ge=0, le=60)
+    worker_start_timeout: float = Field(120.0, gt=0)
+    start_method: Literal["forkserver", "spawn"] = "forkserver"
+    warmup: bool = True
+    api_keys: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    cors_origins: Annotated[list[str], NoDecode] = Field(default_factory=list)
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+    @field_validator("api_keys", "cors_origins", mode="before")
+    @classmethod
+    def _split_list(cls, value: Any) -> Any:
+        """Accept ``a,b`` or a JSON array for list settings."""
+        if isinstance(value, str):
+            text = value.strip()
+            if text.startswith("["):
+                return json.loads(text)
+            return [part.strip() for part in text.split(",") if part.strip()]
+        return value
+
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _lower(cls, value: Any) -> Any:
+        return value.lower() if isinstance(value, str) else value
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "Settings":
+        if self.default_time_limit > self.max_time_limit:
+            raise ValueError("default_time_limit must not exceed max_time_limit")
+        return self
+
+    @property
+    def limits(self) -> "Limits":
+        """The subset of settings that shapes the request schemas (and so the OpenAPI)."""
+        return Limits(max_samples=self.max_samples, max_batch_size=self.max_batch_size,
+                      max_robustness_runs=self.max_robustness_runs,
+                      max_sweep_points=self.max_sweep_points,
+                      max_transform_points=self.max_transform_points,
+                      default_time_limit=self.default_time_limit,
+                      max_time_limit=self.max_time_limit)
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Request bounds that appear in the schemas (hashable, so schemas are built once each)."""
+
+    max_samples: int = LIBRARY_MAX_SAMPLES
+    max_batch_size: int = 64
+    max_robustness_runs: int = 200
+    max_sweep_points: int = 2001
+    max_transform_points: int = 10_000
+    default_time_limit: float = 10.0
+    max_time_limit: float = 60.0
+
+
+class _DefaultsOnly(Settings):
+    """Settings that read neither the environment nor dotenv files."""
+
+    @classmethod
+    def settings_customise_sources(cls, settings_cls: type[BaseSettings],
+                                   init_settings: PydanticBaseSettingsSource,
+                                   env_settings: PydanticBaseSettingsSource,
+                                   dotenv_settings: PydanticBaseSettingsSource,
+                                   file_secret_settings: PydanticBaseSettingsSource,
+                                   ) -> tuple[PydanticBaseSettingsSource, ...]:
+        return (init_settings,)
+
+
+def default_settings(**overrides: Any) -> Settings:
+    """Settings from their defaults and ``overrides`` only, ignoring the environment.
+
+    Used for the committed OpenAPI document and in tests, so that neither depends on the
+    machine's ``PLANNER_*`` variables.
+    """
+    return _DefaultsOnly(**overrides)
