@@ -1,0 +1,33 @@
+"""Fixtures of the service tests (helpers are in ``svc_support``)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+
+# the helpers module sits beside this file; make it importable whatever pytest's import mode
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from svc_support import TestClient, free_port, running_app, server_process  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def client() -> Iterator[TestClient]:
+    """The shared app: 2 workers, a queue large enough for the concurrency test."""
+    with running_app(workers=2, queue_size=64) as c:
+        yield c
+
+
+@pytest.fixture(scope="session")
+def live_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """``python -m service`` on a free loopback port with one worker."""
+    port = free_port()
+    log = tmp_path_factory.mktemp("live") / "server.log"
+    env = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "1"}
+    with server_process([sys.executable, "-m", "service"], env, port, log) as base:
+        yield base
+
+

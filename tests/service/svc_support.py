@@ -1,0 +1,111 @@
+"""Helpers shared by the service tests (imported as ``svc_support``; fixtures live in conftest).
+
+Every app here is built from :func:`service.settings.default_settings` (the environment's
+``PLANNER_*`` variables are ignored) with small worker counts, so the suite fits two cores.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import socket
+import subprocess
+import time
+import urllib.request
+import warnings
+from pathlib import Path
+from typing import Any, Iterator
+
+with warnings.catch_warnings():  # starlette suggests httpx2; httpx works
+    warnings.simplefilter("ignore")
+    from fastapi.testclient import TestClient
+
+from service.main import create_app
+from service.settings import default_settings
+
+ROOT = Path(__file__).resolve().parents[2]
+DEG = math.pi / 180.0
+
+#: The paper's 3-joint worked example (NOTES §5): 10 deg -> 30 deg on every joint.
+WORKED = {"start": [10 * DEG] * 3, "goal": [30 * DEG] * 3, "method": "polynomial",
+          "objective": "tp_then_da"}
+
+
+def wait_ready(client: TestClient, timeout: float = 120.0) -> None:
+    """Poll ``/readyz`` until the worker pool has warmed up."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if client.get("/readyz").status_code == 200:
+            return
+        time.sleep(0.05)
+    raise AssertionError("the worker pool did not become ready")
+
+
+@contextlib.contextmanager
+def running_app(**overrides: Any) -> Iterator[TestClient]:
+    """A TestClient over an app with ``overrides`` applied to the default settings, ready."""
+    app = create_app(default_settings(**overrides))
+    with TestClient(app, raise_server_exceptions=False) as client:
+        wait_ready(client)
+        yield client
+
+
+def free_port() -> int:
+    """A free TCP port on 127.0.0.1."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@contextlib.contextmanager
+def server_process(argv: list[str], env: dict[str, str], port: int, log_path: Path,
+                   timeout: float = 120.0) -> Iterator[str]:
+    """Run ``argv`` (a server listening on 127.0.0.1:``port``) until it answers ``/readyz``.
+
+    Yields the base URL; the process is stopped (SIGTERM, then SIGKILL) afterwards.
+    """
+    full_env = {k: v for k, v in os.environ.items() if not k.startswith("PLANNER_")}
+    full_env.update(env)
+    base = f"http://127.0.0.1:{port}"
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen(argv, cwd=ROOT, env=full_env, stdout=log,
+                                stderr=subprocess.STDOUT)
+        try:
+            deadline = time.monotonic() + timeout
+            while True:
+                if proc.poll() is not None:
+                    raise AssertionError(f"server exited with {proc.returncode}:\n"
+                                         + log_path.read_text(errors="replace")[-3000:])
+                try:
+                    with urllib.request.urlopen(base + "/readyz", timeout=2) as r:
+                        if r.status == 200:
+                            break
+                except OSError:
+                    pass
+                if time.monotonic() > deadline:
+                    raise AssertionError("server did not become ready:\n"
+                                         + log_path.read_text(errors="replace")[-3000:])
+                time.sleep(0.1)
+            yield base
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=10)
+
+
+def assert_problem(response: Any, status: int, code: str) -> dict[str, Any]:
+    """Check a problem+json answer and return its body."""
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"].startswith("application/problem+json")
+    body = response.json()
+    assert body["code"] == code, body
+    assert body["status"] == status
+    for key in ("type", "title", "detail", "diagnostics"):
+        assert key in body
+    for leak in ("Traceback", str(ROOT), "site-packages", ".py\", line"):
+        assert leak not in response.text
+    return body

@@ -1,0 +1,103 @@
+"""Operations: health, readiness, metrics, offline docs, API keys, CORS, JSON logs."""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+
+from service.logs import JSONFormatter
+from service.settings import Settings
+from svc_support import DEG, WORKED, assert_problem, running_app
+
+
+def test_health_and_readiness(client):
+    assert client.get("/healthz").json() == {"status": "ok"}
+    r = client.get("/readyz")
+    assert r.status_code == 200
+    body = r.json()
+    assert body["status"] == "ready" and body["workers"] == 2
+    assert body["idle"] + body["busy"] == 2
+
+
+def test_metrics_count_requests_and_solves(client):
+    assert client.post("/v1/plans", json={**WORKED, "phi_change": 34 * DEG,
+                                           "samples": 5}).status_code == 200
+    r = client.get("/metrics")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
+    text = r.text
+    assert re.search(r'planner_http_requests_total\{method="POST",route="/v1/plans",'
+                     r'status="200"\} [1-9]', text)
+    assert 'planner_http_request_duration_seconds_bucket{le="0.005",method="POST",' \
+           'route="/v1/plans",status="200"}' in text
+    assert re.search(r'planner_solve_duration_seconds_count\{job="plan",method="polynomial",'
+                     r'outcome="success"\} [1-9]', text)
+    assert 'planner_workers{state="idle"}' in text
+    assert "planner_queue_waiting" in text
+    # unknown paths are lumped together, never one series per path
+    client.get("/no/such/path/12345")
+    assert "12345" not in client.get("/metrics").text
+
+
+def test_docs_pages_need_no_internet(client):
+    for page, asset in (("/docs", "/static/swagger-ui/swagger-ui-bundle.js"),
+                        ("/redoc", "/static/redoc/redoc.standalone.js")):
+        r = client.get(page)
+        assert r.status_code == 200 and asset in r.text
+        assert "http://" not in r.text and "https://" not in r.text, page
+    for asset, kind in (("/static/swagger-ui/swagger-ui-bundle.js", "javascript"),
+                        ("/static/swagger-ui/swagger-ui.css", "css"),
+                        ("/static/redoc/redoc.standalone.js", "javascript"),
+                        ("/static/favicon.png", "image/png")):
+        r = client.get(asset)
+        assert r.status_code == 200 and kind in r.headers["content-type"], asset
+        assert len(r.content) > 500
+    assert client.get("/openapi.json").json()["info"]["title"]
+
+
+def test_unknown_route_and_method_are_problems(client):
+    assert_problem(client.get("/v1/nothing"), 404, "not_found")
+    assert_problem(client.get("/v1/plans"), 405, "method_not_allowed")
+
+
+def test_api_keys_and_cors():
+    with running_app(workers=1, api_keys=["k-one", "k-two"],
+                     cors_origins=["http://ui.example.test"]) as c:
+        body = assert_problem(c.get("/v1/robots/default"), 401, "unauthorized")
+        assert "API key" in body["detail"]
+        assert_problem(c.get("/v1/robots/default", headers={"X-API-Key": "wrong"}), 401,
+                       "unauthorized")
+        assert c.get("/v1/robots/default", headers={"X-API-Key": "k-two"}).status_code == 200
+        assert c.get("/v1/robots/default",
+                     headers={"Authorization": "Bearer k-one"}).status_code == 200
+        assert c.get("/healthz").status_code == 200  # operations stay open
+        pre = c.options("/v1/plans", headers={"Origin": "http://ui.example.test",
+                                              "Access-Control-Request-Method": "POST"})
+        assert pre.headers["access-control-allow-origin"] == "http://ui.example.test"
+
+
+def test_settings_from_the_environment(monkeypatch):
+    monkeypatch.setenv("PLANNER_WORKERS", "3")
+    monkeypatch.setenv("PLANNER_API_KEYS", "a, b")
+    monkeypatch.setenv("PLANNER_CORS_ORIGINS", '["http://x.test"]')
+    monkeypatch.setenv("PLANNER_MAX_SAMPLES", "501")
+    s = Settings()
+    assert s.workers == 3 and s.api_keys == ["a", "b"] and s.cors_origins == ["http://x.test"]
+    assert s.limits.max_samples == 501
+    assert Settings.model_fields["max_body_bytes"].default == 1 << 20
+
+
+def test_access_log_is_json_with_request_id_and_no_body(client, caplog):
+    secret = "body-marker-7f3a"
+    with caplog.at_level(logging.INFO, logger="service.access"):
+        client.post("/v1/plans", json={**WORKED, "robot": {"gains": [1.0, 1.0],
+                                                          "exponents": [2, 3]},
+                                        "method": secret},
+                    headers={"X-Request-ID": "log-test-1"})
+    records = [r for r in caplog.records if getattr(r, "request_id", None) == "log-test-1"]
+    assert records, "no access log line for the request"
+    line = JSONFormatter().format(records[-1])
+    doc = json.loads(line)
+    assert doc["request_id"] == "log-test-1" and doc["status"] == 422
+    assert doc["route"] == "/v1/plans" and doc["duration_ms"] >= 0
+    assert all(secret not in JSONFormatter().format(r) for r in caplog.records)
