@@ -1,0 +1,111 @@
+"""Deployment files without a Docker engine: docker-compose.yml against the Compose
+Specification schema, the Dockerfile's shape, and the container's exact start command run here
+with the environment the compose file sets."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import urllib.request
+
+import yaml
+from jsonschema import Draft201909Validator
+
+from svc_support import ROOT, free_port, server_process
+
+#: The schema declares draft 2019-09 (its "$schema" URL is the old http:// spelling).
+SCHEMA = ROOT / "tests" / "service" / "data" / "compose_spec.json"
+
+
+def compose() -> dict:
+    return yaml.safe_load((ROOT / "docker-compose.yml").read_text(encoding="utf-8"))
+
+
+def dockerfile_instructions() -> list[tuple[str, str]]:
+    """``(INSTRUCTION, arguments)`` with line continuations joined."""
+    text = (ROOT / "Dockerfile").read_text(encoding="utf-8")
+    text = re.sub(r"\\\n\s*", " ", text)
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            word, _, rest = line.partition(" ")
+            out.append((word.upper(), rest.strip()))
+    return out
+
+
+def test_compose_file_is_valid_against_the_compose_spec():
+    schema = json.loads(SCHEMA.read_text(encoding="utf-8"))
+    Draft201909Validator.check_schema(schema)
+    errors = list(Draft201909Validator(schema).iter_errors(compose()))
+    assert not errors, [e.message for e in errors]
+
+
+def test_compose_schema_is_not_vacuous():
+    schema = json.loads(SCHEMA.read_text(encoding="utf-8"))
+    validator = Draft201909Validator(schema)
+    bad = compose()
+    bad["services"]["planner"]["deploy"]["replicas"] = "three"
+    assert list(validator.iter_errors(bad))
+    bad = compose()
+    bad["services"]["planner"]["healthcheck"]["every"] = "5s"
+    assert list(validator.iter_errors(bad))
+
+
+def test_compose_runs_replicas_behind_a_load_balancer():
+    doc = compose()
+    planner, lb = doc["services"]["planner"], doc["services"]["lb"]
+    assert planner["deploy"]["replicas"] == 3
+    assert planner["build"] == "."
+    assert "healthz" in " ".join(planner["healthcheck"]["test"])
+    assert all(k.startswith("PLANNER_") for k in planner["environment"])
+    assert lb["image"].startswith("nginx")
+    assert lb["depends_on"]["planner"]["condition"] == "service_healthy"
+    (mount,) = lb["volumes"]
+    source = mount.split(":")[0]
+    conf = (ROOT / source).read_text(encoding="utf-8")
+    assert re.search(r"server\s+planner:8000;", conf)
+    assert "proxy_pass http://planner_replicas;" in conf
+    port = planner["environment"]["PLANNER_PORT"]
+    assert f"planner:{port}" in conf
+
+
+def test_dockerfile_shape():
+    ins = dockerfile_instructions()
+    assert ins[0] == ("FROM", "python:3.11-slim")
+    cmd = [json.loads(a) for w, a in ins if w == "CMD"]
+    assert cmd[-1] == ["python", "-m", "service"]
+    users = [a for w, a in ins if w == "USER"]
+    assert users and users[-1] not in ("root", "0")
+    (health,) = [a for w, a in ins if w == "HEALTHCHECK"]
+    assert "urllib" in health and "/healthz" in health
+    assert any(w == "RUN" and "pip install ." in a for w, a in ins)
+    ignore = (ROOT / ".dockerignore").read_text(encoding="utf-8").split()
+    assert ".venv" in ignore and ".git" in ignore
+
+
+def test_container_start_command_serves_healthz(tmp_path):
+    """Run the image's CMD with the compose file's environment (only the address moved to a
+    free loopback port), then its healthcheck command against that port."""
+    env = {k: str(v) for k, v in compose()["services"]["planner"]["environment"].items()}
+    port = free_port()
+    env.update({"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port)})
+    cmd = [json.loads(a) for w, a in dockerfile_instructions() if w == "CMD"][-1]
+    assert cmd[0] == "python"
+    argv = [sys.executable] + cmd[1:]
+    with server_process(argv, env, port, tmp_path / "server.log") as base:
+        with urllib.request.urlopen(base + "/healthz", timeout=5) as r:
+            assert r.status == 200 and json.loads(r.read()) == {"status": "ok"}
+        with urllib.request.urlopen(base + "/readyz", timeout=5) as r:
+            assert json.loads(r.read())["workers"] == int(env["PLANNER_WORKERS"])
+        check = compose()["services"]["planner"]["healthcheck"]["test"]
+        assert check[0] == "CMD" and check[1] == "python"
+        code = check[-1].replace("127.0.0.1:8000", f"127.0.0.1:{port}")
+        assert code != check[-1]
+        done = subprocess.run([sys.executable, "-c", code], timeout=30)
+        assert done.returncode == 0
+    log = (tmp_path / "server.log").read_text(errors="replace")
+    lines = [json.loads(x) for x in log.splitlines() if x.startswith("{")]
+    assert any(x.get("route") == "/healthz" and x.get("request_id") for x in lines), log[-2000:]
