@@ -64,8 +64,8 @@ def check_robot(spec: dict[str, Any] | None, n: int) -> None:
 
 
 async def run_job(request: Request, kind: str, payload: dict[str, Any], time_limit: float, *,
-                  method: str, admit: bool = True) -> dict[str, Any]:
-    """Run ``kind`` on a worker with ``time_limit`` (+ grace) and return its result dict.
+                  method: str, admit: bool = True) -> bytes:
+    """Run ``kind`` on a worker with ``time_limit`` (+ grace) and return its result as JSON.
 
     Parameters
     ----------
@@ -79,6 +79,11 @@ async def run_job(request: Request, kind: str, payload: dict[str, Any], time_lim
         Label of the solve metric (the requested method, or the job kind).
     admit : bool
         Apply the queue bound (False for items of an admitted batch).
+
+    Returns
+    -------
+    bytes
+        The result, encoded as JSON by the worker (finite numbers only).
 
     Raises
     ------
@@ -104,7 +109,7 @@ async def run_job(request: Request, kind: str, payload: dict[str, Any], time_lim
     seconds = float(outcome.get("seconds") or (time.perf_counter() - started))
     if outcome["ok"]:
         metrics.observe_solve(kind, method, "success", seconds)
-        return outcome["result"]
+        return outcome["body"]
     problem = ServiceProblem.from_error(outcome["error"])
     metrics.observe_solve(kind, method, problem.code, seconds)
     raise problem

@@ -4,10 +4,11 @@ Each job takes the JSON-shaped payload the router built and returns a JSON-safe 
 (:func:`optimizer.results.json_safe`), so nothing heavy crosses the process boundary. No
 mathematics happens here: every number comes from the planning library.
 
-Outcome of :func:`run_job`::
+Outcome of :func:`run_job` (``body`` is the result already encoded as JSON, so that the server
+never parses or re-encodes a large result in its event loop)::
 
-    {"ok": True, "result": {...}}
-    {"ok": False, "error": {"code", "message", "field", "diagnostics"}}
+    {"ok": True, "body": b"{...}", "seconds": ...}
+    {"ok": False, "error": {"code", "message", "field", "diagnostics"}, "seconds": ...}
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ from optimizer.model import Robot
 from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
 from optimizer.results import json_safe
+
+from .encoding import finite_json
 
 log = logging.getLogger("service.worker")
 
@@ -121,8 +124,8 @@ def run_job(kind: str, payload: Payload) -> dict[str, Any]:
     """
     t0 = time.perf_counter()
     try:
-        result = JOBS[kind](payload)
-        return {"ok": True, "result": json_safe(result), "seconds": time.perf_counter() - t0}
+        body = finite_json(JOBS[kind](payload))
+        return {"ok": True, "body": body, "seconds": time.perf_counter() - t0}
     except PlannerError as exc:
         return {"ok": False, "seconds": time.perf_counter() - t0, "error": {
             "code": exc.code, "message": exc.message, "field": exc.field,

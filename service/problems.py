@@ -22,12 +22,11 @@ method_not_allowed  405    the route exists, not with this HTTP method
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 from starlette.responses import JSONResponse
 
-from optimizer.results import json_safe
+from .encoding import finite_json
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 TYPE_BASE = "https://chained-planner.invalid/problems/"
@@ -127,27 +126,18 @@ def problem_body(code: str, detail: str, *, status: int | None = None,
     }
 
 
-def finite_json(content: Any) -> bytes:
-    """Serialise ``content`` as compact JSON with no ``NaN`` or ``Infinity`` token, ever.
-
-    ``json.dumps(..., allow_nan=False)`` refuses non-finite floats; the worker results are
-    already converted by :func:`optimizer.results.json_safe` (non-finite -> ``null``), and any
-    other content that holds one is converted the same way before a second attempt.
-    """
-    try:
-        text = json.dumps(content, allow_nan=False, separators=(",", ":"), ensure_ascii=False)
-    except (ValueError, TypeError):
-        text = json.dumps(json_safe(content), allow_nan=False, separators=(",", ":"),
-                          ensure_ascii=False)
-    return text.encode("utf-8")
-
-
 class SafeJSONResponse(JSONResponse):
-    """JSON response that refuses non-finite floats (they are sent as ``null``)."""
+    """JSON response that refuses non-finite floats (they are sent as ``null``).
+
+    ``bytes`` content is taken as already encoded JSON (the workers encode their results with
+    :func:`service.encoding.finite_json`, so large bodies are never re-encoded here).
+    """
 
     media_type = "application/json"
 
     def render(self, content: Any) -> bytes:
+        if isinstance(content, bytes):
+            return content
         return finite_json(content)
 
 

@@ -475,7 +475,9 @@ def build_schemas(limits: Limits) -> Schemas:
         random: Optional[RandomStarts] = Field(None, description="Random perturbed starts.")
         replay: Literal["u", "v"] = Field(
             "u", description="Replay the actuator inputs u or the chained inputs v.")
-        include_paths: bool = Field(False, description="Return each run's path rows.")
+        include_paths: bool = Field(
+            False, description=f"Return each run's path rows (runs x plan.samples at most "
+                               f"{L.max_total_samples}).")
         time_limit: TimeLimit = Field(  # type: ignore[valid-type]
             L.default_time_limit, description="Seconds for the whole job (plan and replays).")
 
@@ -483,8 +485,12 @@ def build_schemas(limits: Limits) -> Schemas:
         def _one_source(self) -> "RobustnessRequest":
             if (self.starts is None) == (self.random is None):
                 raise ValueError("give exactly one of starts and random")
-            if self.random is not None and self.random.count > L.max_robustness_runs:
-                raise ValueError(f"random.count must be at most {L.max_robustness_runs}")
+            runs = len(self.starts) if self.starts is not None else self.random.count  # type: ignore[union-attr]
+            if runs > L.max_robustness_runs:
+                raise ValueError(f"at most {L.max_robustness_runs} runs")
+            if self.include_paths and runs * self.plan.samples > L.max_total_samples:
+                raise ValueError(f"runs x plan.samples = {runs * self.plan.samples} exceeds "
+                                 f"{L.max_total_samples} path rows with include_paths")
             return self
 
         def to_library(self) -> dict[str, Any]:
@@ -501,8 +507,18 @@ def build_schemas(limits: Limits) -> Schemas:
                           {"start": WORKED_START, "goal": WORKED_GOAL, "method": "polynomial",
                            "phi_change": 0.6034, "samples": 11}]}]})
 
-        requests: list[PlanRequest] = Field(..., min_length=1, max_length=L.max_batch_size,
-                                            description=f"1..{L.max_batch_size} plan requests.")
+        requests: list[PlanRequest] = Field(
+            ..., min_length=1, max_length=L.max_batch_size,
+            description=f"1..{L.max_batch_size} plan requests, with at most "
+                        f"{L.max_total_samples} samples in all.")
+
+        @model_validator(mode="after")
+        def _total(self) -> "BatchRequest":
+            total = sum(r.samples for r in self.requests)
+            if total > L.max_total_samples:
+                raise ValueError(f"the requests ask for {total} samples in all; at most "
+                                 f"{L.max_total_samples}")
+            return self
 
     return Schemas(limits=L, PlanRequest=PlanRequest, SweepRequest=SweepRequest,
                    TransformRequest=TransformRequest, RobustnessRequest=RobustnessRequest,

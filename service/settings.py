@@ -45,6 +45,9 @@ class Settings(BaseSettings):
     max_batch_size, max_robustness_runs, max_sweep_points, max_transform_points : int
         Upper bounds of ``/v1/plans/batch`` requests, robustness runs, sweep points and
         transform points per request.
+    max_total_samples : int
+        Path rows one answer may hold (sum of a batch's ``samples``; robustness runs x
+        ``samples`` with ``include_paths``), which bounds the size of any answer.
     default_time_limit, max_time_limit : float
         Seconds a solve may take when the request gives no ``time_limit``, and the largest
         ``time_limit`` accepted. The service waits ``time_limit + timeout_grace`` at most.
@@ -77,6 +80,10 @@ class Settings(BaseSettings):
     max_robustness_runs: int = Field(200, ge=1, le=100_000)
     max_sweep_points: int = Field(2001, ge=2, le=LIBRARY_MAX_SWEEP_POINTS)
     max_transform_points: int = Field(10_000, ge=1, le=1_000_000)
+    max_total_samples: int = Field(200_000, ge=2,
+                                   description="Path rows one answer may hold: the sum of a "
+                                               "batch's samples, or robustness runs x samples "
+                                               "with include_paths.")
     default_time_limit: float = Field(10.0, gt=0, le=LIBRARY_MAX_TIME_LIMIT)
     max_time_limit: float = Field(60.0, gt=0, le=LIBRARY_MAX_TIME_LIMIT)
     timeout_grace: float = Field(0.5, ge=0, le=60)
@@ -116,6 +123,7 @@ class Settings(BaseSettings):
                       max_robustness_runs=self.max_robustness_runs,
                       max_sweep_points=self.max_sweep_points,
                       max_transform_points=self.max_transform_points,
+                      max_total_samples=self.max_total_samples,
                       default_time_limit=self.default_time_limit,
                       max_time_limit=self.max_time_limit)
 
@@ -129,6 +137,7 @@ class Limits:
     max_robustness_runs: int = 200
     max_sweep_points: int = 2001
     max_transform_points: int = 10_000
+    max_total_samples: int = 200_000
     default_time_limit: float = 10.0
     max_time_limit: float = 60.0
 

@@ -7,6 +7,7 @@ from fastapi import APIRouter, Request
 from starlette.responses import Response
 
 from ..dispatch import check_plan, overloaded, request_id, run_job
+from ..encoding import finite_json
 from ..problems import SafeJSONResponse, ServiceProblem
 from ..schemas import BatchResponse, PlanResponse, Schemas
 from ..workers import Overloaded
@@ -40,20 +41,22 @@ def build_router(S: Schemas) -> APIRouter:
         except Overloaded as exc:
             raise overloaded(request.app.state.settings, str(exc)) from None
 
-        async def one(index: int, item: Any) -> dict[str, Any]:
+        async def one(index: int, item: Any) -> tuple[bool, bytes]:
+            # each item is JSON already: the plans come encoded from the workers
             try:
                 payload = item.to_library()
                 check_plan(payload, prefix=f"requests[{index}].")
                 plan = await run_job(request, "plan", payload, item.time_limit,
                                      method=item.method, admit=False)
-                return {"index": index, "status": "success", "plan": plan, "problem": None}
+                return True, b'{"index":%d,"status":"success","plan":%s,"problem":null}' % (
+                    index, plan)
             except ServiceProblem as problem:
-                return {"index": index, "status": "error", "plan": None,
-                        "problem": problem.body(request_id(request))}
+                return False, finite_json({"index": index, "status": "error", "plan": None,
+                                           "problem": problem.body(request_id(request))})
 
         results = await asyncio.gather(*(one(i, r) for i, r in enumerate(body.requests)))
-        ok = sum(r["status"] == "success" for r in results)
-        return SafeJSONResponse({"results": results, "succeeded": ok,
-                                 "failed": len(results) - ok})
+        ok = sum(success for success, _ in results)
+        return SafeJSONResponse(b'{"results":[%s],"succeeded":%d,"failed":%d}' % (
+            b",".join(item for _, item in results), ok, len(results) - ok))
 
     return router

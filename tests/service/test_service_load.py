@@ -36,6 +36,18 @@ def test_hundred_thousand_samples_is_refused(client):
     assert body["field"] == "samples" and "20001" in body["detail"]
 
 
+def test_answers_are_bounded_in_size(client):
+    """No single answer may hold more than max_total_samples path rows."""
+    r = client.post("/v1/plans/batch", json={"requests": [{**WORKED, "samples": 20001}] * 11})
+    body = assert_problem(r, 422, "invalid_request")
+    assert "200000" in body["detail"]
+    r = client.post("/v1/robustness", json={
+        "plan": {**WORKED, "phi_change": 34 * DEG, "samples": 20001},
+        "random": {"count": 20, "spread": 0.01}, "include_paths": True})
+    body = assert_problem(r, 422, "invalid_request")
+    assert "200000" in body["detail"]
+
+
 @pytest.mark.parametrize("depth", [100_000, 5000, 500])
 def test_deeply_nested_json_is_a_4xx(client, depth):
     raw = '{"start": ' + "[" * depth + "]" * depth + ', "goal": [0.5, 0.5, 0.5]}'

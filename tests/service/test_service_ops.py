@@ -6,6 +6,9 @@ import json
 import logging
 import re
 
+import numpy as np
+
+from service.encoding import finite_json
 from service.logs import JSONFormatter
 from service.settings import Settings
 from svc_support import DEG, WORKED, assert_problem, running_app
@@ -101,3 +104,11 @@ def test_access_log_is_json_with_request_id_and_no_body(client, caplog):
     assert doc["request_id"] == "log-test-1" and doc["status"] == 422
     assert doc["route"] == "/v1/plans" and doc["duration_ms"] >= 0
     assert all(secret not in JSONFormatter().format(r) for r in caplog.records)
+
+
+def test_encoder_never_emits_non_finite_numbers():
+    raw = finite_json({"a": float("nan"), "b": [float("inf"), -float("inf"), 1.5],
+                       "c": np.float64("nan"), "d": np.array([1.0, np.inf]), "e": np.int64(3)})
+    assert json.loads(raw) == {"a": None, "b": [None, None, 1.5], "c": None, "d": [1.0, None],
+                               "e": 3}
+    assert b"NaN" not in raw and b"Infinity" not in raw
