@@ -112,3 +112,17 @@ def test_encoder_never_emits_non_finite_numbers():
     assert json.loads(raw) == {"a": None, "b": [None, None, 1.5], "c": None, "d": [1.0, None],
                                "e": 3}
     assert b"NaN" not in raw and b"Infinity" not in raw
+
+
+def test_unexpected_library_errors_become_clean_problems():
+    """A failure that is not a PlannerError (a library bug) is reported as numerical_failure
+    with no traceback or internal detail, by the worker itself."""
+    from service.jobs import run_job
+
+    out = run_job("transform", {"direction": "to_chained", "points": [[0.0, 0.1, 0.1, 0.1]],
+                                "robot": {"gains": ["a", "b"], "exponents": [2, 3]}})
+    assert out["ok"] is False
+    assert out["error"]["code"] == "numerical_failure"
+    assert "Traceback" not in json.dumps(out) and ".py" not in json.dumps(out)
+    out = run_job("plan", {**WORKED, "phi_change": 34 * DEG, "samples": 3})
+    assert out["ok"] is True and json.loads(out["body"])["status"] == "success"

@@ -143,3 +143,29 @@ def test_batch_schema_errors_name_the_item(client):
     assert body["field"] == "requests[1].samples"
     r = client.post("/v1/plans/batch", json={"requests": []})
     assert_problem(r, 422, "invalid_request")
+
+
+def test_actuator_limit_sets_the_shortest_duration(client):
+    r = client.post("/v1/plans", json={**WORKED, "phi_change": 34 * DEG, "max_u1": 0.3,
+                                        "samples": 41})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["duration"] > 1.0
+    u1 = [abs(row[0]) for row in body["path"]["u"]]
+    assert max(u1) == pytest.approx(0.3, rel=1e-6)  # v1 = u1 is constant: the limit binds
+    assert body["path"]["t"][-1] == pytest.approx(body["duration"])
+
+
+@pytest.mark.parametrize("extra", [
+    {"objective": "weighted", "weights": {"d_a": 1.0, "energy": 0.5}},
+    {"objective": "tp_then_sensitivity"},
+    {"singularity": "z2"},
+])
+def test_objectives_and_criteria_pass_through(client, extra):
+    r = client.post("/v1/plans", json={**WORKED, **extra, "samples": 11})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    (lo, hi), = body["feasible_phi_changes"]
+    assert lo <= body["phi_change"] <= hi
+    assert body["diagnostics"]["objective"] == extra.get("objective", "tp_then_da")
+    assert body["validation"]["terminal_error"] < 1e-6
