@@ -17,6 +17,8 @@ import logging
 import time
 from typing import Any, Callable
 
+import numpy as np
+
 from optimizer import analysis
 from optimizer.chained_form import chained_form
 from optimizer.errors import PlannerError
@@ -43,8 +45,9 @@ def warm_up() -> dict[str, Any]:
     t0 = time.perf_counter()
     robot = Robot.default(3)
     cf = chained_form(robot)
-    cf.from_chained(cf.to_chained([0.0, 0.5, 0.5, 0.5]))
-    cf.symbolic.forward([0.0, 0.5, 0.5, 0.5])
+    q = np.array([0.0, 0.5, 0.5, 0.5])
+    cf.from_chained(cf.to_chained(q))
+    cf.symbolic.forward(q)
     return {"robot": robot.n, "seconds": time.perf_counter() - t0}
 
 

@@ -47,8 +47,9 @@ ProblemCode = Literal["invalid_request", "infeasible", "timeout", "numerical_fai
                       "overloaded", "unauthorized", "not_found", "method_not_allowed"]
 
 DEG = PI / 180.0
-WORKED_START = [round(10 * DEG, 9)] * 3
-WORKED_GOAL = [round(30 * DEG, 9)] * 3
+WORKED_START: list[Any] = [round(10 * DEG, 9)] * 3
+WORKED_GOAL: list[Any] = [round(30 * DEG, 9)] * 3
+Q_AT_1_DEG: list[Any] = [0.0] + [round(DEG, 9)] * 3
 
 
 class RequestModel(BaseModel):
@@ -434,8 +435,7 @@ def build_schemas(limits: Limits) -> Schemas:
         """Points to map between joint space and chained coordinates."""
 
         model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
-            {"direction": "to_chained", "points": [[0.0] + [round(DEG, 9)] * 3,
-                                                   [0.0] + WORKED_GOAL]}]})
+            {"direction": "to_chained", "points": [Q_AT_1_DEG, [0.0] + WORKED_GOAL]}]})
 
         robot: Optional[RobotSpec] = Field(
             None, description="Default: the default robot for n = row length - 1.")

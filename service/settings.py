@@ -68,26 +68,29 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="PLANNER_", extra="ignore")
 
-    host: str = Field("0.0.0.0", description="Listen address.")
-    port: int = Field(8000, ge=1, le=65535, description="Listen port.")
+    host: str = Field(default="0.0.0.0", description="Listen address.")
+    port: int = Field(default=8000, ge=1, le=65535, description="Listen port.")
     workers: int = Field(default_factory=_cpu_count, ge=1, le=256,
                          description="Solver worker processes.")
-    queue_size: int = Field(64, ge=0, le=100_000, description="Requests allowed to wait.")
-    retry_after: int = Field(1, ge=1, le=3600, description="Retry-After seconds of a 503.")
-    max_body_bytes: int = Field(1 << 20, ge=1024, description="Largest request body, bytes.")
-    max_samples: int = Field(LIBRARY_MAX_SAMPLES, ge=2, le=LIBRARY_MAX_SAMPLES)
-    max_batch_size: int = Field(64, ge=1, le=10_000)
-    max_robustness_runs: int = Field(200, ge=1, le=100_000)
-    max_sweep_points: int = Field(2001, ge=2, le=LIBRARY_MAX_SWEEP_POINTS)
-    max_transform_points: int = Field(10_000, ge=1, le=1_000_000)
-    max_total_samples: int = Field(200_000, ge=2,
+    queue_size: int = Field(default=64, ge=0, le=100_000,
+                            description="Requests allowed to wait.")
+    retry_after: int = Field(default=1, ge=1, le=3600,
+                             description="Retry-After seconds of a 503.")
+    max_body_bytes: int = Field(default=1 << 20, ge=1024,
+                                description="Largest request body, bytes.")
+    max_samples: int = Field(default=LIBRARY_MAX_SAMPLES, ge=2, le=LIBRARY_MAX_SAMPLES)
+    max_batch_size: int = Field(default=64, ge=1, le=10_000)
+    max_robustness_runs: int = Field(default=200, ge=1, le=100_000)
+    max_sweep_points: int = Field(default=2001, ge=2, le=LIBRARY_MAX_SWEEP_POINTS)
+    max_transform_points: int = Field(default=10_000, ge=1, le=1_000_000)
+    max_total_samples: int = Field(default=200_000, ge=2,
                                    description="Path rows one answer may hold: the sum of a "
                                                "batch's samples, or robustness runs x samples "
                                                "with include_paths.")
-    default_time_limit: float = Field(10.0, gt=0, le=LIBRARY_MAX_TIME_LIMIT)
-    max_time_limit: float = Field(60.0, gt=0, le=LIBRARY_MAX_TIME_LIMIT)
-    timeout_grace: float = Field(0.5, ge=0, le=60)
-    worker_start_timeout: float = Field(120.0, gt=0)
+    default_time_limit: float = Field(default=10.0, gt=0, le=LIBRARY_MAX_TIME_LIMIT)
+    max_time_limit: float = Field(default=60.0, gt=0, le=LIBRARY_MAX_TIME_LIMIT)
+    timeout_grace: float = Field(default=0.5, ge=0, le=60)
+    worker_start_timeout: float = Field(default=120.0, gt=0)
     start_method: Literal["forkserver", "spawn"] = "forkserver"
     warmup: bool = True
     api_keys: Annotated[list[str], NoDecode] = Field(default_factory=list)

@@ -196,7 +196,7 @@ class WorkerPool:
         self.start_timeout = start_timeout
         self.log_level = log_level
         self.on_restart = on_restart
-        self._ctx = multiprocessing.get_context(start_method)
+        self._ctx: Any = multiprocessing.get_context(start_method)
         if start_method == "forkserver":
             self._ctx.set_forkserver_preload(PRELOAD)
         self._threads = ThreadPoolExecutor(max_workers=2 * size + 2,
@@ -216,8 +216,7 @@ class WorkerPool:
     async def start(self) -> None:
         """Start the workers; return at once (they warm up in the background).
 
-        ``ready`` turns True when every initial worker has warmed up; :meth:`wait_ready`
-        awaits that.
+        :attr:`ready` turns True when the initial workers have warmed up.
         """
         self._idle = asyncio.Queue()
         self._started = True
@@ -232,14 +231,6 @@ class WorkerPool:
                 self._warmed.set()
 
         self._spawn_task(_all_started())
-
-    async def wait_ready(self, timeout: float | None = None) -> bool:
-        """Wait until the initial workers have warmed up; True when they have."""
-        try:
-            await asyncio.wait_for(self._warmed.wait(), timeout)
-        except asyncio.TimeoutError:
-            return False
-        return True
 
     @property
     def ready(self) -> bool:
