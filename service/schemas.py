@@ -319,7 +319,6 @@ class Readiness(BaseModel):
 class Schemas:
     """The request models for one set of limits (responses are fixed)."""
 
-    limits: Limits
     PlanRequest: type[BaseModel]
     SweepRequest: type[BaseModel]
     TransformRequest: type[BaseModel]
@@ -520,6 +519,6 @@ def build_schemas(limits: Limits) -> Schemas:
                                  f"{L.max_total_samples}")
             return self
 
-    return Schemas(limits=L, PlanRequest=PlanRequest, SweepRequest=SweepRequest,
+    return Schemas(PlanRequest=PlanRequest, SweepRequest=SweepRequest,
                    TransformRequest=TransformRequest, RobustnessRequest=RobustnessRequest,
                    BatchRequest=BatchRequest)

@@ -126,3 +126,26 @@ def test_unexpected_library_errors_become_clean_problems():
     assert "Traceback" not in json.dumps(out) and ".py" not in json.dumps(out)
     out = run_job("plan", {**WORKED, "phi_change": 34 * DEG, "samples": 3})
     assert out["ok"] is True and json.loads(out["body"])["status"] == "success"
+
+
+def test_unhandled_server_errors_are_never_500_and_spawn_workers_work():
+    """Any exception escaping a route becomes a clean problem document; the pool also works
+    with the ``spawn`` start method."""
+    from service.main import create_app
+    from service.settings import default_settings
+    from svc_support import TestClient, wait_ready
+
+    app = create_app(default_settings(workers=1, start_method="spawn"))
+
+    async def boom() -> None:
+        raise RuntimeError("internal detail /secret/path.py")
+
+    app.add_api_route("/boom", boom)
+    with TestClient(app, raise_server_exceptions=False) as c:
+        wait_ready(c)
+        r = c.get("/boom", headers={"X-Request-ID": "boom-1"})
+        body = assert_problem(r, 422, "numerical_failure")
+        assert body["request_id"] == "boom-1" and r.headers["x-request-id"] == "boom-1"
+        assert "secret" not in r.text
+        r = c.post("/v1/plans", json={**WORKED, "phi_change": 34 * DEG, "samples": 5})
+        assert r.status_code == 200, r.text
