@@ -1,6 +1,7 @@
 """The routers' one way to the workers: validate, run a job, map every outcome to HTTP.
 
-A job's outcome becomes either its JSON-safe result or a :class:`ServiceProblem`:
+A job's outcome becomes either its JSON body (encoded by the worker) or a
+:class:`ServiceProblem`:
 
 ==============================  ===========================================================
 pool / worker outcome           problem
