@@ -1,0 +1,96 @@
+"""Smoke test of the benchmark (``python -m bench``), so that it cannot rot.
+
+Runs the documented command in its tiny mode (one case, quick, no HTTP, scaling for n = 3 only)
+and checks the JSON: its keys, finite re-integration numbers, and a small terminal error of the
+baseline re-integrated on the original model. Also checks the re-integration helpers on cases
+with known answers.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench.reintegrate import Segment, count_reversals, integrate, line_distance  # noqa: E402
+
+FINITE_KEYS = ("terminal_error_rad", "d_a_deg", "joint_space_dev_deg", "energy",
+               "region_margin_deg")
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    out = tmp_path_factory.mktemp("bench") / "smoke.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench", "--quick", "--cases", "1", "--no-http", "--joints", "3",
+         "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "### Targets" in proc.stdout
+    return json.loads(out.read_text())
+
+
+def _finite_metrics(r: dict) -> None:
+    assert r["ok"], r.get("message")
+    for k in FINITE_KEYS:
+        assert isinstance(r[k], float) and math.isfinite(r[k]), (k, r[k])
+    assert r["reversals_phi"] >= 0 and r["reversals_th1"] >= 0
+
+
+def test_json_layout(results: dict) -> None:
+    assert {"meta", "config", "cases", "baseline_builds", "http", "scaling",
+            "targets"} <= set(results)
+    assert results["meta"]["quick"] is True
+    assert results["http"] == {"available": False, "reason": "disabled (--no-http)"}
+    assert len(results["cases"]) == 1
+    case = results["cases"][0]
+    assert {"case", "kind", "n", "start_deg", "goal_deg", "baseline", "methods"} <= set(case)
+    assert set(case["methods"]) == {"polynomial", "constraint_points", "penalty", "auto"}
+    for m, r in case["methods"].items():
+        assert {"status", "time", "first_call", "speedup_vs_baseline_solve"} <= set(r), m
+        if r["status"] == "error":  # a method being worked on: recorded, not hidden
+            assert r["error"]
+    assert [s["samples"] for s in results["scaling"]["samples"]] == [101, 1001, 10001]
+    j = results["scaling"]["joints"][0]
+    assert j["n"] == 3 and {"construct", "forward_10k", "inverse_10k",
+                            "coarse_scan", "plan"} <= set(j)
+    assert results["targets"] and all({"target", "scope", "measured", "met"} <= set(t)
+                                      for t in results["targets"])
+
+
+def test_baseline_reintegrates_to_goal(results: dict) -> None:
+    base = results["cases"][0]["baseline"]
+    assert base["status"] == "success"
+    assert base["solve_time"]["median"] > 0 and base["build_time"]["median"] > 0
+    _finite_metrics(base["reintegration"])
+    assert base["reintegration"]["terminal_error_rad"] < 1e-6
+
+
+def test_planner_reintegration_is_finite(results: dict) -> None:
+    methods = results["cases"][0]["methods"]
+    assert methods["polynomial"]["status"] == "success"
+    for m, r in methods.items():
+        if r["status"] == "success":
+            _finite_metrics(r["reintegration"])
+            assert r["reintegration"]["terminal_error_rad"] < 1e-6, m
+            assert r["time"]["median"] > 0
+
+
+def test_reintegration_helpers() -> None:
+    # u1 = 0: phi fixed, th2..thn fixed, th1 = th1(0) + u2 t; energy = u2^2 T
+    seg = [Segment(0.0, 0.5, lambda t: (0.0, 0.2)), Segment(0.5, 1.0, lambda t: (0.0, 0.2))]
+    t, x = integrate((0.88658, 0.7115), (2, 3), np.array([0.0, 0.1, 0.2, 0.3]), seg, grid=11)
+    assert t[0] == 0.0 and t[-1] == 1.0 and np.all(np.diff(t) > 0)
+    np.testing.assert_allclose(x[-1], [0.0, 0.3, 0.2, 0.3, 0.04], atol=1e-12)
+    assert count_reversals(np.sin(np.linspace(0, 3 * np.pi, 1001))) == 3  # pi/2, 3pi/2, 5pi/2
+    assert count_reversals(np.linspace(0, 1, 11) + 1e-6 * (-1) ** np.arange(11)) == 0
+    th = np.array([[0.0, 0.0], [0.5, 1.5], [1.0, 1.0]])
+    assert line_distance(th, th[0], th[-1]) == pytest.approx(np.sqrt(0.5))
