@@ -17,7 +17,7 @@ from .indicators import compute_indicators, sensitivity_frobenius
 from .model import Robot
 from .planner.family import PolynomialFamily
 from .planner.intervals import feasible_intervals
-from .planner.plan import check_endpoints, make_region
+from .planner.plan import Deadline, check_endpoints, make_region
 from .problem import PlanRequest
 from .results import Plan
 from .verify import PlannedInputs, replay
@@ -26,13 +26,14 @@ MAX_SWEEP_POINTS = 5001
 
 
 def sweep(req: PlanRequest, lo: float, hi: float, points: int,
-          intervals: bool = True) -> dict[str, Any]:
+          intervals: bool = True) -> dict[str, Any]:  # noqa: C901
     """Indicators and feasibility of the paper's family as functions of ``dphi``.
 
     Parameters
     ----------
     req : PlanRequest
-        Robot, start, goal, duration, criterion and constraint points are used.
+        Robot, start, goal, duration, criterion and constraint points are used; its
+        ``time_limit`` bounds the sweep (:class:`SolverTimeoutError` past it).
     lo, hi : float
         ``dphi`` range (rad).
     points : int
@@ -55,8 +56,9 @@ def sweep(req: PlanRequest, lo: float, hi: float, points: int,
                                   field="points")
     region = make_region(req)
     check_endpoints(req, make_region(req, "full"))
+    deadline = Deadline(req.time_limit)
     fam = PolynomialFamily(req.robot, req.q_start(), req.q_goal(0.0), req.duration_or_default,
-                           req.constraint_points, region)
+                           req.constraint_points, region, deadline.check)
     ds = np.linspace(lo, hi, points)
     out: dict[str, list[Any]] = {k: [] for k in ("phi_change", "feasible", "margin", "d_a", "t_p",
                                                  "sensitivity", "energy")}

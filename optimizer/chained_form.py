@@ -22,6 +22,13 @@ in (0, 1), i.e. ``th_1, ..., th_{n-1}`` in (0, pi/2) (``th_n`` is free): see :mo
 
 Two implementations: a closed form for ``n = 3`` (numpy) and, for any ``n``, expressions derived
 symbolically with CasADi (Lie derivatives along g1) and compiled once per robot.
+
+Conditioning: near ``th_i = 0`` the map flattens (``cos(th)^m ~ 1 - m th^2 / 2``), so z holds
+``th_i`` only to about ``eps / th_i`` and the inverse amplifies the rounding of z by the map's
+condition number, level after level: round trips are exact to ~1e-14 rad for the prototype with
+joints above a few degrees, but a z rounded to 6 decimals at th1 = 1 deg maps back to ~0.9 deg,
+and for n = 8 near the region's edges errors reach 1e-4 rad. The tests bound the round-trip error
+by the condition number of dz/dq.
 """
 
 from __future__ import annotations

@@ -88,6 +88,15 @@ class Robot:
         exps = (PROTOTYPE_EXPONENTS[0],) * (n - 2) + (PROTOTYPE_EXPONENTS[1],)
         return cls(gains, exps, assumed=(n != 3))
 
+    @classmethod
+    def from_spec(cls, spec: "dict[str, object] | None", n: int) -> "Robot":
+        """The robot of a request: the given ``gains``/``exponents``, else ``default(n)``."""
+        if not spec or (spec.get("gains") is None and spec.get("exponents") is None):
+            return cls.default(n)
+        gains = spec.get("gains") or ()
+        exps = spec.get("exponents") or ()
+        return cls(tuple(gains), tuple(exps))  # type: ignore[arg-type]
+
     @property
     def n(self) -> int:
         """Number of joints."""

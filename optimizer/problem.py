@@ -194,16 +194,8 @@ class PlanRequest:
         if not 3 <= n_start <= 8 and (rob is None or not dict(rob).get("gains")):
             raise InvalidRequestError(f"start has {n_start} joint angles: the number of joints "
                                       "must lie in [3, 8]", field="start")
-        if rob is None:
-            d["robot"] = Robot.default(len(d["start"])) if len(d["start"]) != 3 else Robot()
-        elif isinstance(rob, Robot):
-            d["robot"] = rob
-        else:
-            rob = dict(rob)
-            if rob.get("gains") is None and rob.get("exponents") is None:
-                d["robot"] = Robot.default(len(d["start"]))
-            else:
-                d["robot"] = Robot(tuple(rob.get("gains") or ()), tuple(rob.get("exponents") or ()))
+        d["robot"] = rob if isinstance(rob, Robot) else Robot.from_spec(
+            None if rob is None else dict(rob), n_start)
         if "weights" in d and d["weights"] is not None and not isinstance(d["weights"], Weights):
             d["weights"] = Weights(**dict(d["weights"]))
         elif d.get("weights") is None:

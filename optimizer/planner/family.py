@@ -8,6 +8,7 @@ memoises it, so that the interval search and the objective search share the work
 from __future__ import annotations
 
 import functools
+from typing import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,7 +58,8 @@ class PolynomialFamily:
     """
 
     def __init__(self, robot: Robot, q0: np.ndarray, qT: np.ndarray, duration: float,
-                 points: tuple[ConstraintPoint, ...], region: Region) -> None:
+                 points: tuple[ConstraintPoint, ...], region: Region,
+                 deadline: "Callable[[str], None] | None" = None) -> None:
         self.robot = robot
         self.n = robot.n
         self.cf: ChainedForm = chained_form(robot)
@@ -71,6 +73,9 @@ class PolynomialFamily:
             robot, "full", None if not region.has_custom_bounds else
             list(zip(region.lower, region.upper)), transform=self.cf)
         self.tau = np.linspace(0.0, 1.0, SEARCH_SAMPLES)
+        # called with a stage name before every exact (continuous-path) evaluation; raises
+        # SolverTimeoutError when the request's time is up
+        self.deadline_check = deadline or (lambda stage: None)
         self.evaluate = functools.lru_cache(maxsize=4096)(self._evaluate)
 
     def inputs(self, dphi: float) -> InputSchedule:
@@ -87,6 +92,7 @@ class PolynomialFamily:
             return PathCheck(False, -np.inf, 0.0, 0.0)
 
     def margin(self, dphi: float) -> float:
+        self.deadline_check("the interval search")
         try:
             m = self.region.check_path(self.path(dphi), locate=False).margin
         except SingularSystemError:
@@ -132,6 +138,7 @@ class PolynomialFamily:
         return np.where(ok, h.min(axis=1), -np.pi)
 
     def _evaluate(self, dphi: float) -> MemberEval:
+        self.deadline_check("the objective search")
         inf = float("inf")
         try:
             path = self.path(dphi)

@@ -200,7 +200,7 @@ def plan_polynomial(req: PlanRequest, deadline: Deadline) -> Plan:
         raise InfeasibleError(conflict, diagnostics={"blocking": "opposite_joint_motion"})
     region = make_region(req)
     fam = PolynomialFamily(req.robot, req.q_start(), req.q_goal(0.0), req.duration_or_default,
-                           req.constraint_points, region)
+                           req.constraint_points, region, deadline.check)
     t0 = time.perf_counter()
     if req.phi_change is not None:
         fam.inputs(float(req.phi_change))  # raises SingularSystemError for dphi = 0 (Remark 2)
@@ -309,9 +309,17 @@ def _plan_auto(req: PlanRequest, deadline: Deadline) -> Plan:
     except SolverTimeoutError:
         if poly is None:
             raise
+        failures["penalty"] = "stopped by the time limit"
         pen = None
-    except (InfeasibleError, NumericalError) as exc:
+    except PlannerError as exc:
+        if poly is None and not isinstance(exc, (InfeasibleError, NumericalError)):
+            raise
         failures["penalty"] = exc.message
+        pen = None
+    except Exception as exc:  # a bug in one method must not hide a verified plan of another
+        if poly is None:
+            raise
+        failures["penalty"] = f"internal error: {type(exc).__name__}"
         pen = None
     if poly is None and pen is None:
         raise InfeasibleError("no method found a singularity-free path: "
