@@ -139,3 +139,52 @@ def run_job(kind: str, payload: Payload) -> dict[str, Any]:
             "code": "numerical_failure",
             "message": "the solver failed unexpectedly; the failure was logged",
             "field": None, "diagnostics": {"exception": type(exc).__name__}}}
+
+
+# ---------------------------------------------------------------------- figures
+# Imported here (not lazily) so that the forkserver preloads matplotlib with this module and a
+# worker's first figure does not pay for the import.
+import base64  # noqa: E402
+
+from . import figures as _figures  # noqa: E402
+
+
+def job_figure(payload: Payload) -> dict[str, Any]:
+    """``POST /v1/figures/{kind}``: compute the data exactly as the JSON routes do, then draw it.
+
+    Payload: ``figure`` (a kind of :data:`service.figures.KINDS`), ``format`` (``png`` or
+    ``svg``) and ``request``: the payload of the ``plan`` job (``joint_angles``,
+    ``chained_state``), of the ``sweep`` job (``sweep``) or of the ``robustness`` job
+    (``robustness``; the runs' paths are always computed, they are what the figure draws).
+
+    Returns
+    -------
+    dict
+        ``figure``, ``format``, ``media_type`` and ``data`` (the image, base64).
+    """
+    kind, fmt, inner = payload["figure"], payload["format"], payload["request"]
+    data: dict[str, Any]
+    if kind in ("joint_angles", "chained_state"):
+        data = job_plan(inner)
+        if inner.get("constraint_points"):
+            data = {"plan": data, "constraint_points": inner["constraint_points"]}
+    elif kind == "sweep":
+        data = json_safe(job_sweep(inner))
+    elif kind == "robustness":
+        req = PlanRequest.from_dict(inner["plan"])
+        nominal = plan(req)
+        starts = inner.get("starts")
+        if starts is None:
+            rnd = inner["random"]
+            starts = analysis.perturbed_starts(req.start, int(rnd["count"]),
+                                               float(rnd["spread"]), int(rnd["seed"]))
+        runs = analysis.robustness(nominal, starts, inner["replay"], req.goal)
+        data = {"plan": nominal.to_dict(), "robustness": json_safe(runs)}
+    else:
+        raise ValueError(f"unknown figure kind {kind!r}")
+    image, media_type = _figures.render(kind, data, fmt)
+    return {"figure": kind, "format": fmt, "media_type": media_type,
+            "data": base64.b64encode(image).decode("ascii")}
+
+
+JOBS["figure"] = job_figure

@@ -28,7 +28,7 @@ from .dispatch import request_id
 from .metrics import Metrics
 from .middleware import RequestContextMiddleware
 from .problems import PROBLEM_MEDIA_TYPE, SafeJSONResponse, ServiceProblem
-from .routers import health, plans, robots, robustness, sweeps, transforms
+from .routers import explorer, figures, health, plans, robots, robustness, sweeps, transforms
 from .schemas import build_schemas
 from .settings import Settings
 from .workers import WorkerPool
@@ -96,9 +96,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     guard = [Depends(_api_key_guard(settings.api_keys))]
     for router in (plans.build_router(schemas), sweeps.build_router(schemas),
                    transforms.build_router(schemas), robustness.build_router(schemas),
-                   robots.build_router()):
+                   robots.build_router(), figures.build_router(schemas)):
         app.include_router(router, prefix="/v1", dependencies=guard)
     app.include_router(health.build_router())
+    app.include_router(explorer.build_router())
     _add_docs(app)
     _add_error_handlers(app)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]

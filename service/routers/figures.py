@@ -1,0 +1,160 @@
+"""``POST /v1/figures/{kind}``: the service's figures as PNG or SVG.
+
+One route per kind, each taking the JSON request of the route whose answer it draws:
+
+=============================  =====================  ==========================================
+route                          body                   figure (:mod:`service.figures`)
+=============================  =====================  ==========================================
+``/v1/figures/joint_angles``   plan request           th1..thn and phi against time (deg)
+``/v1/figures/chained_state``  plan request           z2..z_{n+1} with the singular regions
+``/v1/figures/sweep``          sweep request          d_a, t_p, ||J_R||_F against dphi
+``/v1/figures/robustness``     robustness request     nominal path against perturbed runs
+=============================  =====================  ==========================================
+
+The worker plans (or sweeps, or replays) exactly as the JSON route would, then renders the
+figure with matplotlib in the same process (the ``figure`` job of :mod:`service.jobs`), so the
+event loop never draws. The format is the ``format`` query parameter, else the ``Accept``
+header (``image/svg+xml`` or ``image/png``), else PNG. Failures are the same problem documents
+as the JSON routes (``infeasible`` 422, ``timeout`` 504, ...).
+"""
+
+import base64
+import json
+from typing import Any, Literal, Optional
+
+from fastapi import APIRouter, Query, Request
+from starlette.responses import Response
+
+from ..dispatch import check_plan, run_job
+from ..figures import FORMATS
+from ..problems import ServiceProblem
+from ..schemas import Schemas
+from . import ERROR_RESPONSES
+
+#: Seconds a figure job may take beyond the request's ``time_limit`` (the drawing itself).
+RENDER_SECONDS = 15.0
+
+FigureFormat = Literal["png", "svg"]
+
+IMAGE_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {"description": "The figure: `image/png` (900 px wide) or `image/svg+xml` (text kept "
+                         "as `<text>`), chosen by `format`, else by `Accept`, else PNG.",
+          "content": {"image/png": {"schema": {"type": "string", "format": "binary"}},
+                      "image/svg+xml": {"schema": {"type": "string"}}},
+          "headers": {"Content-Disposition": {"description": "`inline; filename=\"<kind>."
+                                                             "<format>\"`",
+                                              "schema": {"type": "string"}}}},
+    **ERROR_RESPONSES,
+}
+
+FORMAT_QUERY = Query(None, description="Image format. Omitted: from the `Accept` header "
+                                       "(`image/svg+xml` or `image/png`), else png.")
+
+COMMON = (" The job's `time_limit` bounds the computation; drawing may take up to "
+          f"{RENDER_SECONDS:g} s more. Angles are drawn in degrees (labelled).")
+
+
+def negotiate(fmt: Optional[str], accept: Optional[str]) -> str:
+    """The image format: ``fmt`` when given, else the preferred of png/svg in ``accept``.
+
+    ``Accept`` entries are weighed by their ``q``; ``image/*`` and ``*/*`` count for PNG; a
+    header naming neither image type (``application/json`` from a generic client) gives PNG.
+    """
+    if fmt:
+        return fmt
+    best, best_q = "png", 0.0
+    for part in (accept or "").split(","):
+        fields = [f.strip() for f in part.split(";")]
+        media = fields[0].lower()
+        q = 1.0
+        for f in fields[1:]:
+            if f.lower().startswith("q="):
+                try:
+                    q = float(f[2:])
+                except ValueError:
+                    q = 0.0
+        choice = {"image/svg+xml": "svg", "image/png": "png", "image/*": "png",
+                  "*/*": "png"}.get(media)
+        # an exact type beats a wildcard of the same weight
+        if choice and (q > best_q or (q == best_q and media in ("image/svg+xml", "image/png"))):
+            best, best_q = choice, q
+    return best
+
+
+async def _figure(request: Request, kind: str, job_payload: dict[str, Any], time_limit: float,
+                  fmt: Optional[str]) -> Response:
+    """Run the ``figure`` job and answer with the image."""
+    chosen = negotiate(fmt, request.headers.get("accept"))
+    limit = time_limit + RENDER_SECONDS
+    body = await run_job(request, "figure", {"figure": kind, "format": chosen,
+                                             "request": job_payload}, limit, method=kind)
+    out = json.loads(body)
+    return Response(base64.b64decode(out["data"]), media_type=FORMATS[chosen],
+                    headers={"Content-Disposition": f'inline; filename="{kind}.{chosen}"',
+                             "Vary": "Accept"})
+
+
+def build_router(S: Schemas) -> APIRouter:
+    """The figure routes for the request models ``S``."""
+    router = APIRouter(tags=["figures"])
+
+    @router.post("/figures/joint_angles", response_class=Response, responses=IMAGE_RESPONSES,
+                 summary="Figure: joint angles and phi against time",
+                 description="Plans the request like `POST /v1/plans`, then draws th1..thn "
+                             "(top) and phi (bottom) against time in degrees, with the straight "
+                             "start-to-goal references that d_a measures against." + COMMON)
+    async def figure_joint_angles(body: S.PlanRequest, request: Request,  # type: ignore[name-defined]
+                                  format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+        payload = body.to_library()
+        check_plan(payload)
+        return await _figure(request, "joint_angles", payload, body.time_limit, format)
+
+    @router.post("/figures/chained_state", response_class=Response, responses=IMAGE_RESPONSES,
+                 summary="Figure: chained-form state against time",
+                 description="Plans the request like `POST /v1/plans`, then draws z2..z_{n+1} "
+                             "against time with the regions where the inverse transform does "
+                             "not exist shaded and the request's constraint points marked."
+                             + COMMON)
+    async def figure_chained_state(body: S.PlanRequest, request: Request,  # type: ignore[name-defined]
+                                   format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+        payload = body.to_library()
+        check_plan(payload)
+        return await _figure(request, "chained_state", payload, body.time_limit, format)
+
+    @router.post("/figures/sweep", response_class=Response, responses=IMAGE_RESPONSES,
+                 summary="Figure: indicators against dphi",
+                 description="Sweeps like `POST /v1/sweeps`, then draws d_a (deg), t_p and "
+                             "||J_R(T)||_F against dphi (deg) with the singularity-free dphi "
+                             "intervals shaded and the grid's best member starred." + COMMON)
+    async def figure_sweep(body: S.SweepRequest, request: Request,  # type: ignore[name-defined]
+                           format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+        payload = body.to_library()
+        check_plan(payload["request"])
+        return await _figure(request, "sweep", payload, body.time_limit, format)
+
+    @router.post("/figures/robustness", response_class=Response, responses=IMAGE_RESPONSES,
+                 summary="Figure: nominal path against open-loop runs from perturbed starts",
+                 description="Plans and replays like `POST /v1/robustness`, then draws each "
+                             "joint's nominal path against the perturbed runs (singular runs "
+                             "red, stopped where they met the singularity). `include_paths` is "
+                             "ignored: the runs' paths are what the figure draws, so runs x "
+                             "plan.samples is bounded as with `include_paths`." + COMMON)
+    async def figure_robustness(body: S.RobustnessRequest, request: Request,  # type: ignore[name-defined]
+                                format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+        payload = body.to_library()
+        check_plan(payload["plan"], prefix="plan.")
+        n = len(body.plan.start)
+        for i, row in enumerate(body.starts or []):
+            if len(row) != n:
+                raise ServiceProblem("invalid_request", f"starts[{i}] has {len(row)} angles but "
+                                     f"the plan has n = {n} joints", field=f"starts[{i}]")
+        runs = len(body.starts) if body.starts is not None else body.random.count
+        most = request.app.state.settings.max_total_samples
+        if runs * body.plan.samples > most:
+            raise ServiceProblem("invalid_request", f"runs x plan.samples = "
+                                 f"{runs * body.plan.samples} exceeds {most} path rows (the "
+                                 "figure draws every run's path)", field="plan.samples",
+                                 diagnostics={"max_total_samples": most})
+        return await _figure(request, "robustness", payload, body.time_limit, format)
+
+    return router

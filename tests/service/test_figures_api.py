@@ -1,0 +1,129 @@
+"""``POST /v1/figures/{kind}`` through HTTP: real plans, sweeps and robustness runs drawn as PNG
+and SVG in the workers; failures stay problem documents."""
+
+from __future__ import annotations
+
+import struct
+import xml.etree.ElementTree as ET
+
+import pytest
+
+from service.routers.figures import negotiate
+from svc_support import DEG, WORKED, assert_problem
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+SVG_NS = "{http://www.w3.org/2000/svg}"
+
+#: The worked example (start 10 deg, goal 30 deg, polynomial) as each figure's request.
+BODIES = {
+    "joint_angles": {**WORKED, "samples": 101},
+    "chained_state": {**WORKED, "samples": 101},
+    "sweep": {**WORKED, "phi_change_range": [30 * DEG, 38 * DEG], "points": 41},
+    "robustness": {"plan": {**WORKED, "samples": 101}, "replay": "u",
+                   "random": {"count": 4, "spread": 0.5 * DEG, "seed": 3}},
+}
+#: Axis label (or title) text each SVG must carry.
+LABELS = {
+    "joint_angles": ["joint angle [deg]", "phi [deg]", "time t [s]"],
+    "chained_state": ["z2 [-]", "time t [s]"],
+    "sweep": ["d_a [deg]", "t_p [-]", "phi change dphi [deg]"],
+    "robustness": ["joint angle [deg]", "time t [s]"],
+}
+INFEASIBLE = {**WORKED, "start": [10 * DEG, 20 * DEG, 30 * DEG],
+              "goal": [40 * DEG, 25 * DEG, 15 * DEG]}
+
+
+def png_size(data: bytes) -> tuple[int, int]:
+    assert data[:8] == PNG_MAGIC
+    assert data[12:16] == b"IHDR"
+    return struct.unpack(">II", data[16:24])
+
+
+def svg_texts(data: bytes) -> str:
+    root = ET.fromstring(data)
+    assert root.tag == SVG_NS + "svg"
+    return " ".join("".join(el.itertext()) for el in root.iter(SVG_NS + "text"))
+
+
+@pytest.mark.parametrize("kind", list(BODIES))
+def test_png_and_svg(client, kind):
+    png = client.post(f"/v1/figures/{kind}", params={"format": "png"}, json=BODIES[kind])
+    assert png.status_code == 200, png.text
+    assert png.headers["content-type"] == "image/png"
+    assert png.headers["content-disposition"] == f'inline; filename="{kind}.png"'
+    width, height = png_size(png.content)
+    assert width >= 400 and height >= 200
+
+    svg = client.post(f"/v1/figures/{kind}", params={"format": "svg"}, json=BODIES[kind])
+    assert svg.status_code == 200, svg.text
+    assert svg.headers["content-type"].startswith("image/svg+xml")
+    text = svg_texts(svg.content)
+    for label in LABELS[kind]:
+        assert label in text, (kind, label)
+
+
+def test_the_figure_shows_the_plan_it_was_asked_for(client):
+    # the joint-angle title carries dphi and d_a of the worked example's plan (34.57, 21.62 deg)
+    svg = client.post("/v1/figures/joint_angles", params={"format": "svg"}, json=WORKED)
+    text = svg_texts(svg.content)
+    assert "polynomial plan" in text and "34.57" in text and "21.62" in text
+    # the sweep title lists the exact feasible interval 33.20..35.26 deg
+    sweep = client.post("/v1/figures/sweep", params={"format": "svg"}, json=BODIES["sweep"])
+    assert "singularity-free dphi: [33.201\u00b0, 35.256\u00b0]" in svg_texts(sweep.content)
+
+
+def test_accept_header_chooses_the_format(client):
+    svg = client.post("/v1/figures/chained_state", json=WORKED,
+                      headers={"Accept": "image/svg+xml"})
+    assert svg.status_code == 200 and svg.headers["content-type"].startswith("image/svg+xml")
+    assert svg.headers["vary"] == "Accept"
+    png = client.post("/v1/figures/chained_state", json=WORKED)  # default: png
+    assert png.headers["content-type"] == "image/png"
+    # the query parameter wins over Accept
+    q = client.post("/v1/figures/chained_state", params={"format": "png"}, json=WORKED,
+                    headers={"Accept": "image/svg+xml"})
+    assert q.headers["content-type"] == "image/png"
+
+
+def test_negotiation_rules():
+    assert negotiate("svg", "image/png") == "svg"
+    assert negotiate(None, None) == "png"
+    assert negotiate(None, "application/json") == "png"
+    assert negotiate(None, "image/svg+xml,image/png;q=0.5") == "svg"
+    assert negotiate(None, "image/svg+xml;q=0.4, image/*;q=0.8") == "png"
+    assert negotiate(None, "*/*, image/svg+xml") == "svg"
+
+
+def test_infeasible_is_a_problem_document(client):
+    r = client.post("/v1/figures/joint_angles", params={"format": "png"}, json=INFEASIBLE)
+    body = assert_problem(r, 422, "infeasible")
+    assert body["detail"]
+    r = client.post("/v1/figures/robustness", json={"plan": INFEASIBLE, "starts": [[0.2] * 3]})
+    assert_problem(r, 422, "infeasible")
+
+
+def test_invalid_requests(client):
+    assert_problem(client.post("/v1/figures/joint_angles", params={"format": "gif"},
+                               json=WORKED), 422, "invalid_request")
+    body = assert_problem(client.post("/v1/figures/sweep", json={**WORKED, "points": 1}),
+                          422, "invalid_request")
+    assert body["field"] == "points"
+    body = assert_problem(client.post("/v1/figures/robustness", json={
+        "plan": WORKED, "starts": [[0.2, 0.2]]}), 422, "invalid_request")
+    assert body["field"] == "starts[0]"
+    body = assert_problem(client.post("/v1/figures/robustness", json={
+        "plan": {**WORKED, "samples": 20001}, "random": {"count": 20, "spread": 0.01}}),
+        422, "invalid_request")
+    assert body["field"] == "plan.samples"
+    assert_problem(client.post("/v1/figures/pie_chart", json=WORKED), 404, "not_found")
+
+
+def test_figures_are_documented_in_openapi(client):
+    doc = client.get("/openapi.json").json()
+    for kind in BODIES:
+        op = doc["paths"][f"/v1/figures/{kind}"]["post"]
+        assert set(op["responses"]["200"]["content"]) == {"image/png", "image/svg+xml"}
+        assert list(op["responses"]["422"]["content"]) == ["application/problem+json"]
+        assert [p["name"] for p in op["parameters"]] == ["format"]
+    assert doc["paths"]["/v1/figures/sweep"]["post"]["requestBody"]["content"][
+        "application/json"]["schema"]["$ref"].endswith("/SweepRequest")
