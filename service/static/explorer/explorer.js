@@ -132,33 +132,35 @@
     return Number.isFinite(n) ? Math.min(8, Math.max(3, n)) : 3;
   }
 
-  function valueOf(id, fallback) {
-    const el = $(id);
-    return el ? el.value : fallback;
+  /** Make the joint table have n rows: rows are added or removed at the end, never rebuilt,
+   *  so that typing in a row is never interrupted. */
+  function setJointCount(n) {
+    const body = $("joint-rows");
+    while (body.rows.length > n) body.deleteRow(body.rows.length - 1);
+    for (let i = body.rows.length + 1; i <= n; i++) {
+      body.appendChild(jointRow(i, DEFAULT_START_DEG, DEFAULT_GOAL_DEG, "", ""));
+    }
   }
 
-  /** Rebuild the joint table for n joints, keeping what was typed. */
-  function buildJoints(n, robot) {
-    const rows = [];
-    for (let i = 1; i <= n; i++) {
-      const gain = robot ? robot.gains[i - 2] : valueOf(`gain-${i}`, "");
-      const exponent = robot ? robot.exponents[i - 2] : valueOf(`exponent-${i}`, "");
-      rows.push(jointRow(i, valueOf(`start-${i}`, DEFAULT_START_DEG),
-                         valueOf(`goal-${i}`, DEFAULT_GOAL_DEG), gain, exponent));
+  /** Put a robot's constants into the gain and exponent fields (in place). */
+  function applyRobot(robot) {
+    for (let i = 2; i <= robot.gains.length + 1; i++) {
+      const g = $(`gain-${i}`), m = $(`exponent-${i}`);
+      if (g) g.value = robot.gains[i - 2];
+      if (m) m.value = robot.exponents[i - 2];
     }
-    $("joint-rows").replaceChildren(...rows);
   }
 
   async function loadDefaults() {
     const n = currentN();
-    $("n").value = n;
-    buildJoints(n, null);
+    if ($("n").value !== String(n)) $("n").value = n;
+    setJointCount(n);
     const note = $("robot-note");
     try {
       const resp = await call(`v1/robots/default?n=${n}`, { headers: apiHeaders({ "Accept": "application/json" }) });
       const robot = await resp.json();
       if (currentN() !== n) return;  // n changed meanwhile
-      buildJoints(n, robot);
+      applyRobot(robot);
       note.hidden = !robot.note;
       note.textContent = robot.note || "";
       $("plan-form").dataset.defaults = "loaded";
@@ -254,6 +256,14 @@
     box.hidden = !message;
   }
 
+  /** Bring the results into view when they start outside the window (long form, narrow layout). */
+  function reveal() {
+    const box = $("results").getBoundingClientRect();
+    if (box.top < 0 || box.top > window.innerHeight - 80) {
+      $("results").scrollIntoView({ block: "start", behavior: "smooth" });
+    }
+  }
+
   function resetOutput() {
     showError("");
     for (const url of state.urls) URL.revokeObjectURL(url);
@@ -338,6 +348,9 @@
       req = buildRequest();
     } catch (err) {
       showError(err.message);
+      $("placeholder").hidden = true;
+      setStatus("Not sent: see the message.", false);
+      reveal();
       return;
     }
     $("request-preview").textContent = JSON.stringify(req, null, 2);
@@ -347,15 +360,17 @@
       answer = await postJSON("v1/plans", req);
     } catch (err) {
       if (run !== state.run) return;
-      setStatus("", false);
+      setStatus("Failed: see the message.", false);
       $("placeholder").hidden = true;
       showError(describe(err));
+      reveal();
       return;
     }
     if (run !== state.run) return;
     const plan = answer.data;
     state.planRequest = req;
     showPlan(plan, answer.text);
+    reveal();
     state.figureBodies = { joint_angles: req, chained_state: req, sweep: sweepRequest(req, plan) };
     setStatus("Rendering figures…", true);
     await Promise.all(FIGURES.map((k) => showFigure(run, k, state.figureBodies[k])));
@@ -388,7 +403,8 @@
   }
 
   document.addEventListener("DOMContentLoaded", () => {
-    buildJoints(3, { gains: [0.88658, 0.7115], exponents: [2, 3] });
+    setJointCount(3);
+    applyRobot({ gains: [0.88658, 0.7115], exponents: [2, 3] });  // until the service answers
     $("plan-form").addEventListener("submit", onPlan);
     $("load-defaults").addEventListener("click", loadDefaults);
     $("n").addEventListener("change", loadDefaults);

@@ -1,0 +1,273 @@
+"""The plan explorer at ``/`` in a real headless browser: Debian's chromium driven by Playwright.
+
+A live ``python -m service`` (uvicorn) runs on a free loopback port; the test fills the form with
+the paper's worked example, presses Plan and checks what a user sees: the indicators, the
+feasible interval, the three figures (decoded images), the JSON download, readable errors, and
+the optional API key.
+
+Set-up: chromium is Debian's package (installed here with apt-get when missing and running as
+root); Playwright's Python package is installed with pip when missing. Playwright's own browser
+download (``playwright install``) is never used. When the browser cannot be had, the tests fail
+in CI (``CI`` set) and are skipped elsewhere.
+
+``EXPLORER_SCREENSHOT=/path.png`` keeps the screenshot of the planned page there (default: the
+test's temporary directory).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Iterator
+
+import pytest
+
+from svc_support import free_port, server_process
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--disable-dev-shm-usage"]
+PLAYWRIGHT_REQUIREMENT = "playwright>=1.40,<2"
+FIGURES = ("joint_angles", "chained_state", "sweep")
+API_KEY = "explorer-test-key"
+
+
+# ------------------------------------------------------------------ set-up
+def _unavailable(why: str) -> None:
+    if os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no"):
+        pytest.fail(f"the browser test cannot run in CI: {why}")
+    pytest.skip(why)
+
+
+def _run(cmd: list[str], timeout: float) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env,
+                          stdin=subprocess.DEVNULL)
+
+
+def chromium_path() -> str:
+    """Debian's chromium, installed with apt-get first when missing (as root)."""
+    found = shutil.which("chromium") or (CHROMIUM if os.access(CHROMIUM, os.X_OK) else None)
+    if found:
+        return found
+    if os.geteuid() != 0 or shutil.which("apt-get") is None:
+        _unavailable("chromium is not installed and cannot be (needs root and apt-get)")
+    install = ["apt-get", "install", "-y", "-q", "--no-install-recommends",
+               "-o", "DPkg::Lock::Timeout=120", "chromium"]
+    done = None
+    try:
+        done = _run(install, 900)  # the package lists may already be fresh enough
+        if done.returncode != 0:
+            for _ in range(2):
+                _run(["apt-get", "update", "-q", "-o", "DPkg::Lock::Timeout=120"], 300)
+                done = _run(install, 900)
+                if done.returncode == 0:
+                    break
+    except subprocess.TimeoutExpired:
+        _unavailable("installing chromium with apt-get timed out")
+    found = shutil.which("chromium")
+    if not found:
+        tail = (done.stdout + done.stderr)[-2000:] if done is not None else ""
+        _unavailable(f"apt-get could not install chromium:\n{tail}")
+    return str(found)
+
+
+def sync_playwright_module() -> Any:
+    """``playwright.sync_api.sync_playwright``, pip-installing the package when missing."""
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        try:
+            done = _run([sys.executable, "-m", "pip", "install", "-q", PLAYWRIGHT_REQUIREMENT],
+                        600)
+        except subprocess.TimeoutExpired:
+            _unavailable("pip install playwright timed out")
+        if done.returncode != 0:
+            _unavailable(f"pip could not install playwright:\n{done.stderr[-2000:]}")
+        from playwright.sync_api import sync_playwright
+    return sync_playwright
+
+
+@pytest.fixture(scope="module")
+def browser_context(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    """A fresh headless chromium profile (Playwright, Debian's binary)."""
+    executable = chromium_path()
+    sync_playwright = sync_playwright_module()
+    profile = tmp_path_factory.mktemp("chromium-profile")
+    with sync_playwright() as pw:
+        context = pw.chromium.launch_persistent_context(
+            str(profile), executable_path=executable, headless=True, args=CHROMIUM_ARGS,
+            viewport={"width": 1440, "height": 1000}, accept_downloads=True, timeout=60_000)
+        try:
+            yield context
+        finally:
+            context.close()
+
+
+def _server(tmp_path_factory: pytest.TempPathFactory, name: str,
+            env: dict[str, str]) -> Iterator[str]:
+    port = free_port()
+    log = tmp_path_factory.mktemp(name) / "server.log"
+    full = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), **env}
+    with server_process([sys.executable, "-m", "service"], full, port, log) as base:
+        yield base
+
+
+@pytest.fixture(scope="module")
+def explorer_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """A live uvicorn (``python -m service``) with two workers and no API keys."""
+    yield from _server(tmp_path_factory, "explorer", {"PLANNER_WORKERS": "2"})
+
+
+@pytest.fixture(scope="module")
+def keyed_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """The same with an API key required on /v1."""
+    yield from _server(tmp_path_factory, "explorer-keyed",
+                       {"PLANNER_WORKERS": "1", "PLANNER_API_KEYS": API_KEY})
+
+
+class Page:
+    """A browser tab on the explorer that records console errors and uncaught exceptions."""
+
+    def __init__(self, context: Any, base: str) -> None:
+        self.page = context.new_page()
+        self.errors: list[str] = []
+        self.page.on("console", lambda m: self.errors.append(m.text) if m.type == "error"
+                     else None)
+        self.page.on("pageerror", lambda e: self.errors.append(str(e)))
+        response = self.page.goto(base + "/")
+        assert response is not None and response.status == 200
+        assert response.headers["content-type"].startswith("text/html")
+        self.page.wait_for_selector("#plan-form[data-defaults]", timeout=20_000)
+
+    def fill_worked_example(self) -> None:
+        p = self.page
+        p.fill("#n", "3")
+        for i in (1, 2, 3):
+            p.fill(f"#start-{i}", "10")
+            p.fill(f"#goal-{i}", "30")
+        p.select_option("#method", "polynomial")
+
+    def plan(self) -> None:
+        self.page.click("#plan-button")
+
+    def wait_for_figures(self) -> None:
+        self.page.wait_for_function(
+            """kinds => kinds.every(k => { const i = document.getElementById('fig-' + k);
+                 return i && i.complete && i.naturalWidth > 0; })""",
+            arg=list(FIGURES), timeout=45_000)
+        self.page.wait_for_function("() => !document.getElementById('plan-button').disabled",
+                                    timeout=15_000)
+
+    def text(self, selector: str) -> str:
+        return str(self.page.inner_text(selector)).strip()
+
+    def close(self) -> None:
+        self.page.close()
+
+
+def number(text: str) -> float:
+    match = re.search(r"[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?", text)
+    assert match, text
+    return float(match.group(0))
+
+
+# ------------------------------------------------------------------ tests
+def test_worked_example_in_the_browser(browser_context, explorer_server, tmp_path):
+    tab = Page(browser_context, explorer_server)
+    p = tab.page
+    assert p.title().startswith("Plan explorer")
+    # defaults come from GET /v1/robots/default
+    assert p.get_attribute("#plan-form", "data-defaults") == "loaded"
+    assert float(p.input_value("#gain-2")) == pytest.approx(0.88658)
+    assert p.input_value("#exponent-3") == "3"
+    assert p.input_value("#objective") == "tp_then_da"
+
+    tab.fill_worked_example()
+    tab.plan()
+    p.wait_for_selector("#plan-out:not([hidden])", timeout=30_000)
+    tab.wait_for_figures()
+
+    assert tab.text("#out-method") == "polynomial"
+    assert number(tab.text("#out-dphi")) == pytest.approx(34.57, abs=0.01)
+    assert number(tab.text("#ind-d_a")) == pytest.approx(21.6, abs=0.05)
+    assert tab.text("#ind-t_p") == "1"
+    assert number(tab.text("#ind-sensitivity")) == pytest.approx(2.18, abs=0.01)
+    assert number(tab.text("#ind-margin")) == pytest.approx(10.0, abs=0.01)
+    assert 0 <= number(tab.text("#ind-terminal_error")) < 1e-6
+    assert tab.text("#feasible") == "33.20 .. 35.26 deg"
+    # the request went out in radians
+    sent = json.loads(p.text_content("#request-preview") or "")  # inside a closed <details>
+    assert sent["start"] == pytest.approx([0.174533] * 3, abs=1e-6)
+    assert sent["goal"] == pytest.approx([0.523599] * 3, abs=1e-6)
+    assert sent["method"] == "polynomial" and sent["objective"] == "tp_then_da"
+    widths = p.evaluate("kinds => kinds.map(k => document.getElementById('fig-' + k)"
+                        ".naturalWidth)", list(FIGURES))
+    assert all(w >= 400 for w in widths), widths
+    assert tab.text("#error") == "" and not p.is_visible("#error")
+
+    with p.expect_download(timeout=15_000) as info:
+        p.click("#download-json")
+    saved = json.loads(Path(info.value.path()).read_text(encoding="utf-8"))
+    assert saved["status"] == "success" and saved["method"] == "polynomial"
+    assert saved["phi_change"] == pytest.approx(0.60335, abs=1e-4)
+
+    shot = Path(os.environ.get("EXPLORER_SCREENSHOT") or tmp_path / "explorer.png")
+    p.screenshot(path=str(shot), full_page=True)
+    assert shot.stat().st_size > 10_000
+    assert tab.errors == []
+    tab.close()
+
+
+def test_errors_are_readable_messages(browser_context, explorer_server):
+    tab = Page(browser_context, explorer_server)
+    p = tab.page
+    # infeasible: the problem document's detail, with its title and status
+    for i, (s, g) in enumerate([(10, 40), (20, 25), (30, 15)], start=1):
+        p.fill(f"#start-{i}", str(s))
+        p.fill(f"#goal-{i}", str(g))
+    p.select_option("#method", "polynomial")
+    tab.plan()
+    p.wait_for_selector("#error:not([hidden])", timeout=30_000)
+    message = tab.text("#error")
+    assert message.startswith("No feasible plan (422): ") and len(message) > 30, message
+    assert not p.is_visible("#plan-out")
+    # a field the user left empty never reaches the service
+    p.fill("#goal-2", "")
+    tab.plan()
+    p.wait_for_function("() => document.getElementById('error').textContent.includes("
+                        "'Goal angle of joint 2 must be a number')", timeout=5_000)
+    # a value the service refuses: its validation detail and field
+    p.fill("#goal-2", "30")
+    p.fill("#duration", "0")
+    tab.plan()
+    p.wait_for_function("() => document.getElementById('error').textContent.includes("
+                        "'Invalid request (422)')", timeout=15_000)
+    assert "duration" in tab.text("#error")
+    assert not [e for e in tab.errors if "422" not in e]  # only the refused requests
+    tab.close()
+
+
+def test_api_key_field(browser_context, keyed_server):
+    tab = Page(browser_context, keyed_server)  # the page itself stays open
+    p = tab.page
+    assert p.get_attribute("#plan-form", "data-defaults") == "failed"
+    assert "API key" in tab.text("#robot-note")
+    tab.fill_worked_example()
+    tab.plan()
+    p.wait_for_selector("#error:not([hidden])", timeout=15_000)
+    assert tab.text("#error").startswith("Unauthorized (401)")
+    assert "API key" in tab.text("#error")
+
+    p.fill("#api-key", API_KEY)
+    tab.plan()
+    tab.wait_for_figures()
+    assert number(tab.text("#ind-d_a")) == pytest.approx(21.6, abs=0.05)
+    assert not p.is_visible("#error")
+    tab.close()
