@@ -37,7 +37,7 @@ def _table(header: list[str], rows: Iterable[list[str]]) -> str:
 
 def case_table(cases: list[dict[str, Any]]) -> str:
     """One row per (case, method): time, speed-up and the re-integration metrics."""
-    header = ["case", "method", "status", "median ms [min-max]", "x baseline solve",
+    header = ["case", "method", "status", "median ms [min-max]", "speed-up vs baseline solve",
               "term. err (rad)", "d_a (deg)", "joint-space dev (deg)", "rev phi/th1", "energy"]
     rows = []
     for c in cases:
@@ -61,7 +61,7 @@ def case_table(cases: list[dict[str, Any]]) -> str:
             ok = status.startswith(("success", "flaky"))
             rows.append([c["case"], m, status,
                          f"{_ms(t.get('median'))} [{_ms(t.get('min'))}-{_ms(t.get('max'))}]",
-                         _f(r.get("speedup_vs_baseline_solve"), ".2f") if ok else "-",
+                         _f(r.get("speedup_vs_baseline_solve"), ".2g") if ok else "-",
                          _f(ri.get("terminal_error_rad"), ".1e"), _f(ri.get("d_a_deg"), ".2f"),
                          _f(ri.get("joint_space_dev_deg"), ".2f"),
                          f"{ri.get('reversals_phi', '-')}/{ri.get('reversals_th1', '-')}"
@@ -154,7 +154,7 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
                 out.append({
                     "target": f">= {PAPER_SPEEDUP:g}x baseline solve, t_p = 1, d_a <= baseline",
                     "scope": f"{c['case']} / {m}",
-                    "measured": (f"{r.get('status')}; {_f(sp, '.2f')}x; t_p "
+                    "measured": (f"{r.get('status')}; {_f(sp, '.2g')}x; t_p "
                                  f"{ri.get('reversals_th1', '-')}; d_a {_f(ri.get('d_a_deg'), '.2f')}"
                                  f" vs {_f(rb.get('d_a_deg'), '.2f')} deg"),
                     "met": met})
@@ -175,7 +175,7 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
                     "target": f">= {BEYOND_SPEEDUP:g}x baseline solve, reversals and deviation "
                               "no larger than baseline's",
                     "scope": f"{c['case']} / {m}",
-                    "measured": (f"{r.get('status')}; {_f(sp, '.2f')}x; rev phi/th1 "
+                    "measured": (f"{r.get('status')}; {_f(sp, '.2g')}x; rev phi/th1 "
                                  f"{ri.get('reversals_phi', '-')}/{ri.get('reversals_th1', '-')} vs "
                                  f"{rb.get('reversals_phi')}/{rb.get('reversals_th1')}; d_a "
                                  f"{_f(ri.get('d_a_deg'), '.2f')} vs {_f(rb.get('d_a_deg'), '.2f')}"
