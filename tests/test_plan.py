@@ -118,6 +118,12 @@ def test_fixed_phi_change_outside_interval_is_infeasible_with_crossing_time():
                          method="polynomial", phi_change=float(D(37.5))))
     assert exc.value.diagnostics["margin"] < 0
     assert 0 <= exc.value.diagnostics["first_crossing_tau"] <= 1
+    # the closest alternative is the upper end of the worked example's interval (35.256 deg)
+    near = exc.value.diagnostics["closest_feasible_phi_change"]
+    assert np.rad2deg(near) == pytest.approx(35.256, abs=2e-3)
+    p = plan(PlanRequest(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])),
+                         method="polynomial", phi_change=near))
+    assert p.verification.terminal_error < 1e-6
 
 
 def test_no_interval_in_bounds_is_infeasible():
@@ -125,6 +131,8 @@ def test_no_interval_in_bounds_is_infeasible():
         plan(PlanRequest(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])),
                          method="polynomial", phi_change_bounds=(D(10.0), D(30.0))))
     assert exc.value.diagnostics["blocking"] == "no_feasible_phi_change"
+    assert np.rad2deg(exc.value.diagnostics["closest_feasible_phi_change"]) == pytest.approx(
+        33.201, abs=2e-3)
 
 
 def test_actuator_limits_give_shortest_duration():
