@@ -150,7 +150,9 @@ def _add_error_handlers(app: FastAPI) -> None:
                            for e in errors[:5])
         if len(errors) > 5:
             detail += f"; and {len(errors) - 5} more"
-        return ServiceProblem("invalid_request", detail, field=first["field"],
+        # a body that is not JSON at all is a 400, like one that is not UTF-8 (FastAPI's own)
+        status = 400 if any(e["type"] == "json_invalid" for e in errors) else None
+        return ServiceProblem("invalid_request", detail, field=first["field"], status=status,
                               diagnostics={"errors": errors[:50]}).response(request_id(request))
 
     @app.exception_handler(StarletteHTTPException)
@@ -174,6 +176,11 @@ def _validation_error(err: dict[str, Any]) -> dict[str, Any]:
     msg = str(err.get("msg", "invalid value"))
     if err.get("type") == "extra_forbidden":
         msg = "unknown field"
+    if err.get("type") == "json_invalid":  # the location is a character position, not a field
+        reason = str((err.get("ctx") or {}).get("error", "malformed"))
+        where = f" at character {loc[0]}" if loc and isinstance(loc[0], int) else ""
+        return {"field": None, "message": f"the body is not valid JSON ({reason}{where})",
+                "type": "json_invalid"}
     return {"field": field or None, "message": msg, "type": err.get("type")}
 
 

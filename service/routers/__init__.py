@@ -7,6 +7,8 @@ from ..schemas import Problem
 
 #: Error answers every ``/v1`` operation may give (documented as application/problem+json).
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    400: {"model": Problem, "description": "invalid_request: the body is not JSON (malformed, "
+                                           "not UTF-8, or nested too deeply)."},
     401: {"model": Problem, "description": "unauthorized: API keys are configured and the "
                                            "request has no valid X-API-Key."},
     413: {"model": Problem, "description": "invalid_request: the body is larger than the "
