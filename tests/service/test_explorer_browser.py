@@ -218,6 +218,12 @@ def test_worked_example_in_the_browser(browser_context, explorer_server, tmp_pat
     assert saved["status"] == "success" and saved["method"] == "polynomial"
     assert saved["phi_change"] == pytest.approx(0.60335, abs=1e-4)
 
+    with p.expect_download(timeout=15_000) as info:
+        p.click("button[data-svg=joint_angles]")
+    assert info.value.suggested_filename == "joint_angles.svg"
+    svg = Path(info.value.path()).read_text(encoding="utf-8")
+    assert svg.lstrip().startswith("<?xml") and "joint angle [deg]" in svg
+
     shot = Path(os.environ.get("EXPLORER_SCREENSHOT") or tmp_path / "explorer.png")
     p.screenshot(path=str(shot), full_page=True)
     assert shot.stat().st_size > 10_000
@@ -268,6 +274,7 @@ def test_api_key_field(browser_context, keyed_server):
     p.fill("#api-key", API_KEY)
     tab.plan()
     tab.wait_for_figures()
+    p.wait_for_selector("#plan-form[data-defaults=loaded]", timeout=10_000)  # retried with the key
     assert number(tab.text("#ind-d_a")) == pytest.approx(21.6, abs=0.05)
     assert not p.is_visible("#error")
     tab.close()

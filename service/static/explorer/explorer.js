@@ -409,6 +409,9 @@
     $("load-defaults").addEventListener("click", loadDefaults);
     $("n").addEventListener("change", loadDefaults);
     $("objective").addEventListener("change", syncWeights);
+    $("api-key").addEventListener("change", () => {
+      if ($("plan-form").dataset.defaults === "failed") loadDefaults();  // now with the key
+    });
     document.querySelectorAll("button[data-svg]").forEach((b) =>
       b.addEventListener("click", () => downloadSVG(b.dataset.svg)));
     syncWeights();
