@@ -221,8 +221,9 @@ def affine_basis_batch(dphi: np.ndarray, n: int, z0: np.ndarray, p: int,
             free[:, :, kk] += x ** (kk - ll) / math.factorial(kk - ll) * z0[ll + 1]
     kcol = np.arange(n)[:, None]
     irow = np.arange(p)[None, :]
-    fact = np.vectorize(math.factorial)
-    const = fact(irow) / fact(irow + kcol + 1)             # (n, p)
+    # i! / (i + k + 1)! as exact integers first (they overflow int64 beyond 20!)
+    const = np.array([[math.factorial(i) / math.factorial(i + k + 1) for i in range(p)]
+                      for k in range(n)])                   # (n, p)
     powers = tau[:, None, None] ** (irow + kcol + 1)[None]  # (N, n, p)
     dpow = dphi[:, None] ** np.arange(n)[None, :]          # (D, n)
     basis = dpow[:, None, :, None] * (const[None] * powers)[None]

@@ -59,8 +59,8 @@ class Deadline:
     def check(self, stage: str) -> None:
         if self.remaining <= 0.0:
             raise SolverTimeoutError(f"the solve exceeded its time limit of {self.seconds:g} s "
-                                     f"during {stage}", diagnostics={"stage": stage,
-                                                                     "time_limit": self.seconds})
+                                     f"during {stage}", field="time_limit",
+                                     diagnostics={"stage": stage, "time_limit": self.seconds})
 
 
 def make_region(req: PlanRequest, criterion: str | None = None) -> Region:
@@ -336,7 +336,9 @@ def _plan_auto(req: PlanRequest, deadline: Deadline) -> Plan:
         return poly
     deadline.check("auto")
     try:
-        pen = _method("penalty")(req, deadline)
+        penalty: Callable[..., Plan] = _method("penalty")
+        # the penalty NLP also starts from the polynomial optimum (and never returns worse)
+        pen = penalty(req, deadline, warm_start=poly.inputs if poly is not None else None)
     except SolverTimeoutError:
         if poly is None:
             raise
