@@ -92,3 +92,15 @@ def test_constraint_point_validation():
     with pytest.raises(InvalidRequestError, match="repeats"):
         validate_constraint_points([ConstraintPoint(0.5, 2, 0.0), ConstraintPoint(0.5, 2, 1.0)],
                                    3, 1.0)
+
+
+def test_affine_basis_high_degrees():
+    """dz_k/da_i = dphi^(k-2) i! tau^(i+k-1) / (i+k-1)! beyond 20! (no integer overflow)."""
+    import math
+    from optimizer.steering import affine_basis
+    n, p, dphi, tau = 8, 16, 0.7, 0.9
+    _, basis = affine_basis(dphi, n, np.zeros(n + 1), p, np.array([tau]))
+    for kk in range(n):
+        for i in range(p):
+            expected = dphi**kk * math.factorial(i) / math.factorial(i + kk + 1) * tau ** (i + kk + 1)
+            assert basis[0, kk, i] == pytest.approx(expected, rel=1e-13)
