@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import Counter
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -150,7 +151,12 @@ def run_method(case: Case, method: str, cfg: Config) -> dict[str, Any]:
     out["first_call"] = timed.first
     out["time"] = timed.summary.as_dict()
     if timed.repeat_errors:
-        out["repeat_errors"] = timed.repeat_errors
+        # the warm-up's error is reported once above; list only other outcomes, with counts
+        warm = None if timed.error is None else f"{type(timed.error).__name__}: {timed.error}"
+        out["repeat_failures"] = len(timed.repeat_errors)
+        other = Counter(e[:300] for e in timed.repeat_errors if e != warm)
+        if other:
+            out["repeat_errors"] = dict(other)
     p = timed.result
     if p is None:
         return out

@@ -53,7 +53,8 @@ GRID = 4001
 #: its running extreme by more than this (1e-4 rad = 0.0057 deg).
 DEAD_BAND = 1e-4
 
-UFunction = Callable[[float], Sequence[float]]
+#: ``u(t) -> (u1, u2)`` (any array-like of two numbers).
+UFunction = Callable[[float], Any]
 
 
 @dataclass(frozen=True)
@@ -330,12 +331,12 @@ def baseline_segments(result: Any) -> list[Segment]:
     -------
     list of Segment
     """
-    segs = []
-    for k in range(result.u.shape[0]):
-        uk = (float(result.u[k, 0]), float(result.u[k, 1]))
-        segs.append(Segment(float(result.t_grid[k]), float(result.t_grid[k + 1]),
-                            lambda t, uk=uk: uk))
-    return segs
+    def constant(uk: tuple[float, float]) -> UFunction:
+        return lambda t: uk
+
+    return [Segment(float(result.t_grid[k]), float(result.t_grid[k + 1]),
+                    constant((float(result.u[k, 0]), float(result.u[k, 1]))))
+            for k in range(result.u.shape[0])]
 
 
 def reintegrate_plan(plan: Any, start: np.ndarray, goal: np.ndarray,

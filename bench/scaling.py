@@ -85,7 +85,7 @@ def _feasible_goal(n: int, seed: int, tries: int, time_budget: float
         q0 = np.concatenate([[0.0], np.radians(rng.uniform(15, 75, n))])
         dphi = float(rng.uniform(0.2, 1.2))
         v2 = rng.normal(scale=0.3, size=n)
-        path = ChainedPath.from_inputs(cf.to_chained(q0), InputSchedule.single([dphi], v2, 1.0))
+        path = ChainedPath.from_inputs(cf.to_chained(q0), InputSchedule.single([dphi], [float(x) for x in v2], 1.0))
         inv = cf.from_chained(path.z(tau))
         th = inv.q[:, 1:n]
         if not (inv.valid.all() and th.min() > math.radians(3) and th.max() < math.radians(87)):
