@@ -167,3 +167,15 @@ def test_time_limit_is_checked():
     with pytest.raises(SolverTimeoutError):
         plan(PlanRequest(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])),
                          method="polynomial", time_limit=1e-4))
+
+
+def test_energy_is_exact_even_for_sharp_inputs():
+    """[1,1,1] -> [30,30,30] deg starts 1 deg from th1 = 0, where u2 peaks near 200 rad/s: the
+    reported energy agrees with adaptive quadrature of u1^2 + u2^2 (scipy.integrate.quad)."""
+    from scipy.integrate import quad
+    p = plan(PlanRequest(start=tuple(D([1, 1, 1])), goal=tuple(D([30, 30, 30])),
+                         method="polynomial"))
+    inputs = PlannedInputs(chained_form(p.robot), p.chained)
+    val, _ = quad(lambda t: float(np.sum(inputs.u(np.array([t]))[0] ** 2)), 0, p.duration,
+                  limit=500, epsabs=1e-12, epsrel=1e-12)
+    assert p.indicators.energy == pytest.approx(val, rel=1e-7)
