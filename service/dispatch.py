@@ -31,6 +31,12 @@ from .workers import JobTimeout, Overloaded, WorkerLost, WorkerPool
 
 T = TypeVar("T")
 
+#: Seconds of the grace kept for killing an overrunning worker and sending the answer, so that a
+#: timeout is answered within ``time_limit + timeout_grace`` of the job reaching a worker (the
+#: worker is killed at ``time_limit + timeout_grace - ANSWER_MARGIN``, never before
+#: ``time_limit``).
+ANSWER_MARGIN = 0.05
+
 
 def request_id(request: Request) -> str | None:
     """The request's id (set by the middleware)."""
@@ -75,7 +81,8 @@ async def run_job(request: Request, kind: str, payload: dict[str, Any], time_lim
         ``plan``, ``sweep``, ``transform`` or ``robustness``.
     payload : dict
     time_limit : float
-        The job's own limit (s); the worker is killed ``timeout_grace`` s after it.
+        The job's own limit (s); the worker is killed ``timeout_grace - ANSWER_MARGIN`` s after
+        it, so that the timeout is answered within ``time_limit + timeout_grace``.
     method : str
         Label of the solve metric (the requested method, or the job kind).
     admit : bool
@@ -95,7 +102,8 @@ async def run_job(request: Request, kind: str, payload: dict[str, Any], time_lim
     metrics = request.app.state.metrics
     started = time.perf_counter()
     try:
-        outcome = await pool.run(kind, payload, time_limit + settings.timeout_grace, admit=admit)
+        wait = time_limit + max(settings.timeout_grace - ANSWER_MARGIN, 0.0)
+        outcome = await pool.run(kind, payload, wait, admit=admit)
     except Overloaded as exc:
         raise overloaded(settings, str(exc)) from None
     except JobTimeout:
@@ -112,6 +120,9 @@ async def run_job(request: Request, kind: str, payload: dict[str, Any], time_lim
         metrics.observe_solve(kind, method, "success", seconds)
         return outcome["body"]
     problem = ServiceProblem.from_error(outcome["error"])
+    if problem.code == "timeout" and problem.field is None:
+        problem.field = "time_limit"  # the library's own deadline check fired
+        problem.diagnostics.setdefault("time_limit", time_limit)
     metrics.observe_solve(kind, method, problem.code, seconds)
     raise problem
 

@@ -96,7 +96,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     guard = [Depends(_api_key_guard(settings.api_keys))]
     for router in (plans.build_router(schemas), sweeps.build_router(schemas),
                    transforms.build_router(schemas), robustness.build_router(schemas),
-                   robots.build_router(), figures.build_router(schemas)):
+                   robots.build_router(settings.max_joints), figures.build_router(schemas)):
         app.include_router(router, prefix="/v1", dependencies=guard)
     app.include_router(health.build_router())
     app.include_router(explorer.build_router())
@@ -173,7 +173,7 @@ def _validation_error(err: dict[str, Any]) -> dict[str, Any]:
             field += f"[{part}]"
         else:
             field += ("." if field else "") + str(part)
-    msg = str(err.get("msg", "invalid value"))
+    msg = str(err.get("msg", "invalid value")).removeprefix("Value error, ")
     if err.get("type") == "extra_forbidden":
         msg = "unknown field"
     if err.get("type") == "json_invalid":  # the location is a character position, not a field

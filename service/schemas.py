@@ -17,13 +17,15 @@ import math
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, Strict, ValidationInfo, field_validator,
+                      model_validator)
 
-from .settings import Limits
+from .settings import LIBRARY_MAX_JOINTS, LIBRARY_MIN_DURATION, LIBRARY_MIN_JOINTS, Limits
 
 PI = math.pi
-MAX_JOINTS = 8
-MIN_JOINTS = 3
+MAX_JOINTS = LIBRARY_MAX_JOINTS
+MIN_JOINTS = LIBRARY_MIN_JOINTS
+MIN_DURATION = LIBRARY_MIN_DURATION
 
 # ---------------------------------------------------------------------- scalar types
 #: A finite JSON number (ints accepted, strings/booleans/NaN/Infinity refused).
@@ -59,18 +61,6 @@ class RequestModel(BaseModel):
 
 
 # ---------------------------------------------------------------------- fixed request parts
-class RobotSpec(RequestModel):
-    """The arm's constants. Omit both lists for the default robot of the request's n."""
-
-    gains: Optional[list[Gain]] = Field(  # type: ignore[valid-type]
-        None, min_length=MIN_JOINTS - 1, max_length=MAX_JOINTS - 1,
-        description="Gains K2..Kn (n - 1 entries, each > 0).", examples=[[0.88658, 0.7115]])
-    exponents: Optional[list[Exponent]] = Field(
-        None, min_length=MIN_JOINTS - 1, max_length=MAX_JOINTS - 1,
-        description="Integer exponents m2..mn of cos(th_{i-1}) (n - 1 entries, 1..12).",
-        examples=[[2, 3]])
-
-
 class Weights(RequestModel):
     """Weights of the ``weighted`` objective: w_da d_a + w_s ||J_R||_F + w_e energy + w_tp t_p."""
 
@@ -78,25 +68,6 @@ class Weights(RequestModel):
     sensitivity: Weight = Field(0.0, description="Weight of ||J_R(T)||_F.")  # type: ignore[valid-type]
     energy: Weight = Field(0.0, description="Weight of the input energy.")  # type: ignore[valid-type]
     t_p: Weight = Field(0.0, description="Weight of the number of phi passes t_p.")  # type: ignore[valid-type]
-
-
-class ConstraintPoint(RequestModel):
-    """A constraint point: the chained state ``z_state`` takes ``value`` at ``time``."""
-
-    time: num(0.0, 1e4, description="Time (s), inside (0, duration).") = Field(  # type: ignore[valid-type]
-        ..., examples=[5.0])
-    state: StrictInt = Field(..., ge=2, le=MAX_JOINTS + 1,
-                             description="Chained state index k of z_k, 2..n+1.")
-    value: num(-1e6, 1e6, description="Value of z_state at time.") = Field(...)  # type: ignore[valid-type]
-
-
-class RandomStarts(RequestModel):
-    """Perturbed starts drawn uniformly in ``start +- spread`` (reproducible by ``seed``)."""
-
-    count: StrictInt = Field(..., ge=1, description="Number of runs.")
-    spread: num(hi=1.0, gt=0.0, description="Half-width of the perturbation (rad).") = Field(  # type: ignore[valid-type]
-        ..., examples=[0.01])
-    seed: StrictInt = Field(0, ge=0, le=2 ** 32 - 1, description="Random seed.")
 
 
 # ---------------------------------------------------------------------- responses
@@ -341,7 +312,37 @@ def build_schemas(limits: Limits) -> Schemas:
     L = limits
     TimeLimit = num(hi=L.max_time_limit, gt=0.0,
                     description=f"Seconds for the whole solve (at most {L.max_time_limit:g}); "
-                                "the service stops waiting 0.5 s later and answers 504.")
+                                "a job still running then is stopped and answered 504 "
+                                "(timeout) within the server's grace (0.5 s by default).")
+
+    class RobotSpec(RequestModel):
+        """The arm's constants. Omit both lists for the default robot of the request's n."""
+
+        gains: Optional[list[Gain]] = Field(  # type: ignore[valid-type]
+            None, min_length=MIN_JOINTS - 1, max_length=L.max_joints - 1,
+            description="Gains K2..Kn (n - 1 entries, each > 0).", examples=[[0.88658, 0.7115]])
+        exponents: Optional[list[Exponent]] = Field(
+            None, min_length=MIN_JOINTS - 1, max_length=L.max_joints - 1,
+            description="Integer exponents m2..mn of cos(th_{i-1}) (n - 1 entries, 1..12).",
+            examples=[[2, 3]])
+
+    class ConstraintPoint(RequestModel):
+        """A constraint point: the chained state ``z_state`` takes ``value`` at ``time``."""
+
+        time: num(0.0, L.max_duration, description="Time (s), inside (0, duration).") = Field(  # type: ignore[valid-type]
+            ..., examples=[5.0])
+        state: StrictInt = Field(..., ge=2, le=L.max_joints + 1,
+                                 description="Chained state index k of z_k, 2..n+1.")
+        value: num(-1e6, 1e6, description="Value of z_state at time.") = Field(...)  # type: ignore[valid-type]
+
+    class RandomStarts(RequestModel):
+        """Perturbed starts drawn uniformly in ``start +- spread`` (reproducible by ``seed``)."""
+
+        count: StrictInt = Field(..., ge=1, le=L.max_robustness_runs,
+                                 description=f"Number of runs (1..{L.max_robustness_runs}).")
+        spread: num(hi=1.0, gt=0.0, description="Half-width of the perturbation (rad).") = Field(  # type: ignore[valid-type]
+            ..., examples=[0.01])
+        seed: StrictInt = Field(0, ge=0, le=2 ** 32 - 1, description="Random seed.")
 
     class PlanRequest(RequestModel):
         """A motion-planning request (radians, seconds)."""
@@ -354,11 +355,12 @@ def build_schemas(limits: Limits) -> Schemas:
             None, description="Robot constants; default: the prototype for 3 joints, the "
                               "assumed default for other n.")
         start: list[JointAngle] = Field(  # type: ignore[valid-type]
-            ..., min_length=MIN_JOINTS, max_length=MAX_JOINTS,
-            description="Start joint angles th1..thn (rad), n in [3, 8].",
+            ..., min_length=MIN_JOINTS, max_length=L.max_joints,
+            description=f"Start joint angles th1..thn (rad), n in [{MIN_JOINTS}, "
+                        f"{L.max_joints}].",
             examples=[WORKED_START])
         goal: list[JointAngle] = Field(  # type: ignore[valid-type]
-            ..., min_length=MIN_JOINTS, max_length=MAX_JOINTS,
+            ..., min_length=MIN_JOINTS, max_length=L.max_joints,
             description="Goal joint angles th1..thn (rad).", examples=[WORKED_GOAL])
         phi_start: num(-1e3, 1e3, description="Initial phi (rad).") = 0.0  # type: ignore[valid-type]
         phi_change: Optional[PhiAngle] = Field(  # type: ignore[valid-type]
@@ -367,7 +369,7 @@ def build_schemas(limits: Limits) -> Schemas:
         phi_change_bounds: Optional[list[PhiAngle]] = Field(  # type: ignore[valid-type]
             None, min_length=2, max_length=2,
             description="[lo, hi] search range of dphi (rad); default [-pi, pi].")
-        duration: Optional[num(1e-3, 1e4)] = Field(  # type: ignore[valid-type]
+        duration: Optional[num(MIN_DURATION, L.max_duration)] = Field(  # type: ignore[valid-type]
             None, description="T (s); default 1 s, or the shortest T that respects max_u1/"
                               "max_u2 when those are given.")
         method: Literal["auto", "polynomial", "constraint_points", "penalty"] = Field(
@@ -378,7 +380,8 @@ def build_schemas(limits: Limits) -> Schemas:
         singularity: Literal["full", "z2"] = Field(
             "full", description="Singularity criterion used in the search.")
         constraint_points: Optional[list[ConstraintPoint]] = Field(
-            None, max_length=8, description="Constraint points (at most 8).")
+            None, max_length=L.max_constraint_points,
+            description=f"Constraint points (at most {L.max_constraint_points}).")
         samples: StrictInt = Field(201, ge=2, le=L.max_samples,
                                    description=f"Time samples of the returned path (2.."
                                                f"{L.max_samples}).")
@@ -390,20 +393,14 @@ def build_schemas(limits: Limits) -> Schemas:
             None, description="Limit of |u1| = |phi'| (rad/s).")
         max_u2: Optional[num(hi=1e6, gt=0.0)] = Field(  # type: ignore[valid-type]
             None, description="Limit of |u2| = |th1'| (rad/s).")
-        joint_bounds: Optional[list[Optional[list[JointAngle]]]] = Field(  # type: ignore[valid-type]
-            None, max_length=MAX_JOINTS,
+        joint_bounds: Optional[list[Optional[Annotated[  # type: ignore[valid-type]
+                list[JointAngle], Field(min_length=2, max_length=2)]]]] = Field(
+            None, max_length=L.max_joints,
             description="Per joint [lo, hi] (rad) or null; inside the region (0, pi/2).")
         v1_degree: Optional[StrictInt] = Field(None, ge=0, le=12,
                                                description="Degree of v1 (penalty method).")
         v2_degree: Optional[StrictInt] = Field(None, ge=0, le=12,
                                                description="Degree of v2 (penalty method).")
-
-        @model_validator(mode="after")
-        def _pairs(self) -> "PlanRequest":
-            for i, b in enumerate(self.joint_bounds or []):
-                if b is not None and len(b) != 2:
-                    raise ValueError(f"joint_bounds[{i}] must be [lo, hi] or null")
-            return self
 
         def to_library(self) -> dict[str, Any]:
             """The dict :meth:`optimizer.problem.PlanRequest.from_dict` takes."""
@@ -446,15 +443,16 @@ def build_schemas(limits: Limits) -> Schemas:
             description="Rows of n + 1 numbers (all rows the same length).")
         time_limit: TimeLimit = Field(L.default_time_limit)  # type: ignore[valid-type]
 
-        @model_validator(mode="after")
-        def _rows(self) -> "TransformRequest":
-            width = len(self.points[0])
-            if not MIN_JOINTS + 1 <= width <= MAX_JOINTS + 1:
+        @field_validator("points")
+        @classmethod
+        def _rows(cls, points: list[list[float]]) -> list[list[float]]:
+            width = len(points[0])
+            if not MIN_JOINTS + 1 <= width <= L.max_joints + 1:
                 raise ValueError(f"each point must have n + 1 entries with n in "
-                                 f"[{MIN_JOINTS}, {MAX_JOINTS}]")
-            if any(len(row) != width for row in self.points):
+                                 f"[{MIN_JOINTS}, {L.max_joints}] joints, not {width}")
+            if any(len(row) != width for row in points):
                 raise ValueError("all points must have the same number of entries")
-            return self
+            return points
 
         def to_library(self) -> dict[str, Any]:
             return self.model_dump(exclude_none=True, exclude={"time_limit"})
@@ -468,9 +466,12 @@ def build_schemas(limits: Limits) -> Schemas:
              "random": {"count": 5, "spread": 0.01, "seed": 1}, "replay": "u"}]})
 
         plan: PlanRequest = Field(..., description="The nominal plan (phi_change may fix dphi).")
-        starts: Optional[list[list[JointAngle]]] = Field(  # type: ignore[valid-type]
+        starts: Optional[list[Annotated[list[JointAngle],  # type: ignore[valid-type]
+                                        Field(min_length=MIN_JOINTS,
+                                              max_length=L.max_joints)]]] = Field(
             None, min_length=1, max_length=L.max_robustness_runs,
-            description="Perturbed start vectors th1..thn (rad).")
+            description=f"Perturbed start vectors th1..thn (rad), at most "
+                        f"{L.max_robustness_runs}.")
         random: Optional[RandomStarts] = Field(None, description="Random perturbed starts.")
         replay: Literal["u", "v"] = Field(
             "u", description="Replay the actuator inputs u or the chained inputs v.")
@@ -480,16 +481,20 @@ def build_schemas(limits: Limits) -> Schemas:
         time_limit: TimeLimit = Field(  # type: ignore[valid-type]
             L.default_time_limit, description="Seconds for the whole job (plan and replays).")
 
+        @field_validator("include_paths")
+        @classmethod
+        def _answer_size(cls, include_paths: bool, info: ValidationInfo) -> bool:
+            plan, starts, rnd = (info.data.get(k) for k in ("plan", "starts", "random"))
+            runs = len(starts) if starts is not None else (rnd.count if rnd is not None else 0)
+            if include_paths and plan is not None and runs * plan.samples > L.max_total_samples:
+                raise ValueError(f"runs x plan.samples = {runs * plan.samples} exceeds "
+                                 f"max_total_samples = {L.max_total_samples} path rows")
+            return include_paths
+
         @model_validator(mode="after")
         def _one_source(self) -> "RobustnessRequest":
             if (self.starts is None) == (self.random is None):
                 raise ValueError("give exactly one of starts and random")
-            runs = len(self.starts) if self.starts is not None else self.random.count  # type: ignore[union-attr]
-            if runs > L.max_robustness_runs:
-                raise ValueError(f"at most {L.max_robustness_runs} runs")
-            if self.include_paths and runs * self.plan.samples > L.max_total_samples:
-                raise ValueError(f"runs x plan.samples = {runs * self.plan.samples} exceeds "
-                                 f"{L.max_total_samples} path rows with include_paths")
             return self
 
         def to_library(self) -> dict[str, Any]:
@@ -511,13 +516,14 @@ def build_schemas(limits: Limits) -> Schemas:
             description=f"1..{L.max_batch_size} plan requests, with at most "
                         f"{L.max_total_samples} samples in all.")
 
-        @model_validator(mode="after")
-        def _total(self) -> "BatchRequest":
-            total = sum(r.samples for r in self.requests)
+        @field_validator("requests")
+        @classmethod
+        def _total(cls, requests: list[Any]) -> list[Any]:
+            total = sum(r.samples for r in requests)
             if total > L.max_total_samples:
                 raise ValueError(f"the requests ask for {total} samples in all; at most "
-                                 f"{L.max_total_samples}")
-            return self
+                                 f"max_total_samples = {L.max_total_samples}")
+            return requests
 
     return Schemas(PlanRequest=PlanRequest, SweepRequest=SweepRequest,
                    TransformRequest=TransformRequest, RobustnessRequest=RobustnessRequest,

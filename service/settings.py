@@ -19,6 +19,11 @@ from pydantic_settings import (BaseSettings, NoDecode, PydanticBaseSettingsSourc
 LIBRARY_MAX_SAMPLES = 20001
 LIBRARY_MAX_TIME_LIMIT = 600.0
 LIBRARY_MAX_SWEEP_POINTS = 5001
+LIBRARY_MIN_JOINTS = 3
+LIBRARY_MAX_JOINTS = 8
+LIBRARY_MAX_CONSTRAINT_POINTS = 8
+LIBRARY_MIN_DURATION = 1e-3
+LIBRARY_MAX_DURATION = 1e4
 
 
 def _cpu_count() -> int:
@@ -42,6 +47,13 @@ class Settings(BaseSettings):
         Largest accepted request body (bytes); a larger one is answered 413.
     max_samples : int
         Upper bound of a plan's ``samples``.
+    max_joints : int
+        Largest number of joints n of a request (3..8; robot constants, start/goal, transform
+        rows, robustness starts, ``GET /v1/robots/default?n=``).
+    max_constraint_points : int
+        Most constraint points in one plan request.
+    max_duration : float
+        Largest ``duration`` T (s) of a plan (and time of a constraint point).
     max_batch_size, max_robustness_runs, max_sweep_points, max_transform_points : int
         Upper bounds of ``/v1/plans/batch`` requests, robustness runs, sweep points and
         transform points per request.
@@ -79,6 +91,11 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(default=1 << 20, ge=1024,
                                 description="Largest request body, bytes.")
     max_samples: int = Field(default=LIBRARY_MAX_SAMPLES, ge=2, le=LIBRARY_MAX_SAMPLES)
+    max_joints: int = Field(default=LIBRARY_MAX_JOINTS, ge=LIBRARY_MIN_JOINTS,
+                            le=LIBRARY_MAX_JOINTS)
+    max_constraint_points: int = Field(default=LIBRARY_MAX_CONSTRAINT_POINTS, ge=0,
+                                       le=LIBRARY_MAX_CONSTRAINT_POINTS)
+    max_duration: float = Field(default=LIBRARY_MAX_DURATION, ge=1.0, le=LIBRARY_MAX_DURATION)
     max_batch_size: int = Field(default=64, ge=1, le=10_000)
     max_robustness_runs: int = Field(default=200, ge=1, le=100_000)
     max_sweep_points: int = Field(default=2001, ge=2, le=LIBRARY_MAX_SWEEP_POINTS)
@@ -123,6 +140,9 @@ class Settings(BaseSettings):
     def limits(self) -> "Limits":
         """The subset of settings that shapes the request schemas (and so the OpenAPI)."""
         return Limits(max_samples=self.max_samples, max_batch_size=self.max_batch_size,
+                      max_joints=self.max_joints,
+                      max_constraint_points=self.max_constraint_points,
+                      max_duration=self.max_duration,
                       max_robustness_runs=self.max_robustness_runs,
                       max_sweep_points=self.max_sweep_points,
                       max_transform_points=self.max_transform_points,
@@ -137,6 +157,9 @@ class Limits:
 
     max_samples: int = LIBRARY_MAX_SAMPLES
     max_batch_size: int = 64
+    max_joints: int = LIBRARY_MAX_JOINTS
+    max_constraint_points: int = LIBRARY_MAX_CONSTRAINT_POINTS
+    max_duration: float = LIBRARY_MAX_DURATION
     max_robustness_runs: int = 200
     max_sweep_points: int = 2001
     max_transform_points: int = 10_000

@@ -14,10 +14,12 @@ runs in a separate *process*, and a solve that overruns must be killed. A
 * Idle workers sit in an ``asyncio.Queue``. A request takes one (waiting if none is idle),
   sends its job and waits for the answer in a helper thread (``loop.run_in_executor``:
   ``conn.poll(limit)`` then ``conn.recv()``), so the event loop never blocks.
-* **Time limit**: the helper thread polls at most ``time_limit + grace`` seconds. On overrun it
-  SIGKILLs that worker at once, the request is answered ``timeout`` (504), and a replacement
-  process is started in the background; it joins the idle queue once warmed up. A worker that
-  dies (crash, OOM kill) is replaced the same way (``numerical_failure``).
+* **Time limit**: the helper thread polls at most ``limit`` seconds (the router passes
+  ``time_limit`` plus most of the grace, see :data:`service.dispatch.ANSWER_MARGIN`). On overrun
+  it SIGKILLs that worker at once, the request is answered ``timeout`` (504) without waiting for
+  the process to be reaped, and a replacement process is started in the background; it joins
+  the idle queue once warmed up. A worker that dies (crash, OOM kill) is replaced the same way
+  (``numerical_failure``).
 * **Bounded queue**: at most ``queue_size`` requests may wait for a worker; the next one is
   refused at once with :class:`Overloaded` (503 ``overloaded`` with ``Retry-After``).
 * A request whose client goes away does not leak its worker: the worker is returned (or
@@ -125,7 +127,10 @@ class _Worker:
         try:
             self.conn.send(message)
             if not self.conn.poll(limit):
-                self.kill()
+                # SIGKILL at once and answer; the process is reaped later (:meth:`kill`), so
+                # that the answer does not wait for the kernel to tear the process down
+                if self.process.is_alive():
+                    self.process.kill()
                 raise JobTimeout(limit)
             return self.conn.recv()
         except (EOFError, OSError, BrokenPipeError) as exc:
@@ -320,6 +325,7 @@ class WorkerPool:
             log.warning("replacing worker %s (%s)", worker.ident, reason)
             with self._lock:
                 self._all.discard(worker)
+            self._threads.submit(worker.kill)  # reap it and close its pipe
             self._restarts += 1
             if self.on_restart is not None:
                 self.on_restart(reason)

@@ -1,0 +1,112 @@
+"""Time limits that hold: a job running past its ``time_limit`` is answered 504 ``timeout``
+within ``time_limit + timeout_grace`` (0.5 s, the default) of reaching its worker; a worker that
+does not answer is SIGKILLed and replaced, and the next request succeeds.
+
+Three ways past the limit:
+
+* a request made to be slow: a robustness job with 200 open-loop replays (about 45 ms each, so
+  ~9 s; the replays have no deadline checks of their own) and a short ``time_limit``;
+* a hung worker (SIGSTOP): the pool must kill it, whatever the library does;
+* the library's own deadline check (an 8-joint sweep): answered at once, no worker killed.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from typing import Any, Iterator
+
+import pytest
+
+from svc_support import DEG, WORKED, TestClient, assert_problem, running_app
+
+GRACE = 0.5
+CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 5}
+SLOW = {"plan": {**WORKED, "phi_change": 34 * DEG, "samples": 51},
+        "random": {"count": 200, "spread": 0.01, "seed": 3}}
+
+
+@pytest.fixture(scope="module")
+def one_worker() -> Iterator[TestClient]:
+    with running_app(workers=1, queue_size=4, timeout_grace=GRACE) as c:
+        yield c
+
+
+def _idle(client: TestClient, timeout: float = 60.0) -> dict[str, Any]:
+    """Wait until the (replaced) worker is idle again."""
+    deadline = time.monotonic() + timeout
+    while True:
+        ready = client.get("/readyz").json()
+        if ready["idle"] >= 1:
+            return ready
+        assert time.monotonic() < deadline, ready
+        time.sleep(0.02)
+
+
+def _gone(pid: int, timeout: float = 10.0) -> bool:
+    """True once ``pid`` no longer exists (killed and reaped)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.02)
+    return False
+
+
+@pytest.mark.parametrize("time_limit", [0.3, 1.0])
+def test_a_slow_job_is_answered_timeout_within_limit_plus_grace(one_worker, time_limit):
+    _idle(one_worker)
+    before = one_worker.get("/readyz").json()["restarts"]
+    t0 = time.perf_counter()
+    r = one_worker.post("/v1/robustness", json={**SLOW, "time_limit": time_limit})
+    elapsed = time.perf_counter() - t0
+    body = assert_problem(r, 504, "timeout")
+    assert body["field"] == "time_limit" and body["diagnostics"]["time_limit"] == time_limit
+    print(f"\ntime_limit {time_limit} s: timeout answered after {elapsed:.3f} s "
+          f"(+{elapsed - time_limit:.3f} s)")
+    assert time_limit <= elapsed < time_limit + GRACE, elapsed
+    # the pool recovers: the next request succeeds (on the replacement worker)
+    r = one_worker.post("/v1/plans", json=CHEAP)
+    assert r.status_code == 200, r.text
+    assert one_worker.get("/readyz").json()["restarts"] == before + 1
+
+
+def test_a_hung_worker_is_killed_replaced_and_the_next_request_succeeds(one_worker):
+    _idle(one_worker)
+    pool = one_worker.app.state.pool
+    (old,) = pool.pids()
+    before = one_worker.get("/readyz").json()["restarts"]
+    os.kill(old, signal.SIGSTOP)  # a solve stuck where no deadline check can run
+    t0 = time.perf_counter()
+    r = one_worker.post("/v1/plans", json={**CHEAP, "time_limit": 0.5})
+    elapsed = time.perf_counter() - t0
+    assert_problem(r, 504, "timeout")
+    assert 0.5 <= elapsed < 0.5 + GRACE, elapsed
+    assert _gone(old), "the hung worker was not killed and reaped"
+    r = one_worker.post("/v1/plans", json=CHEAP)
+    assert r.status_code == 200, r.text
+    ready = _idle(one_worker)
+    assert ready["restarts"] == before + 1 and ready["workers"] == 1
+    (new,) = pool.pids()
+    assert new != old
+    metrics = one_worker.get("/metrics").text
+    assert f'planner_worker_restarts_total{{reason="timeout"}} {before + 1:.1f}' in metrics
+    assert 'planner_solve_duration_seconds_count{job="plan",method="polynomial",' \
+           'outcome="timeout"}' in metrics
+
+
+def test_the_librarys_own_deadline_is_answered_at_once_without_a_kill(one_worker):
+    _idle(one_worker)
+    before = one_worker.get("/readyz").json()["restarts"]
+    t0 = time.perf_counter()
+    r = one_worker.post("/v1/sweeps", json={"start": [10 * DEG] * 8, "goal": [30 * DEG] * 8,
+                                             "phi_change_range": [-12.0, 12.0], "points": 2001,
+                                             "time_limit": 0.2})
+    elapsed = time.perf_counter() - t0
+    body = assert_problem(r, 504, "timeout")
+    assert body["field"] == "time_limit"
+    assert elapsed < 0.2 + GRACE, elapsed
+    assert one_worker.get("/readyz").json()["restarts"] == before
