@@ -210,6 +210,7 @@ class WorkerPool:
         self._all: set[_Worker] = set()
         self._lock = threading.Lock()
         self._waiting = 0
+        self._reserved = 0  # places taken by admitted batches whose items have not run yet
         self._restarts = 0
         self._next_ident = 0
         self._started = False
@@ -262,7 +263,7 @@ class WorkerPool:
         with self._lock:
             alive = len(self._all)
         return PoolStats(size=self.size, idle=idle, busy=max(alive - idle, 0),
-                         waiting=self._waiting, started=self._started,
+                         waiting=self._waiting + self._reserved, started=self._started,
                          warmed=self._warmed.is_set(), restarts=self._restarts)
 
     def pids(self) -> list[int]:
@@ -285,7 +286,8 @@ class WorkerPool:
             Seconds to wait for the answer once a worker has the job; on overrun the worker
             is killed and replaced.
         admit : bool
-            Apply the queue bound (False for the items of an already admitted batch).
+            Apply the queue bound (False for the items of an already admitted batch: each
+            takes one of the places :meth:`admit` reserved for it).
 
         Raises
         ------
@@ -293,8 +295,10 @@ class WorkerPool:
         """
         if admit:
             self.admit()
-        elif self._idle is None or self._closing:
-            raise Overloaded("the worker pool is not running")
+        else:
+            self.release(1)
+            if self._idle is None or self._closing:
+                raise Overloaded("the worker pool is not running")
         assert self._idle is not None
         self._waiting += 1
         try:
@@ -307,12 +311,29 @@ class WorkerPool:
             lambda f: loop.call_soon_threadsafe(self._finished, worker, f))
         return await asyncio.wrap_future(fut)
 
-    def admit(self) -> None:
-        """Raise :class:`Overloaded` when a new request would exceed the queue bound."""
+    def admit(self, reserve: int = 0) -> None:
+        """Raise :class:`Overloaded` when a new request would exceed the queue bound.
+
+        Parameters
+        ----------
+        reserve : int
+            Places to take at once for an admitted batch's items (they then run with
+            ``admit=False``, each taking one; :meth:`release` returns the unused ones). A batch
+            is admitted while the queue has room, so the queue holds at most ``queue_size``
+            plus one batch.
+        """
         if self._idle is None or self._closing:
             raise Overloaded("the worker pool is not running")
-        if self._idle.empty() and self._waiting >= self.queue_size:
-            raise Overloaded(f"{self._waiting} requests already wait for a worker")
+        # requests that will wait: those waiting, plus reserved places not yet waiting, less
+        # the idle workers those will take
+        queued = self._waiting + self._reserved - self._idle.qsize()
+        if queued >= self.queue_size:
+            raise Overloaded(f"{max(queued, 0)} requests already wait for a worker")
+        self._reserved += reserve
+
+    def release(self, count: int) -> None:
+        """Return ``count`` places reserved by :meth:`admit`."""
+        self._reserved = max(self._reserved - count, 0)
 
     # ------------------------------------------------------------------ internals
     def _finished(self, worker: _Worker, fut: Future[dict[str, Any]]) -> None:

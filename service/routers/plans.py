@@ -36,16 +36,20 @@ def build_router(S: Schemas) -> APIRouter:
                              "A batch is admitted (or refused with 503) as a whole; its items "
                              "then wait for workers.")
     async def create_plans(body: S.BatchRequest, request: Request) -> Response:  # type: ignore[name-defined]
+        pool = request.app.state.pool
         try:
-            request.app.state.pool.admit()
+            pool.admit(reserve=len(body.requests))  # the items' places in the queue
         except Overloaded as exc:
             raise overloaded(request.app.state.settings, str(exc)) from None
+        started = 0
 
         async def one(index: int, item: Any) -> tuple[bool, bytes]:
             # each item is JSON already: the plans come encoded from the workers
+            nonlocal started
             try:
                 payload = item.to_library()
                 check_plan(payload, prefix=f"requests[{index}].")
+                started += 1  # run_job takes the item's reserved place before any await
                 plan = await run_job(request, "plan", payload, item.time_limit,
                                      method=item.method, admit=False)
                 return True, b'{"index":%d,"status":"success","plan":%s,"problem":null}' % (
@@ -54,7 +58,10 @@ def build_router(S: Schemas) -> APIRouter:
                 return False, finite_json({"index": index, "status": "error", "plan": None,
                                            "problem": problem.body(request_id(request))})
 
-        results = await asyncio.gather(*(one(i, r) for i, r in enumerate(body.requests)))
+        try:
+            results = await asyncio.gather(*(one(i, r) for i, r in enumerate(body.requests)))
+        finally:
+            pool.release(len(body.requests) - started)  # items refused before they ran
         ok = sum(success for success, _ in results)
         return SafeJSONResponse(b'{"results":[%s],"succeeded":%d,"failed":%d}' % (
             b",".join(item for _, item in results), ok, len(results) - ok))
