@@ -7,7 +7,6 @@ body limit, metrics, access log), offline docs pages and the OpenAPI document.
 
 from __future__ import annotations
 
-import secrets
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any, AsyncIterator
@@ -24,6 +23,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import Response
 
 from . import __version__
+from .auth import CHALLENGE, UNAUTHORIZED_DETAIL, authorized, encode_keys
 from .dispatch import request_id
 from .metrics import Metrics
 from .middleware import RequestContextMiddleware
@@ -104,34 +104,31 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     _add_error_handlers(app)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
 
-    if settings.cors_origins:
+    app.add_middleware(RequestContextMiddleware, max_body_bytes=settings.max_body_bytes,
+                       metrics=metrics, known_paths=lambda: set(app.openapi()["paths"])
+                       | {"/docs", "/redoc", "/openapi.json"}, api_keys=settings.api_keys)
+    if settings.cors_origins:  # outermost: its headers are on every answer, a 401 or 413 too
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST"],
                            allow_headers=["Content-Type", "X-API-Key", "Authorization",
                                           "X-Request-ID"],
                            expose_headers=["X-Request-ID", "Retry-After"])
-    app.add_middleware(RequestContextMiddleware, max_body_bytes=settings.max_body_bytes,
-                       metrics=metrics, known_paths=lambda: set(app.openapi()["paths"])
-                       | {"/docs", "/redoc", "/openapi.json"})
     return app
 
 
 # ---------------------------------------------------------------------- auth
 def _api_key_guard(keys: list[str]) -> Any:
-    """A dependency accepting any of ``keys`` (everything when ``keys`` is empty)."""
+    """A dependency accepting any of ``keys`` (everything when ``keys`` is empty).
+
+    The request middleware already refuses ``/v1`` requests without a valid key, before their
+    body is read (:mod:`service.auth`); this dependency documents the scheme in the OpenAPI
+    document and checks again.
+    """
+    encoded = encode_keys(keys)
 
     async def guard(request: Request, api_key: str | None = Depends(api_key_header)) -> None:
-        if not keys:
-            return
-        given = api_key
-        auth = request.headers.get("authorization", "")
-        if not given and auth.lower().startswith("bearer "):
-            given = auth[7:].strip()
-        if not given or not any(secrets.compare_digest(given.encode(), k.encode())
-                                for k in keys):
-            raise ServiceProblem("unauthorized", "a valid API key is required (X-API-Key "
-                                 "header or Authorization: Bearer)",
-                                 headers={"WWW-Authenticate": "Bearer"})
+        if not authorized(request.headers, encoded):
+            raise ServiceProblem("unauthorized", UNAUTHORIZED_DETAIL, headers=dict(CHALLENGE))
 
     return guard
 

@@ -3,6 +3,9 @@ log, and a last-resort guard that turns any unhandled exception into a problem d
 
 * ``X-Request-ID``: taken from the request when it is a short token (letters, digits, ``._-``),
   otherwise generated; echoed on the response and available as ``request.state.request_id``.
+  Every response also gets ``X-Content-Type-Options: nosniff``.
+* API keys (:mod:`service.auth`): when configured, a ``/v1`` request without a valid key is
+  answered 401 ``unauthorized`` before its body is read.
 * Body limit: a ``Content-Length`` above ``max_body_bytes`` is refused at once (413, nothing is
   read); a body without one is read up to the limit and then refused the same way. Accepted
   bodies are buffered (they are small) and handed on unchanged.
@@ -17,10 +20,11 @@ import logging
 import re
 import time
 import uuid
-from typing import Callable
+from typing import Callable, Sequence
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from .auth import CHALLENGE, UNAUTHORIZED_DETAIL, authorized, encode_keys, protected
 from .metrics import Metrics
 from .problems import ServiceProblem
 
@@ -40,11 +44,14 @@ class RequestContextMiddleware:
     metrics : Metrics
     known_paths : callable
         Returns the app's route paths (called once, at the first request).
+    api_keys : sequence of str
+        Accepted keys for ``/v1`` (empty: no authentication).
     """
 
     def __init__(self, app: ASGIApp, *, max_body_bytes: int, metrics: Metrics,
-                 known_paths: Callable[[], set[str]]) -> None:
+                 known_paths: Callable[[], set[str]], api_keys: Sequence[str] = ()) -> None:
         self.app = app
+        self.api_keys = encode_keys(api_keys)
         self.max_body_bytes = max_body_bytes
         self.metrics = metrics
         self._known_paths = known_paths
@@ -77,10 +84,16 @@ class RequestContextMiddleware:
                 status.append(int(message["status"]))
                 message.setdefault("headers", [])
                 message["headers"] = list(message["headers"]) + [
-                    (b"x-request-id", request_id.encode("latin-1"))]
+                    (b"x-request-id", request_id.encode("latin-1")),
+                    (b"x-content-type-options", b"nosniff")]
             await send(message)
 
         try:
+            if (self.api_keys and protected(scope.get("path", ""), scope.get("method", ""))
+                    and not authorized(headers, self.api_keys)):
+                await self._problem(send_with_id, ServiceProblem(
+                    "unauthorized", UNAUTHORIZED_DETAIL, headers=dict(CHALLENGE)), request_id)
+                return
             body_receive = await self._checked_body(headers, receive)
             if body_receive is None:
                 await self._problem(send_with_id, ServiceProblem(
@@ -102,7 +115,7 @@ class RequestContextMiddleware:
             self.metrics.observe_request(template, scope.get("method", ""), code, seconds)
             access_log.info("%s %s %s", scope.get("method"), template, code, extra={
                 "request_id": request_id, "method": scope.get("method"),
-                "path": scope.get("path"), "route": template, "status": code,
+                "path": str(scope.get("path", ""))[:200], "route": template, "status": code,
                 "duration_ms": round(seconds * 1000.0, 3)})
 
     async def _checked_body(self, headers: dict[str, str], receive: Receive) -> Receive | None:
