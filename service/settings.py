@@ -67,6 +67,9 @@ class Settings(BaseSettings):
         Seconds added to a job's time limit before its worker is killed.
     worker_start_timeout : float
         Seconds a new worker may take to start and warm up.
+    shutdown_timeout : float
+        On SIGTERM, seconds the server waits for requests in flight to finish (uvicorn's
+        ``timeout_graceful_shutdown``) before it cancels them and stops the workers.
     start_method : {"forkserver", "spawn"}
         How worker processes are created (never plain ``fork`` of a threaded server).
     warmup : bool
@@ -108,6 +111,7 @@ class Settings(BaseSettings):
     max_time_limit: float = Field(default=60.0, gt=0, le=LIBRARY_MAX_TIME_LIMIT)
     timeout_grace: float = Field(default=0.5, ge=0, le=60)
     worker_start_timeout: float = Field(default=120.0, gt=0)
+    shutdown_timeout: float = Field(default=30.0, gt=0, le=3600)
     start_method: Literal["forkserver", "spawn"] = "forkserver"
     warmup: bool = True
     api_keys: Annotated[list[str], NoDecode] = Field(default_factory=list)

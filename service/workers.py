@@ -68,7 +68,12 @@ class WorkerLost(PoolError):
 # ---------------------------------------------------------------------------- worker side
 def _worker_main(conn: Connection, warmup: bool, log_level: str) -> None:
     """Entry point of a worker process: warm up, then serve jobs until told to stop."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server decides when workers stop
+    # the server decides when workers stop: a SIGINT/SIGTERM sent to the whole process group
+    # (Ctrl-C, systemd, some container runtimes) must not kill a job in flight; the server
+    # finishes its requests, then stops the workers (and a worker whose server died sees its
+    # pipe close and exits)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     from . import jobs
     from .logs import configure_logging
 

@@ -192,6 +192,7 @@ LIMIT_SETTINGS = {
     "max_duration": ("50", 50.0), "max_time_limit": ("20", 20.0),
     "default_time_limit": ("5", 5.0), "timeout_grace": ("0.25", 0.25),
     "queue_size": ("3", 3), "workers": ("2", 2), "retry_after": ("7", 7),
+    "shutdown_timeout": ("12", 12.0),
 }
 
 
