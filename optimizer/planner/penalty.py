@@ -46,8 +46,9 @@ Constraints
 
 The grid only sees samples: every candidate is checked on the continuous path with the check
 ``finish_plan`` uses, and a better candidate that fails it is re-solved on a doubled grid (up
-to :data:`MAX_REFINEMENTS` times; under ``z2`` the refinement uses the full constraints, since a
-returned plan must lie in the full region).
+to :data:`MAX_REFINEMENTS` times). Under ``z2`` the first refinement keeps the grid and uses
+the full constraints, and so does the polish of round 2 (below): a returned plan must lie in
+the full region, and the z2-only NLP mostly ran into IPOPT's iteration limit there.
 
 Objective (weights are NLP parameters)
 --------------------------------------
@@ -70,19 +71,23 @@ measure and weights.energy on the energy of ``V``, the NLP's stand-ins for t_p a
 
 Search
 ------
-Round 1 solves the first shape (monotone) from up to :data:`MAX_STARTS` deterministic starts,
-pre-screened cheaply: the warm start (e.g. the polynomial optimum, embedded exactly), the
-family member with the largest region margin, constant ``V1 = +-0.5, +-1``, ``V1`` reversing
-at mid-time ``+-a (1 - 2 tau)``, and ``V1`` late or early (``tau^2``, ``(1 - tau)^2``). It stops
+Round 1 solves the first shape (monotone) on the base grid from up to :data:`MAX_STARTS`
+deterministic starts, pre-screened cheaply (region violation, then objective, at the start):
+the warm start (e.g. the polynomial optimum, embedded exactly), the family member with the
+largest region margin, constant ``V1 = +-0.5, +-1``, ``V1`` reversing at mid-time ``+-a (1 -
+2 tau)``, ``V1`` late (``3 f D tau^2``, several ``f``), early (``3 D (1 - tau)^2``) or back then
+forward (``f D (6 tau^2 - 2 tau)``), ``D`` the nominal phi travel (every joint's change over its
+gain); for each ``V1`` the ``V2`` is the minimum-energy one that hits the goal. Round 1 stops
 early once a plan has no reversal and ``d_a <= 1 deg`` (:data:`GOOD_DA`), or when the shape is
 out of reach. Some goals need a reversal of th1 (for [10, 10, 10] -> [30, 30, 30] deg a
 monotone th1 can change th3 by at most about 19.8 deg), so round 2 then solves the two shapes
-with one reversal from the best round-1 solution and :data:`ROUND2_SEEDS` screened starts.
-Every solution is measured like ``finish_plan`` measures plans (t_p and d_a on 1001 samples)
-and the best by the request's rule (fewest t_p, then d_a; or the weighted sum) that stays in
-the region wins. The warm start itself is a candidate, so the result is never worse than it.
-``plan.diagnostics["penalty"]`` names the winning start and shape, IPOPT's status and
-iterations, and lists every solve (``starts_tried``).
+with one reversal from every start and the best round-1 solution, roughly, on a coarse grid
+(:data:`EXPLORE_GRID`, loose tolerances), and polishes the best :data:`POLISH` per shape on
+the base grid. Every solution is measured like ``finish_plan`` measures plans (t_p and d_a on
+1001 samples) and the best by the request's rule (fewest t_p, then d_a; or the weighted sum)
+that stays in the region wins. The warm start itself is a candidate, so the result is never
+worse than it. ``plan.diagnostics["penalty"]`` names the winning start and shape, IPOPT's
+status and iterations, and lists every solve (``starts_tried``).
 
 Caching and threads
 -------------------
@@ -102,15 +107,17 @@ one iteration (about a millisecond); ``max_wall_time`` is the library's largest 
 a backstop. No solve starts after the deadline; :class:`SolverTimeoutError` is raised when no
 solution was found in time, otherwise the best one so far is returned.
 
-Limits (measured, prototype robot)
-----------------------------------
+Limits (measured, prototype robot, a shared 2-core machine)
+-----------------------------------------------------------
 Goals that need no reversal of th1 ([20, 20, 20] -> [40, 40, 40] deg) take one or two solves,
-about 0.1-0.4 s including verification, with d_a near 0.1 deg. Goals that need one take about
-2 s (15-25 solves of 30-300 IPOPT iterations, 1-2 ms each). The landscape is strongly
-multimodal: [1, 1, 1] and [5, 5, 5] -> [30, 30, 30] deg reach d_a of 13.4 and 11.8 deg (t_p = 1)
-where the best runs seen reached about 11. For n = 4 (assumed constants, where even the
-paper's family has no singularity-free member for most goals) plans are found and verified but
-th1 swings widely (t_p of 5-6).
+about 0.1 s including verification, with d_a near 0.1 deg. Goals that need one take about 3 s
+(some 40 solves, most of them rough ones of 20-120 iterations at 0.5-1 ms each). The landscape
+is strongly multimodal and which start wins differs from goal to goal (the late and the back-
+then-forward starts were added for [1, 1, 1] and [5, 5, 5] -> [30, 30, 30] deg). For n = 4
+(assumed constants; even the paper's family has no singularity-free member for most goals)
+plans are found and verified for some goals with opposite joint motions, with th1 swinging
+widely (t_p of 5-6), and not for others ([10, 20, 30, 40] -> [30, 35, 20, 50] deg: every
+start ends far outside the region).
 """
 
 from __future__ import annotations
@@ -151,12 +158,9 @@ DEFAULT_SEGMENTS = 1
 DEFAULT_GRID = 41
 #: Times the grid is doubled for a solution whose continuous path leaves the region.
 MAX_REFINEMENTS = 2
-#: Largest number of starts solved in the first round (the warm start included); the others
-#: are ranked out by a cheap pre-screen (region violation, then objective, at the start).
+#: Largest number of starts solved in the first round besides the warm start; the others are
+#: ranked out by a cheap pre-screen (region violation, then objective, at the start).
 MAX_STARTS = 4
-#: Seeds of each mode with a reversal (the best distinct solutions of the first round, then
-#: pre-screened raw starts).
-ROUND2_SEEDS = 4
 #: Round 1 stops once a solution has no reversal and d_a at most this (rad): good enough.
 GOOD_DA = math.radians(1.0)
 #: Round 1 stops after two solutions whose reversal measure exceeds this (rad): th1 cannot do
@@ -166,6 +170,10 @@ IMPOSSIBLE_GATE = 1e-3
 EXPLORE_GRID = 21
 #: Exploratory solutions polished on the base grid, per mode.
 POLISH = 3
+#: Scales of the nominal travel for the "late" starts (phi still first, then moving).
+LATE_SCALES = (0.5, 0.75, 1.0, 1.25, 1.5)
+#: Scales for the "back then forward" starts.
+BACK_SCALES = (1.0, 1.5)
 #: dphi step of the scan for the family start (rad).
 FAMILY_SCAN_STEP = math.radians(0.5)
 #: Margin (rad) kept from the region's bounds at grid points (0.5 deg).
@@ -184,6 +192,9 @@ TP_WEIGHT = 1000.0
 #: flat stretches of th1, where the polynomial path ripples between grid points and every
 #: ripple counts in t_p (whose dead band is 1e-6 rad).
 MIN_SLOPE = 0.05
+#: Also require th1's exact derivative at tau = 0 and 1 to follow the shape (with the same
+#: minimum rate): u2(0) and u2(1) are otherwise free, and a turn right at an end was the most
+#: frequent reversal the grid missed.
 END_CHECK = True
 #: Pairs of parameter times ("cuts") where th1's direction is checked besides the grid; they
 #: are placed where a solution still reverses between grid points, and the NLP re-solved.
@@ -200,9 +211,8 @@ ENERGY_REGULARISER = 1e-5
 #: Tiny weight kept on ``d_a`` when the objective does not use it (keeps its epigraph variable
 #: determined, which IPOPT's Newton steps like).
 DA_FLOOR = 1e-6
-#: ``w`` is clamped to ``[W_CLAMP, 1 - W_CLAMP]`` before the fractional power and ``acos`` of the
-#: inverse map, so that the NLP functions stay finite outside the region (starts may be there).
-#: Inside the region with its margin the clamp is never active.
+#: Default clamp of ``w`` in :func:`inverse_clamped` (the NLP passes tighter ones, at half the
+#: margin, per request): it keeps the fractional power and ``acos`` finite outside the region.
 W_CLAMP = 1e-9
 #: Bound on |Legendre coefficient| (keeps IPOPT from wandering off to huge inputs).
 COEFF_BOUND = 1e3
@@ -950,11 +960,12 @@ def starts_for(req: PlanRequest, warm_start: InputSchedule | None
     """Deterministic starts ``(name, V1(tau), V2(tau) or None)``; ``V2 = None`` means the
     minimum-energy ``V2`` that hits the goal for that ``V1``.
 
-    The warm start (or else the family member with the largest margin); constant ``V1`` of
-    +-0.5 and +-1 rad; ``V1`` reversing at mid-time, ``+-a (1 - 2 tau)`` with ``a`` four times
-    the nominal travel; and ``V1`` late or early, ``3 D tau^2`` and ``3 D (1 - tau)^2`` with ``D``
-    the nominal travel in the direction the joints move (phi still while th1 moves first, or
-    the reverse: the structure of the d_a-optimal paths where th1 must move a lot).
+    The warm start; the family member with the largest margin; constant ``V1`` of +-0.5 and +-1
+    rad; ``V1`` reversing at mid-time, ``+-a (1 - 2 tau)`` with ``a`` four times the nominal
+    travel ``D``; and, for ``d1 >= 2``, ``V1`` late (``3 f D tau^2``, f in
+    :data:`LATE_SCALES`: phi still while th1 moves first), early (``3 D (1 - tau)^2``) and back
+    then forward (``f D (6 tau^2 - 2 tau)``, f in :data:`BACK_SCALES`), ``D`` signed like the
+    joints' motion: the structures of the d_a-optimal paths where th1 must move a lot.
     """
     out: list[tuple[str, Callable, Callable | None]] = []
     if warm_start is not None:
@@ -972,10 +983,17 @@ def starts_for(req: PlanRequest, warm_start: InputSchedule | None
     d = np.array(req.goal[1:]) - np.array(req.start[1:])
     D = (1.0 if float(np.sum(d)) >= 0.0 else -1.0) * trav
     if req.v1_degree is None or req.v1_degree >= 2:
-        out.append((f"late_v1={3 * D:+.3g}tau^2",
-                    (lambda tau: 3.0 * D * np.asarray(tau, float) ** 2), None))
+        for f in LATE_SCALES:
+            out.append((f"late_v1={3 * f * D:+.3g}tau^2",
+                        (lambda tau, f=f: 3.0 * f * D * np.asarray(tau, float) ** 2), None))
         out.append((f"early_v1={3 * D:+.3g}(1-tau)^2",
                     (lambda tau: 3.0 * D * (1.0 - np.asarray(tau, float)) ** 2), None))
+        for f in BACK_SCALES:
+            # phi back first (moving th2.. toward their lower end), then forward: the shape of
+            # the paths that keep d_a small when th1 must move a lot
+            out.append((f"back_forward_v1={f * D:+.3g}(6tau^2-2tau)",
+                        (lambda tau, f=f: f * D * (6.0 * np.asarray(tau, float) ** 2
+                                                   - 2.0 * np.asarray(tau, float))), None))
     return out
 
 
@@ -1100,7 +1118,14 @@ class _Runner:
         """The NLP of grid level ``level``: 0 is the base grid, each level up doubles it, and
         -1 is the coarse exploratory grid (:data:`EXPLORE_GRID`, loose tolerances)."""
         b = self.base
-        grid = EXPLORE_GRID if level < 0 else b.grid * 2 ** level
+        if level < 0:
+            grid = EXPLORE_GRID
+        elif b.criterion == "z2":
+            # under z2 a solution mostly fails the full check for the criterion, not for the
+            # grid: the first refinement keeps the grid and switches to the full constraints
+            grid = b.grid * 2 ** max(level - 1, 0)
+        else:
+            grid = b.grid * 2 ** level
         key = NLPKey(b.gains, b.exponents, b.v1_degree, b.v2_degree, b.segments,
                      grid, b.criterion if level <= 0 else "full",
                      b.constraint_kind, b.bounded_thn, b.points, level < 0)
@@ -1231,19 +1256,24 @@ class _Runner:
     def best(self) -> tuple[_Candidate | None, list[_Candidate]]:
         """The best candidate by the request's rule on its true indicators whose continuous
         path stays in the region; and the ones worth a finer grid: better-scored ones that
-        leave the region, and ones whose sampled path already does but whose NLP objective
-        beats the winner's in the same mode."""
+        leave the region, and ones (whose sampled path may already leave it) that have their
+        mode's shape on the grid and a better NLP objective than every passing solution of
+        their mode."""
         order = sorted(self.pool, key=lambda c: (c.score, not c.success,
                                                  c.objective if math.isfinite(c.objective)
                                                  else math.inf))
         winner = next((c for c in order if c.indicators is not None and self.check(c)), None)
+        # per mode, the NLP objective of its best candidate that passes
+        passing: dict[str, float] = {}
+        for c in self.pool:
+            if c.x.size and c.indicators is not None and self.check(c):
+                passing[c.mode.name] = min(passing.get(c.mode.name, math.inf), c.objective)
         failed = []
         for c in self.pool:
             if c.x.size == 0 or (c.indicators is not None and self.check(c)):
                 continue
-            if winner is None or (c.indicators is not None and c.score < winner.score) or (
-                    c.indicators is None and c.mode.name == winner.mode.name
-                    and c.objective < winner.objective):
+            if (c.indicators is not None and (winner is None or c.score < winner.score)) or (
+                    c.reversal <= CUT_GATE and c.objective < passing.get(c.mode.name, math.inf)):
                 failed.append(c)
         failed.sort(key=lambda c: (c.score, c.objective))
         return winner, failed
@@ -1360,6 +1390,7 @@ def plan_penalty(req: PlanRequest, deadline: Deadline, *, warm_start: InputSched
     # by NLP objective are then polished on the base grid
     best, _ = run.best()
     if len(modes) > 1 and (best is None or best.indicators is None or best.indicators.t_p > 0):
+        polish_level = 1 if req.singularity == "z2" else 0
         seeds = sorted((c for c in run.pool if c.x.size), key=lambda c: (c.score, c.objective))
         seed_x = [(c.name, c.x) for c in seeds[:1]] + raw
         for mode in modes[1:]:
@@ -1375,7 +1406,9 @@ def plan_penalty(req: PlanRequest, deadline: Deadline, *, warm_start: InputSched
             # stuck with a reversal measure the polish will not remove
             shaped = [c for c in kept if c.reversal <= CUT_GATE] or kept
             for c in shaped[:POLISH]:
-                run.solve(c.name, mode, c.x, cuts=c.cuts)
+                # under z2 the polish already uses the full constraints: a returned plan must
+                # pass the full check, and polishing under z2 alone mostly ran into max_iter
+                run.solve(c.name, mode, c.x, level=polish_level, cuts=c.cuts)
 
     # ---- grid refinement for candidates whose continuous path leaves the region
     best, failed = run.best()
@@ -1386,7 +1419,7 @@ def plan_penalty(req: PlanRequest, deadline: Deadline, *, warm_start: InputSched
         for c in todo:
             c.refined = True
             grid_next = run.problem(c.level + 1).nlp.key.grid
-            run.solve(f"{c.name}@grid{grid_next}", c.mode, c.x, c.level + 1,
+            run.solve(f"{c.name}@full{grid_next}", c.mode, c.x, c.level + 1,
                       None if not c.mode.switch else None, c.cuts)
         best, failed = run.best()
 
