@@ -11,7 +11,8 @@ With the paper's constant ``v1`` every joint ``th_2..th_n`` moves in the directi
 
 Parametrisation (normalised time ``tau = t / T`` in [0, 1]; ``T`` only rescales)
 -------------------------------------------------------------------------------
-``S`` segments of equal length ``h = 1/S`` (default 1); on each, in ``x = tau - tau_s``::
+``S`` segments of equal length ``h = 1/S`` (default 1, and 2 from n = 4 on); on each, in
+``x = tau - tau_s``::
 
     V1(x) = sum_i a_i P_i(2x/h - 1)        (degree d1 = req.v1_degree, default 2)
     V2(x) = sum_i b_i P_i(2x/h - 1)        (degree d2 = req.v2_degree, default max(5, n + 2))
@@ -89,6 +90,11 @@ that stays in the region wins. The warm start itself is a candidate, so the resu
 worse than it. ``plan.diagnostics["penalty"]`` names the winning start and shape, IPOPT's
 status and iterations, and lists every solve (``starts_tried``).
 
+From n = 4 on (:data:`SHOOTING_FROM_N`) the 4-joint region is so narrow that every polynomial
+start ends far outside it and IPOPT runs into its iteration limit; the search then first runs
+from one start made by direct multiple shooting on the original model (:func:`shooting_start`:
+its ``z1``, ``z2`` fitted per segment), with the polynomial starts as the fallback.
+
 Caching and threads
 -------------------
 The CasADi NLP and its ``nlpsol`` are built once per :class:`NLPKey` (robot, degrees,
@@ -115,9 +121,9 @@ about 0.1 s including verification, with d_a near 0.1 deg. Goals that need one t
 is strongly multimodal and which start wins differs from goal to goal (the late and the back-
 then-forward starts were added for [1, 1, 1] and [5, 5, 5] -> [30, 30, 30] deg). For n = 4
 (assumed constants; even the paper's family has no singularity-free member for most goals)
-plans are found and verified for some goals with opposite joint motions, with th1 swinging
-widely (t_p of 5-6), and not for others ([10, 20, 30, 40] -> [30, 35, 20, 50] deg: every
-start ends far outside the region).
+plans with opposite joint motions are found and verified from the multiple-shooting start,
+but th1 swings widely (t_p of 8-12) and the search takes 4-16 s (plus the verification: up to
+15 s for such paths).
 """
 
 from __future__ import annotations
@@ -174,6 +180,11 @@ POLISH = 3
 LATE_SCALES = (0.5, 0.75, 1.0, 1.25, 1.5)
 #: Scales for the "back then forward" starts.
 BACK_SCALES = (1.0, 1.5)
+#: Number of joints from which the shooting start is added and the inputs have two segments
+#: by default (the 4-joint region is narrow enough that no polynomial start gets near it).
+SHOOTING_FROM_N = 4
+#: Intervals of the multiple-shooting start.
+SHOOTING_INTERVALS = 60
 #: dphi step of the scan for the family start (rad).
 FAMILY_SCAN_STEP = math.radians(0.5)
 #: Margin (rad) kept from the region's bounds at grid points (0.5 deg).
@@ -955,6 +966,86 @@ def _family_start(req: PlanRequest) -> InputSchedule | None:
     return fam.inputs(float(grid[i]))
 
 
+@functools.lru_cache(maxsize=8)
+def _shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...], intervals: int) -> Any:
+    """A small direct multiple-shooting NLP on the ORIGINAL model (minimum input energy,
+    piecewise-constant u, RK4), used only to produce a start (cached per process)."""
+    n = len(gains) + 1
+    N = intervals
+    h = 1.0 / N
+    Q = ca.SX.sym("Q", n + 1, N + 1)
+    U = ca.SX.sym("U", 2, N)
+    p = ca.SX.sym("p", 2 * n + 3)  # q0 (n+1), goal (n), lo, hi
+
+    def rhs(q: Any, u: Any) -> Any:
+        return ca.vertcat(u[0], u[1], *[gains[i - 2] * ca.cos(q[i - 1]) ** exponents[i - 2]
+                                        * u[0] for i in range(2, n + 1)])
+
+    g = [Q[:, 0] - p[:n + 1], Q[1:, N] - p[n + 1:2 * n + 1]]
+    for k in range(N):
+        q = Q[:, k]
+        for _ in range(2):  # two RK4 substeps per interval
+            hh = 0.5 * h
+            k1 = rhs(q, U[:, k])
+            k2 = rhs(q + 0.5 * hh * k1, U[:, k])
+            k3 = rhs(q + 0.5 * hh * k2, U[:, k])
+            k4 = rhs(q + hh * k3, U[:, k])
+            q = q + hh / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        g.append(Q[:, k + 1] - q)
+    box = ca.vec(Q[1:n, :])
+    g.append(box - p[2 * n + 1])
+    g.append(p[2 * n + 2] - box)
+    f = h * ca.sumsqr(U) + 1e-2 / h * ca.sumsqr(U[:, 1:] - U[:, :-1])
+    x = ca.vertcat(ca.vec(Q), ca.vec(U))
+    solver = ca.nlpsol("penalty_shooting", "ipopt", {"x": x, "p": p, "f": f, "g": ca.vertcat(*g)},
+                       {"ipopt": {"print_level": 0, "sb": "yes", "max_iter": 200},
+                        "print_time": False, "error_on_fail": False})
+    n_eq = (n + 1) + n + N * (n + 1)
+    return solver, n_eq, box.numel()
+
+
+def shooting_start(req: PlanRequest, segments: int, d1: int, d2: int,
+                   intervals: int = SHOOTING_INTERVALS) -> tuple[Callable, Callable] | None:
+    """``V1(tau), V2(tau)`` of a path found by direct multiple shooting on the original model,
+    for goals where the polynomial starts all end far outside the region (n >= 4 with opposite
+    joint motions): ``z1`` and ``z2`` of that path are fitted per segment by polynomials of
+    degree ``d1 + 1`` and ``d2 + 1`` (along the path ``dz_{k+1} = z_k dz1`` holds, so fitting
+    ``z1`` and ``z2`` carries the rest) and differentiated. None when the shooting fails."""
+    n = req.n
+    solver, n_eq, nbox = _shooting_nlp(req.robot.gains, req.robot.exponents, intervals)
+    q0, qT = req.q_start(), req.q_goal(0.0)
+    tau = np.linspace(0.0, 1.0, intervals + 1)
+    Q0 = q0[:, None] + (qT - q0)[:, None] * tau[None, :]
+    x0 = np.concatenate([Q0.T.ravel(), np.tile(qT[:2] - q0[:2], intervals)])
+    lo, hi = 2.0 * MARGIN, 0.5 * math.pi - 2.0 * MARGIN
+    sol = solver(x0=x0, p=np.concatenate([q0, qT[1:], [lo, hi]]),
+                 lbg=np.concatenate([np.zeros(n_eq), np.zeros(2 * nbox)]),
+                 ubg=np.concatenate([np.zeros(n_eq), np.full(2 * nbox, np.inf)]))
+    if not solver.stats().get("success", False):
+        return None
+    Q = np.asarray(sol["x"]).ravel()[:(n + 1) * (intervals + 1)].reshape(intervals + 1, n + 1)
+    z = chained_form(req.robot).to_chained(Q)
+    br = np.linspace(0.0, 1.0, segments + 1)
+    fits = []
+    for s in range(segments):
+        m = (tau >= br[s] - 1e-12) & (tau <= br[s + 1] + 1e-12)
+        xs = tau[m] - br[s]
+        fits.append((np.polynomial.polynomial.polyder(
+            np.polynomial.polynomial.polyfit(xs, z[m, 0], d1 + 1)),
+            np.polynomial.polynomial.polyder(
+            np.polynomial.polynomial.polyfit(xs, z[m, 1], d2 + 1))))
+
+    def make(i: int) -> Callable:
+        def fn(t: np.ndarray) -> np.ndarray:
+            t = np.atleast_1d(np.asarray(t, float))
+            idx = np.clip(np.searchsorted(br, t, side="right") - 1, 0, segments - 1)
+            return np.array([np.polynomial.polynomial.polyval(tt - br[j], fits[j][i])
+                             for tt, j in zip(t, idx)])
+        return fn
+
+    return make(0), make(1)
+
+
 def starts_for(req: PlanRequest, warm_start: InputSchedule | None
                ) -> list[tuple[str, Callable, Callable | None]]:
     """Deterministic starts ``(name, V1(tau), V2(tau) or None)``; ``V2 = None`` means the
@@ -1279,81 +1370,16 @@ class _Runner:
         return winner, failed
 
 
-def plan_penalty(req: PlanRequest, deadline: Deadline, *, warm_start: InputSchedule | None = None,
-                 constraint_kind: str | None = None, segments: int | None = None,
-                 grid: int | None = None, max_starts: int | None = None) -> Plan:
-    """Plan with the penalty-function NLP (varying ``v1``; see the module docstring).
-
-    Parameters
-    ----------
-    req : PlanRequest
-        Uses start, goal, robot, objective and weights, singularity criterion, joint bounds,
-        phi-change bounds (or the fixed ``phi_change``), constraint points, ``v1_degree`` and
-        ``v2_degree``.
-    deadline : Deadline
-        Wall-clock budget shared with the caller.
-    warm_start : InputSchedule, optional
-        A plan's inputs to start from (e.g. the polynomial optimum): embedded exactly when its
-        degrees fit, always solved from, and kept as a candidate, so that the result is never
-        worse than it by the request's rule.
-    constraint_kind : {"hard", "penalty"}, optional
-        Singularity constraints as inequalities or as a quadratic penalty
-        (default :data:`CONSTRAINT_KIND`).
-    segments : int, optional
-        Polynomial pieces of the inputs (default :data:`DEFAULT_SEGMENTS`).
-    grid : int, optional
-        Interior grid points of the first solve (default :data:`DEFAULT_GRID`).
-    max_starts : int, optional
-        Starts solved in the first round (default :data:`MAX_STARTS`).
-
-    Returns
-    -------
-    Plan
-        ``method == "penalty"``, verified on the original model by ``finish_plan``;
-        ``diagnostics["penalty"]`` holds the winning start and mode, IPOPT's status and
-        iterations, and what every solve did (``starts_tried``).
-
-    Raises
-    ------
-    SolverTimeoutError
-        No start finished before the deadline.
-    InfeasibleError
-        IPOPT reported infeasibility from every start, or no solution stays in the region on
-        the continuous path even after grid refinement.
-    NumericalError
-        IPOPT failed from every start, or the verification on the original model failed.
-    """
-    t_start = time.perf_counter()
-    kind = constraint_kind or CONSTRAINT_KIND
-    if kind not in CONSTRAINT_KINDS:
-        raise ValueError(f"constraint_kind must be one of {CONSTRAINT_KINDS}, not {kind!r}")
-    n = req.n
-    d1 = DEFAULT_V1_DEGREE if req.v1_degree is None else int(req.v1_degree)
-    d2 = max(DEFAULT_V2_DEGREE, n + 2) if req.v2_degree is None else int(req.v2_degree)
-    S = DEFAULT_SEGMENTS if segments is None else int(segments)
-    N = DEFAULT_GRID if grid is None else int(grid)
-    K = MAX_STARTS if max_starts is None else int(max_starts)
-    if S < 1 or N < 3 or K < 1:
-        raise ValueError("segments >= 1, grid >= 3 and max_starts >= 1 are required")
-    if deadline.remaining <= MIN_START_TIME:
-        raise SolverTimeoutError("no time left for the penalty method",
-                                 diagnostics={"stage": "penalty", "time_limit": deadline.seconds})
-    T = req.duration_or_default
-    _, _, raw_lo, raw_hi = _margins(req)
-    base = NLPKey(req.robot.gains, req.robot.exponents, d1, d2, S, N, req.singularity, kind,
-                  bool(math.isfinite(raw_lo[-1]) or math.isfinite(raw_hi[-1])),
-                  tuple((cp.time / T, int(cp.state)) for cp in req.constraint_points))
-    run = _Runner(req, deadline, base)
-    modes = modes_for(req)
-
-    # ---- the starts, as input coefficients of the first grid's NLP
-    prob0 = run.problem(0)
+def _search(run: _Runner, prob0: _Problem, modes: list[Mode],
+            starts: list[tuple[str, Callable, Callable | None]], has_warm: bool, K: int
+            ) -> _Candidate | None:
+    """Rounds 1 and 2 and the grid refinement from one set of starts (see the module
+    docstring); the best candidate so far (over every set tried), or None."""
+    req, deadline, N = run.req, run.deadline, run.base.grid
     raw = []
-    for name, V1, V2 in starts_for(req, warm_start):
+    for name, V1, V2 in starts:
         x0 = prob0.fit(V1, V2 if V2 is not None else _const(0.0))
         raw.append((name, prob0.project_goal(x0) if V2 is None else x0))
-    if warm_start is not None:
-        run.add_schedule("warm_start(unchanged)", warm_start)
 
     def screen(mode: Mode, limit: int) -> list[tuple[str, np.ndarray]]:
         """The warm start (always) and the first ``limit`` other starts, ranked by a cheap look
@@ -1365,7 +1391,7 @@ def plan_penalty(req: PlanRequest, deadline: Deadline, *, warm_start: InputSched
             viol = float(np.sum(np.maximum(-reg, 0.0))) if reg.size else 0.0
             ranked.append(((0 if name == "warm_start" else 1, viol, float(parts[-1])), name, x0))
         ranked.sort(key=lambda t: t[0])
-        keep = limit + (1 if warm_start is not None else 0)
+        keep = limit + (1 if has_warm else 0)
         for _, name, _ in ranked[keep:]:
             run.tried.append({"start": name, "mode": mode.name, "grid": N,
                               "ipopt_status": "not_run_prescreen"})
@@ -1422,6 +1448,95 @@ def plan_penalty(req: PlanRequest, deadline: Deadline, *, warm_start: InputSched
             run.solve(f"{c.name}@full{grid_next}", c.mode, c.x, c.level + 1,
                       None if not c.mode.switch else None, c.cuts)
         best, failed = run.best()
+    return best
+
+
+def plan_penalty(req: PlanRequest, deadline: Deadline, *, warm_start: InputSchedule | None = None,
+                 constraint_kind: str | None = None, segments: int | None = None,
+                 grid: int | None = None, max_starts: int | None = None) -> Plan:
+    """Plan with the penalty-function NLP (varying ``v1``; see the module docstring).
+
+    Parameters
+    ----------
+    req : PlanRequest
+        Uses start, goal, robot, objective and weights, singularity criterion, joint bounds,
+        phi-change bounds (or the fixed ``phi_change``), constraint points, ``v1_degree`` and
+        ``v2_degree``.
+    deadline : Deadline
+        Wall-clock budget shared with the caller.
+    warm_start : InputSchedule, optional
+        A plan's inputs to start from (e.g. the polynomial optimum): embedded exactly when its
+        degrees fit, always solved from, and kept as a candidate, so that the result is never
+        worse than it by the request's rule.
+    constraint_kind : {"hard", "penalty"}, optional
+        Singularity constraints as inequalities or as a quadratic penalty
+        (default :data:`CONSTRAINT_KIND`).
+    segments : int, optional
+        Polynomial pieces of the inputs (default :data:`DEFAULT_SEGMENTS`).
+    grid : int, optional
+        Interior grid points of the first solve (default :data:`DEFAULT_GRID`).
+    max_starts : int, optional
+        Starts solved in the first round (default :data:`MAX_STARTS`).
+
+    Returns
+    -------
+    Plan
+        ``method == "penalty"``, verified on the original model by ``finish_plan``;
+        ``diagnostics["penalty"]`` holds the winning start and mode, IPOPT's status and
+        iterations, and what every solve did (``starts_tried``).
+
+    Raises
+    ------
+    SolverTimeoutError
+        No start finished before the deadline.
+    InfeasibleError
+        IPOPT reported infeasibility from every start, or no solution stays in the region on
+        the continuous path even after grid refinement.
+    NumericalError
+        IPOPT failed from every start, or the verification on the original model failed.
+    """
+    t_start = time.perf_counter()
+    kind = constraint_kind or CONSTRAINT_KIND
+    if kind not in CONSTRAINT_KINDS:
+        raise ValueError(f"constraint_kind must be one of {CONSTRAINT_KINDS}, not {kind!r}")
+    n = req.n
+    d1 = DEFAULT_V1_DEGREE if req.v1_degree is None else int(req.v1_degree)
+    d2 = max(DEFAULT_V2_DEGREE, n + 2) if req.v2_degree is None else int(req.v2_degree)
+    S = (DEFAULT_SEGMENTS if n < SHOOTING_FROM_N else 2) if segments is None else int(segments)
+    N = DEFAULT_GRID if grid is None else int(grid)
+    K = MAX_STARTS if max_starts is None else int(max_starts)
+    if S < 1 or N < 3 or K < 1:
+        raise ValueError("segments >= 1, grid >= 3 and max_starts >= 1 are required")
+    if deadline.remaining <= MIN_START_TIME:
+        raise SolverTimeoutError("no time left for the penalty method",
+                                 diagnostics={"stage": "penalty", "time_limit": deadline.seconds})
+    T = req.duration_or_default
+    _, _, raw_lo, raw_hi = _margins(req)
+    base = NLPKey(req.robot.gains, req.robot.exponents, d1, d2, S, N, req.singularity, kind,
+                  bool(math.isfinite(raw_lo[-1]) or math.isfinite(raw_hi[-1])),
+                  tuple((cp.time / T, int(cp.state)) for cp in req.constraint_points))
+    run = _Runner(req, deadline, base)
+    modes = modes_for(req)
+
+    # ---- the start sets: for n >= SHOOTING_FROM_N a multiple-shooting start (with the warm
+    # start) first, since the polynomial starts end far outside the narrow 4-joint region and
+    # IPOPT then runs into its iteration limit at several ms an iteration; the polynomial
+    # starts are the fallback
+    prob0 = run.problem(0)
+    if warm_start is not None:
+        run.add_schedule("warm_start(unchanged)", warm_start)
+    polynomial_starts = starts_for(req, warm_start)
+    start_sets = [polynomial_starts]
+    if n >= SHOOTING_FROM_N and deadline.remaining > MIN_START_TIME:
+        shot = shooting_start(req, S, d1, d2)
+        if shot is not None:
+            start_sets.insert(0, [("multiple_shooting", *shot)] + [
+                st for st in polynomial_starts if st[0] == "warm_start"])
+    best: _Candidate | None = None
+    for starts in start_sets:
+        best = _search(run, prob0, modes, starts, warm_start is not None, K)
+        if best is not None or deadline.remaining <= MIN_START_TIME:
+            break
 
     timing = {"penalty_nlp": time.perf_counter() - t_start, "penalty_build": run.build_time,
               "penalty_ipopt": run.solve_time}
