@@ -125,3 +125,38 @@ def test_weighted_objective_matches_dense_scan():
                          method="polynomial", objective="weighted",
                          weights={"d_a": 0.0, "sensitivity": 1.0}))  # type: ignore[arg-type]
     assert R2D(p.phi_change) == pytest.approx(33.201, abs=0.01)
+
+
+def test_five_joint_windows_of_thousandths_of_a_degree():
+    """Reachable 5-joint goals made by running random members of the family forward: their
+    windows are ~0.01 deg wide. The search finds at least 3 of the first 5 (documented limit),
+    and every window it reports contains the member that made the goal."""
+    from optimizer.errors import InfeasibleError
+    from optimizer.steering import InputSchedule
+    n = 5
+    rng = np.random.default_rng(5)
+    robot = Robot.default(n)
+    cf = chained_form(robot)
+    tau = np.linspace(0, 1, 2001)
+    found = tried = 0
+    while tried < 5:
+        q0 = np.concatenate([[0.0], D(rng.uniform(10, 80, n))])
+        dphi = float(rng.uniform(0.2, 1.2) * rng.choice([-1, 1]))
+        path = ChainedPath.from_inputs(cf.to_chained(q0),
+                                       InputSchedule.single([dphi], rng.normal(scale=0.3, size=n),
+                                                            1.0))
+        inv = cf.from_chained(path.z(tau))
+        th = inv.q[:, 1:n]
+        if not (inv.valid.all() and th.min() > D(3) and th.max() < D(87)):
+            continue
+        tried += 1
+        req = PlanRequest(start=tuple(q0[1:]), goal=tuple(inv.q[-1, 1:]), robot=robot,
+                          method="polynomial", time_limit=60)
+        try:
+            p = plan(req)
+        except InfeasibleError:
+            continue
+        found += 1
+        assert any(a <= dphi <= b for a, b in p.feasible_phi_changes)
+        assert min(b - a for a, b in p.feasible_phi_changes) < D(0.05)
+    assert found >= 3
