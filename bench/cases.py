@@ -56,6 +56,8 @@ CASES: tuple[Case, ...] = (
     Case("p3_1to30", (1, 1, 1), (30, 30, 30), "paper", "paper §3.3 example"),
     Case("p3_5to30", (5, 5, 5), (30, 30, 30), "paper", "paper-type goal"),
     Case("p3_10to30", (10, 10, 10), (30, 30, 30), "paper", "NOTES §5 worked example"),
+    Case("p3_20to40", (20, 20, 20), (40, 40, 40), "paper", "issue 8 paper-type goal"),
+    Case("p3_40to45", (40, 40, 40), (45, 45, 45), "paper", "issue 8 paper-type goal"),
     Case("opp3_a", (10, 20, 30), (40, 25, 15), "beyond",
          "th2 up, th3 down: phi must reverse"),
     Case("opp3_b", (20, 40, 10), (35, 15, 45), "beyond",
