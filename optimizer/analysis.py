@@ -130,7 +130,8 @@ def perturbed_starts(nominal: Sequence[float], count: int, spread: float, seed: 
     return nom + rng.uniform(-spread, spread, size=(count, nom.size))
 
 
-def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float]) -> dict[str, Any]:
+def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float],
+               time_limit: float | None = None) -> dict[str, Any]:
     """Replay a plan open loop from perturbed starts (NOTES §7) and measure each run.
 
     Parameters
@@ -141,6 +142,8 @@ def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float])
     mode : {"u", "v"}
     goal : sequence of float
         The nominal goal ``th_1..th_n``.
+    time_limit : float, optional
+        Seconds for all the replays (:class:`SolverTimeoutError` past it, checked between runs).
     """
     if mode not in ("u", "v"):
         raise InvalidRequestError("replay must be 'u' or 'v'", field="replay")
@@ -149,8 +152,10 @@ def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float])
     t = plan.path.t
     phi0 = float(plan.path.q[0, 0])
     goal_arr = np.asarray(goal, float)
+    deadline = Deadline(time_limit if time_limit is not None else float("inf"))
     runs = []
     for s in np.atleast_2d(starts):
+        deadline.check(f"the robustness replays ({len(runs)} of {len(np.atleast_2d(starts))} done)")
         if s.size != plan.robot.n or not np.all(np.isfinite(s)):
             raise InvalidRequestError(f"each start must have n = {plan.robot.n} finite angles",
                                       field="starts")

@@ -95,13 +95,16 @@ def job_robustness(payload: Payload) -> dict[str, Any]:
     ``spread``, ``seed``), ``replay`` (``u`` or ``v``), ``include_paths``.
     """
     req = PlanRequest.from_dict(payload["plan"])
+    t0 = time.perf_counter()
     nominal = plan(req)
     starts = payload.get("starts")
     if starts is None:
         rnd = payload["random"]
         starts = analysis.perturbed_starts(req.start, int(rnd["count"]), float(rnd["spread"]),
                                            int(rnd["seed"]))
-    out = analysis.robustness(nominal, starts, payload["replay"], req.goal)
+    # the replays get what is left of the request's time limit
+    out = analysis.robustness(nominal, starts, payload["replay"], req.goal,
+                              time_limit=req.time_limit - (time.perf_counter() - t0))
     if not payload.get("include_paths"):
         for run in out["runs"]:
             run.pop("path_q", None)

@@ -179,3 +179,13 @@ def test_energy_is_exact_even_for_sharp_inputs():
     val, _ = quad(lambda t: float(np.sum(inputs.u(np.array([t]))[0] ** 2)), 0, p.duration,
                   limit=500, epsabs=1e-12, epsrel=1e-12)
     assert p.indicators.energy == pytest.approx(val, rel=1e-7)
+
+
+def test_robustness_replays_honour_their_time_limit():
+    from optimizer.analysis import perturbed_starts, robustness
+    req = PlanRequest(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])),
+                      method="polynomial")
+    p = plan(req)
+    with pytest.raises(SolverTimeoutError) as exc:
+        robustness(p, perturbed_starts(req.start, 500, 0.01, 1), "v", req.goal, time_limit=0.2)
+    assert exc.value.field == "time_limit"
