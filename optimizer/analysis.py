@@ -153,7 +153,7 @@ def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float],
     phi0 = float(plan.path.q[0, 0])
     goal_arr = np.asarray(goal, float)
     deadline = Deadline(time_limit if time_limit is not None else float("inf"))
-    runs = []
+    runs: list[dict[str, Any]] = []
     for s in np.atleast_2d(starts):
         deadline.check(f"the robustness replays ({len(runs)} of {len(np.atleast_2d(starts))} done)")
         if s.size != plan.robot.n or not np.all(np.isfinite(s)):
