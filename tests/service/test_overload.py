@@ -114,8 +114,12 @@ def test_bursts_past_the_queue_are_refused_at_once_and_memory_stays_flat(server)
             assert r.json()["code"] == "overloaded"
             assert r.headers["retry-after"] == str(RETRY_AFTER)
         times = sorted(t for t, _ in refused)
-        # "at once": refused without waiting for a worker (a solve takes 0.1-0.3 s)
-        assert statistics.median(times) < 1.0, statistics.median(times)
+        served = [t for s, t, _ in answers if s == 200]
+        # "at once": refused without waiting for a worker, so sooner than the admitted requests,
+        # which queue for the workers (an absolute bound fails on a loaded 2-core CI machine,
+        # where the 200 concurrent clients themselves take seconds)
+        assert statistics.median(times) < statistics.median(served), (
+            statistics.median(times), statistics.median(served))
     metrics = httpx.get(base + "/metrics").text
     assert 'route="/v1/plans",status="503"' in metrics
     # and the server still serves
