@@ -131,7 +131,8 @@ def perturbed_starts(nominal: Sequence[float], count: int, spread: float, seed: 
 
 
 def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float],
-               time_limit: float | None = None) -> dict[str, Any]:
+               time_limit: float | None = None, deadline: Deadline | None = None
+               ) -> dict[str, Any]:
     """Replay a plan open loop from perturbed starts (NOTES §7) and measure each run.
 
     Parameters
@@ -144,6 +145,9 @@ def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float],
         The nominal goal ``th_1..th_n``.
     time_limit : float, optional
         Seconds for all the replays (:class:`SolverTimeoutError` past it, checked between runs).
+    deadline : Deadline, optional
+        Instead of ``time_limit``: a deadline already running (the request's, started before
+        its nominal plan).
     """
     if mode not in ("u", "v"):
         raise InvalidRequestError("replay must be 'u' or 'v'", field="replay")
@@ -152,7 +156,8 @@ def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float],
     t = plan.path.t
     phi0 = float(plan.path.q[0, 0])
     goal_arr = np.asarray(goal, float)
-    deadline = Deadline(time_limit if time_limit is not None else float("inf"))
+    if deadline is None:
+        deadline = Deadline(time_limit if time_limit is not None else float("inf"))
     runs: list[dict[str, Any]] = []
     for s in np.atleast_2d(starts):
         deadline.check(f"the robustness replays ({len(runs)} of {len(np.atleast_2d(starts))} done)")

@@ -23,7 +23,7 @@ from optimizer import analysis
 from optimizer.chained_form import chained_form
 from optimizer.errors import PlannerError
 from optimizer.model import Robot
-from optimizer.planner.plan import plan
+from optimizer.planner.plan import Deadline, plan
 from optimizer.problem import PlanRequest
 from optimizer.results import json_safe
 
@@ -95,16 +95,14 @@ def job_robustness(payload: Payload) -> dict[str, Any]:
     ``spread``, ``seed``), ``replay`` (``u`` or ``v``), ``include_paths``.
     """
     req = PlanRequest.from_dict(payload["plan"])
-    t0 = time.perf_counter()
+    deadline = Deadline(req.time_limit)  # the plan and its replays share the request's limit
     nominal = plan(req)
     starts = payload.get("starts")
     if starts is None:
         rnd = payload["random"]
         starts = analysis.perturbed_starts(req.start, int(rnd["count"]), float(rnd["spread"]),
                                            int(rnd["seed"]))
-    # the replays get what is left of the request's time limit
-    out = analysis.robustness(nominal, starts, payload["replay"], req.goal,
-                              time_limit=req.time_limit - (time.perf_counter() - t0))
+    out = analysis.robustness(nominal, starts, payload["replay"], req.goal, deadline=deadline)
     if not payload.get("include_paths"):
         for run in out["runs"]:
             run.pop("path_q", None)

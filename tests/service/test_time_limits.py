@@ -71,7 +71,10 @@ def test_a_slow_job_is_answered_timeout_within_limit_plus_grace(one_worker, time
     # the pool recovers: the next request succeeds (on the replacement worker)
     r = one_worker.post("/v1/plans", json=CHEAP)
     assert r.status_code == 200, r.text
-    assert one_worker.get("/readyz").json()["restarts"] == before + 1
+    # the library checks the deadline between replays, so the worker usually stops by itself;
+    # when a replay straddles the bound the worker is killed and replaced (see the hung-worker
+    # test for that path)
+    assert one_worker.get("/readyz").json()["restarts"] in (before, before + 1)
 
 
 def test_a_hung_worker_is_killed_replaced_and_the_next_request_succeeds(one_worker):
