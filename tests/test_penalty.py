@@ -24,6 +24,7 @@ from optimizer.planner.plan import Deadline, plan
 from optimizer.problem import PlanRequest
 from optimizer.steering import ChainedPath
 from optimizer.verify import PlannedInputs
+from reference import model_rhs as original_rhs
 
 TERMINAL_TOL = 1e-6
 R = math.radians
@@ -39,16 +40,6 @@ def request(start_deg, goal_deg, robot: Robot | None = None, **kw) -> PlanReques
     return PlanRequest(start=tuple(map(R, start_deg)), goal=tuple(map(R, goal_deg)),
                        robot=robot or Robot(), **kw)
 
-
-def original_rhs(q: np.ndarray, u: np.ndarray, gains, exponents) -> np.ndarray:
-    """The original model (eq 1-3), written independently of the library."""
-    n = len(q) - 1
-    dq = np.empty_like(q)
-    dq[0] = u[0]
-    dq[1] = u[1]
-    for i in range(2, n + 1):
-        dq[i] = gains[i - 2] * math.cos(q[i - 1]) ** exponents[i - 2] * u[0]
-    return dq
 
 
 def terminal_error(p, req: PlanRequest) -> float:
