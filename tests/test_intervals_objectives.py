@@ -11,7 +11,6 @@ from optimizer.planner.family import PolynomialFamily
 from optimizer.planner.intervals import feasible_intervals
 from optimizer.planner.plan import make_region, plan
 from optimizer.problem import PlanRequest
-from optimizer.region import Region
 from optimizer.steering import ChainedPath, solve_polynomial
 
 D = np.deg2rad

@@ -35,7 +35,6 @@ from ..steering import MIN_ABS_DPHI
 from .family import PolynomialFamily
 
 GRID_STEP = math.radians(0.25)
-HALF_PI = 0.5 * math.pi
 XTOL = 1e-10
 LIPSCHITZ_SAFETY = 3.0
 

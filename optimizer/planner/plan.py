@@ -28,8 +28,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..chained_form import chained_form
-from ..errors import (InfeasibleError, NumericalError, PlannerError, SingularSystemError,
-                      SolverTimeoutError)
+from ..errors import (InfeasibleError, NumericalError, PlannerError, SolverTimeoutError)
 from ..indicators import compute_indicators
 from ..problem import PlanRequest
 from ..region import Region
