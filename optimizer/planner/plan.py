@@ -28,8 +28,9 @@ from typing import Any, Callable
 import numpy as np
 
 from ..chained_form import chained_form
-from ..errors import (InfeasibleError, NumericalError, PlannerError, SolverTimeoutError)
-from ..indicators import compute_indicators
+from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, PlannerError,
+                      SolverTimeoutError)
+from ..indicators import compute_indicators, count_reversals
 from ..problem import PlanRequest
 from ..region import Region
 from ..results import Plan, SampledPath
@@ -43,6 +44,10 @@ from .objectives import optimise
 TERMINAL_TOLERANCE = 1e-6
 #: Normalised-time samples used to find the peak actuator rates for duration scaling.
 RATE_SAMPLES = 2001
+#: Members of the window ranked by their Fréchet bound before the time-law LP (``retimed``).
+RETIME_CANDIDATES = 24
+#: Path samples per member for that ranking.
+RETIME_SIGMA_SAMPLES = 257
 
 
 class Deadline:
@@ -249,6 +254,100 @@ def plan_polynomial(req: PlanRequest, deadline: Deadline) -> Plan:
                        {"objective": req.objective, "singularity": req.singularity})
 
 
+def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
+    """The paper's geometric path, run along the time law that minimises ``d_a`` (:mod:`.retime`).
+
+    The member (``dphi``) is the request's ``phi_change`` or, for ``tp_then_da``, the one with
+    the fewest ``t_p`` and then the smallest Fréchet bound (the best ``d_a`` any time law can
+    reach on it); for the other objectives the polynomial method's choice, which retiming does
+    not change (``t_p``, ``||J_R(T)||_F`` and the region are geometric).
+    """
+    from .retime import frechet_bound, optimal_time_law, retimed_inputs
+
+    if req.constraint_points:
+        raise InvalidRequestError(
+            "method 'retimed' changes when the path passes its points, so it takes no "
+            "constraint points (use 'polynomial' or 'constraint_points')",
+            field="constraint_points")
+    timing: dict[str, float] = {}
+    conflict = direction_conflict(req)
+    if conflict:
+        raise InfeasibleError(conflict, diagnostics={"blocking": "opposite_joint_motion"})
+    region = make_region(req)
+    fam = PolynomialFamily(req.robot, req.q_start(), req.q_goal(0.0), req.duration_or_default,
+                           req.constraint_points, region, deadline.check)
+    a, b = float(req.start[0]), float(req.goal[0])
+    t0 = time.perf_counter()
+    feasible: list[tuple[float, float]] = []
+    if req.phi_change is not None:
+        fam.inputs(float(req.phi_change))  # raises SingularSystemError for dphi = 0 (Remark 2)
+        if not fam.evaluate(float(req.phi_change)).ok:
+            raise InfeasibleError(
+                f"phi_change = {req.phi_change:.6g} rad gives a path that leaves the "
+                f"singularity-free region ({req.singularity} criterion)",
+                diagnostics={"blocking": "singularity"})
+        dphi = float(req.phi_change)
+    else:
+        lo, hi = phi_search_bounds(req)
+        feasible = feasible_intervals(fam, lo, hi)
+        timing["intervals"] = time.perf_counter() - t0
+        deadline.check("the interval search")
+        if not feasible:
+            raise InfeasibleError(
+                f"no phi_change in [{lo:.6g}, {hi:.6g}] rad gives a singularity-free path of "
+                "the polynomial family", diagnostics={"blocking": "no_feasible_phi_change",
+                                                      "searched": [lo, hi]})
+        t1 = time.perf_counter()
+        chosen: float | None = None
+        if req.objective == "tp_then_da":
+            cands = _window_nodes(feasible, RETIME_CANDIDATES)
+            sig = np.linspace(0.0, 1.0, RETIME_SIGMA_SAMPLES)
+            z, regular, _ = fam.batch_z(cands, sig)
+            inv = fam.cf.from_chained(z.reshape(-1, req.robot.n + 1))
+            th1 = inv.q[:, 1].reshape(cands.size, sig.size)
+            valid = regular & inv.valid.reshape(cands.size, sig.size).all(axis=1)
+            bound = frechet_bound(th1, a, b)
+            tps = np.array([count_reversals(row) for row in th1])
+            order = np.lexsort((bound, tps))
+            for i in order:  # the sampled ranking, confirmed on the continuous path
+                if valid[i] and fam.evaluate(float(cands[i])).ok:
+                    chosen = float(cands[i])
+                    break
+        else:
+            best_e = optimise(fam, feasible, req.objective, req.weights)
+            chosen = None if best_e is None else best_e.dphi
+        timing["objective"] = time.perf_counter() - t1
+        if chosen is None:
+            raise InfeasibleError("the feasible intervals are too narrow to hold a path",
+                                  diagnostics={"feasible_phi_changes": feasible})
+        dphi = chosen
+    path = fam.path(dphi)
+    t2 = time.perf_counter()
+    cf = fam.cf
+    law = optimal_time_law(lambda s: cf.from_chained(path.z(s)).q[:, 1], a, b)
+    inputs = retimed_inputs(path, law)
+    timing["time_law"] = time.perf_counter() - t2
+    deadline.check("the time law")
+    return finish_plan(req, inputs, "retimed", feasible, timing,
+                       {"objective": req.objective, "singularity": req.singularity,
+                        "geometric_phi_change": dphi,
+                        "time_law": {"knots_t": (law.knots_tau * req.duration_or_default).tolist(),
+                                     "lp_d_a": law.deviation, "d_a_lower_bound": law.bound}})
+
+
+def _window_nodes(intervals: list[tuple[float, float]], count: int) -> np.ndarray:
+    """About ``count`` nodes spread over the intervals in proportion to their widths, each a
+    hair inside (interval ends are on the boundary, margin 0)."""
+    widths = np.array([b - a for a, b in intervals])
+    total = float(widths.sum())
+    out: list[np.ndarray] = []
+    for (a, b), w in zip(intervals, widths):
+        k = max(3, int(round(count * w / total)) if total > 0 else 3)
+        eps = min(1e-7, 0.25 * (b - a))
+        out.append(np.linspace(a + eps, b - eps, k))
+    return np.concatenate(out)
+
+
 def _closest_feasible(fam: PolynomialFamily, target: float, deadline: Deadline,
                       exclude: tuple[float, float] | None = None) -> float | None:
     """The feasible dphi in [-pi, pi] closest to ``target`` (outside ``exclude``), or None.
@@ -276,6 +375,8 @@ def _closest_feasible(fam: PolynomialFamily, target: float, deadline: Deadline,
 def _method(name: str) -> Callable[[PlanRequest, Deadline], Plan]:
     if name == "polynomial":
         return plan_polynomial
+    if name == "retimed":
+        return plan_retimed
     if name == "constraint_points":
         from .convex import plan_constraint_points
         return plan_constraint_points

@@ -1,0 +1,202 @@
+"""Retiming: the paper's geometric path, run along a time law that minimises ``d_a``.
+
+With the paper's constant ``v1`` the chained path ``z(sigma)`` is fixed by ``dphi`` alone; the
+region check, ``t_p`` (extrema of ``th1`` along the path) and ``||J_R(T)||_F`` are properties of
+that *geometric* path. ``d_a`` is not: it measures ``th1(t)`` against the straight line *in
+time*, so the speed at which the path is run changes it. A monotone time law ``sigma(tau)``
+keeps everything geometric and can lower ``d_a`` a great deal.
+
+The time law is piecewise linear: knots ``sigma_j`` are reached at normalised times ``tau_j``
+(the unknowns). The knots split the path evenly by a mix of ``sigma`` and the variation of
+``th1`` (near ``th1 = 0`` the map makes ``th1`` rise steeply in ``sigma``: such a stretch needs
+pieces of its own, since a piece runs at one speed). On piece ``j`` the path runs at constant speed, so ``V1`` is constant
+and ``V2(tau) = r_j z2'(sigma(tau))`` is a polynomial: the retimed plan is again a
+piecewise-polynomial :class:`~optimizer.steering.InputSchedule`, exact and replayable.
+
+Why an LP: at a sample ``sigma_i`` inside piece ``j`` (weight ``w_i``) the time is
+``tau(sigma_i) = (1 - w_i) tau_{j-1} + w_i tau_j``, so the deviation
+``th1(sigma_i) - line(tau(sigma_i))`` is *affine* in the unknown knot times. Minimising its
+largest magnitude is a linear program (a small QP with a light regulariser toward uniform
+timing, which picks one optimum among many); Clarabel solves it. The lower bound of any
+monotone time law is the 1-D Fréchet distance between ``th1(sigma)`` and the line
+(:func:`frechet_bound`), used to rank candidate ``dphi`` before the LP.
+
+A speed bound keeps the time law sane: every piece lasts at least ``1 / (K max_speedup)``, i.e.
+phi runs at most ``max_speedup`` times faster than with the paper's constant ``v1``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import clarabel
+import numpy as np
+from numpy.polynomial import Polynomial
+from scipy import sparse
+
+from ..errors import NumericalError
+from ..steering import ChainedPath, InputSchedule
+
+#: Pieces of the piecewise-linear time law.
+PIECES = 12
+#: Samples of th1 per piece in the LP.
+SAMPLES_PER_PIECE = 12
+#: phi may run at most this many times faster than under the paper's constant v1.
+MAX_SPEEDUP = 8.0
+#: Weight of the regulariser sum (h_j - 1/K)^2 (K h_j is the relative duration of piece j).
+REGULARISATION = 1e-4
+
+
+@dataclass(frozen=True)
+class TimeLaw:
+    """A piecewise-linear time law ``sigma(tau)`` through ``(tau_j, j / K)``.
+
+    Attributes
+    ----------
+    knots_tau : ndarray (K+1,)
+        ``0 = tau_0 < ... < tau_K = 1``.
+    knots_sigma : ndarray (K+1,)
+        ``0 = sigma_0 < ... < sigma_K = 1``: where the path is at ``tau_j``.
+    deviation : float
+        The LP's largest ``|th1 - line|`` at its samples (rad).
+    bound : float
+        The Fréchet lower bound of any monotone time law (rad).
+    """
+
+    knots_tau: np.ndarray
+    knots_sigma: np.ndarray
+    deviation: float
+    bound: float
+
+    @property
+    def pieces(self) -> int:
+        return self.knots_tau.size - 1
+
+
+def frechet_bound(th1: np.ndarray, a: float, b: float) -> np.ndarray:
+    """Lower bound of ``max |th1(sigma(tau)) - line(tau)|`` over monotone time laws.
+
+    ``th1`` has shape (..., G) on an increasing ``sigma`` grid; the line runs from ``a`` to
+    ``b``. Two things no retiming can hide: a value beyond the line's range (``th1 > max(a, b)``
+    or ``< min(a, b)``), and a backtrack against the line's direction, which costs half its
+    depth (the path goes back while the line goes on).
+    """
+    f = np.asarray(th1, float)
+    if b < a:
+        f, a, b = -f, -a, -b
+    back = 0.5 * (np.maximum.accumulate(f, axis=-1) - f).max(axis=-1)
+    over = np.maximum((f - b).max(axis=-1), (a - f).max(axis=-1))
+    return np.maximum(np.maximum(back, over), 0.0)
+
+
+def optimal_time_law(th1_of_sigma: Callable[[np.ndarray], np.ndarray], a: float, b: float,
+                     pieces: int = PIECES, samples_per_piece: int = SAMPLES_PER_PIECE,
+                     max_speedup: float = MAX_SPEEDUP) -> TimeLaw:
+    """The piecewise-linear time law that minimises ``max |th1(sigma(tau)) - line(tau)|``.
+
+    Parameters
+    ----------
+    th1_of_sigma : callable
+        ``sigma (array in [0, 1]) -> th1`` along the geometric path.
+    a, b : float
+        ``th1`` at start and goal (the line's ends).
+    """
+    K, M = int(pieces), int(samples_per_piece)
+    knots = _knots(th1_of_sigma, K)
+    w = np.arange(M) / M                                   # weights inside a piece
+    j = np.repeat(np.arange(1, K + 1), M)                  # piece of each sample (1-based)
+    ww = np.tile(w, K)
+    sig = knots[j - 1] + ww * (knots[j] - knots[j - 1])
+    th = np.asarray(th1_of_sigma(np.append(sig, 1.0)), float)
+    bound = float(frechet_bound(th, a, b))
+    th = th[:-1]
+    slope = b - a
+    nv = K  # unknowns tau_1..tau_{K-1}, then delta
+    S = sig.size
+    # tau(sigma_i) = (1 - w) tau_{j-1} + w tau_j, with tau_0 = 0 and tau_K = 1 known
+    coef = np.zeros((S, nv))
+    const = np.zeros(S)
+    left, right = j - 1, j
+    for idx, wt in ((left, 1.0 - ww), (right, ww)):
+        inner = (idx >= 1) & (idx <= K - 1)
+        coef[np.nonzero(inner)[0], idx[inner] - 1] += wt[inner]
+        const += np.where(idx == K, wt, 0.0)
+    # +-(th - a - slope tau) <= delta  ->  rows of G x <= h
+    G_up = np.hstack([-slope * coef[:, :-1], -np.ones((S, 1))])
+    h_up = a + slope * const - th
+    G_dn = np.hstack([slope * coef[:, :-1], -np.ones((S, 1))])
+    h_dn = th - a - slope * const
+    # monotone with a minimum piece duration: tau_{j-1} - tau_j <= -h_min (speed bound)
+    h_min: np.ndarray = np.diff(knots) / max_speedup
+    D = np.zeros((K, nv))
+    for p in range(K):  # piece p+1 runs from tau_p to tau_{p+1}
+        if p >= 1:
+            D[p, p - 1] = 1.0
+        if p + 1 <= K - 1:
+            D[p, p] = -1.0
+    h_mono: np.ndarray = -h_min
+    h_mono[-1] += 1.0  # tau_{K-1} - 1 <= -h_min
+    G = np.vstack([G_up, G_dn, D])
+    h = np.concatenate([h_up, h_dn, h_mono])
+    # objective delta + rho * sum_j (tau_j - tau_{j-1} - dsigma_j)^2, as 1/2 x'Px + q'x
+    Dd = np.zeros((K, nv))
+    for p in range(K):
+        if p >= 1:
+            Dd[p, p - 1] = -1.0
+        if p + 1 <= K - 1:
+            Dd[p, p] = 1.0
+    off = np.zeros(K)
+    off[-1] = 1.0  # the last piece ends at the known tau_K = 1
+    r: np.ndarray = off - np.diff(knots)
+    P = 2.0 * REGULARISATION * Dd.T @ Dd
+    q = 2.0 * REGULARISATION * Dd.T @ r
+    q[-1] += 1.0
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    solver = clarabel.DefaultSolver(sparse.csc_matrix(np.triu(P)), q, sparse.csc_matrix(G), h,
+                                    [clarabel.NonnegativeConeT(G.shape[0])], settings)
+    sol = solver.solve()
+    if str(sol.status) not in ("Solved", "AlmostSolved"):
+        raise NumericalError(f"the time-law LP did not solve ({sol.status})",
+                             diagnostics={"status": str(sol.status)})
+    x = np.asarray(sol.x)
+    tau = np.concatenate([[0.0], x[:-1], [1.0]])
+    # guard against round-off: strictly increasing by construction of the constraints
+    tau = np.maximum.accumulate(tau)
+    return TimeLaw(knots_tau=tau, knots_sigma=knots, deviation=float(x[-1]), bound=bound)
+
+
+def _knots(th1_of_sigma: Callable[[np.ndarray], np.ndarray], K: int, grid: int = 513
+           ) -> np.ndarray:
+    """Knots that split [0, 1] evenly by half ``sigma``, half the variation of ``th1``."""
+    s = np.linspace(0.0, 1.0, grid)
+    th = np.asarray(th1_of_sigma(s), float)
+    var = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(th)))])
+    c = 0.5 * s + (0.5 * var / var[-1] if var[-1] > 0 else 0.5 * s)
+    knots = np.interp(np.linspace(0.0, 1.0, K + 1), c, s)
+    knots[0], knots[-1] = 0.0, 1.0
+    return knots
+
+
+def retimed_inputs(path: ChainedPath, law: TimeLaw) -> InputSchedule:
+    """The inputs that run ``path`` (one piece, constant ``V1``) along ``law``.
+
+    On piece ``j``: ``sigma = sigma_{j-1} + r_j (tau - tau_{j-1})`` with
+    ``r_j = (sigma_j - sigma_{j-1}) / (tau_j - tau_{j-1})``, so ``V1 = dphi r_j`` and
+    ``V2(tau) = r_j V2_geo(sigma(tau))`` (the chain rule); ``z`` is the same geometric path.
+    """
+    inp = path.inputs
+    if inp.pieces != 1 or np.any(inp.v1[0][1:] != 0.0):
+        raise ValueError("retiming needs a single-piece path with constant V1")
+    dphi = float(inp.v1[0][0])
+    v2 = Polynomial(inp.v2[0])
+    K = law.pieces
+    t, sg = law.knots_tau, law.knots_sigma
+    v1s, v2s = [], []
+    for p in range(K):
+        r = (sg[p + 1] - sg[p]) / (t[p + 1] - t[p])
+        comp = v2(Polynomial([sg[p], r]))          # V2_geo(sigma_{j-1} + r x)
+        v1s.append(np.array([dphi * r]))
+        v2s.append(r * comp.coef)
+    return InputSchedule(t.copy(), tuple(v1s), tuple(v2s), inp.duration)
