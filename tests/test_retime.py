@@ -145,3 +145,13 @@ def test_retimed_opposite_motion_is_infeasible_with_reason():
     with pytest.raises(InfeasibleError) as exc:
         plan(_request([10, 20, 30], [40, 25, 15]))
     assert exc.value.diagnostics["blocking"] == "opposite_joint_motion"
+
+
+def test_auto_returns_the_best_of_polynomial_retimed_and_penalty():
+    req = _request([1, 1, 1], [30, 30, 30], method="auto")
+    p = plan(req)
+    r = plan(_request([1, 1, 1], [30, 30, 30]))
+    auto = p.diagnostics["auto"]
+    assert "retimed" in auto["tried"] and "penalty" in auto["tried"]
+    assert auto["chosen"] == p.method
+    assert (p.indicators.t_p, p.indicators.d_a) <= (r.indicators.t_p, r.indicators.d_a + 1e-12)

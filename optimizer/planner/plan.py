@@ -9,9 +9,13 @@ Methods
     Constraint-point synthesis as a QP (:mod:`.convex`), replacing the paper's trial and error.
 ``penalty``
     The penalty-function NLP (:mod:`.penalty`, Remark 3) with a varying ``v1`` (phi may reverse).
+``retimed``
+    The polynomial method's geometric path run along a ``d_a``-optimal time law
+    (:mod:`.retime`): same region, ``t_p`` and ``||J_R(T)||_F``, far smaller ``d_a``.
 ``auto``
-    polynomial, then constraint points, then penalty; with ``tp_then_da`` the penalty method is
-    also tried from the polynomial optimum and the better plan by (t_p, d_a) is returned.
+    polynomial, then constraint points, then penalty; with ``tp_then_da`` the retimed plan and
+    the penalty method (from the polynomial optimum) are also tried and the best plan by
+    (t_p, d_a) is returned.
 
 Every plan, whatever the method, goes through :func:`finish_plan`: continuous region check,
 sampling, indicators and re-integration of the original model. A plan that fails there is never
@@ -437,6 +441,13 @@ def _plan_auto(req: PlanRequest, deadline: Deadline) -> Plan:
     if poly is not None and req.objective != "tp_then_da":
         poly.diagnostics["auto"] = {"tried": ["polynomial"], "failures": failures}
         return poly
+    # the same geometric path under a d_a-optimal time law: milliseconds, often the best
+    retimed: Plan | None = None
+    if poly is not None and not req.constraint_points:
+        try:
+            retimed = plan_retimed(req, deadline)
+        except (InfeasibleError, NumericalError) as exc:
+            failures["retimed"] = exc.message
     deadline.check("auto")
     try:
         penalty: Callable[..., Plan] = _method("penalty")
@@ -461,15 +472,15 @@ def _plan_auto(req: PlanRequest, deadline: Deadline) -> Plan:
         raise InfeasibleError("no method found a singularity-free path: "
                               + "; ".join(f"{k}: {v}" for k, v in failures.items()),
                               diagnostics={"failures": failures})
-    if poly is not None and pen is not None:
-        chosen = better(poly, pen, req.objective)
-    else:
-        chosen = poly if poly is not None else pen  # type: ignore[assignment]
+    chosen: Plan | None = None
+    for cand in (poly, retimed, pen):  # ties keep the earlier, simpler plan
+        if cand is not None:
+            chosen = cand if chosen is None else better(chosen, cand, req.objective)
     assert chosen is not None
+    found = {"polynomial": poly, "retimed": retimed, "penalty": pen}
     chosen.diagnostics["auto"] = {
-        "tried": [k for k in ("polynomial", "constraint_points", "penalty")
-                  if k in failures or (k == "polynomial" and poly is not None)
-                  or (k == "penalty" and pen is not None)],
+        "tried": [k for k in ("polynomial", "constraint_points", "retimed", "penalty")
+                  if k in failures or found.get(k) is not None],
         "failures": failures,
         "chosen": chosen.method,
         "rule": "fewest t_p, then smallest d_a" if req.objective == "tp_then_da" else req.objective,
