@@ -19,7 +19,8 @@ import pytest
 from optimizer.chained_form import chained_form
 from optimizer.errors import InfeasibleError, InvalidRequestError
 from optimizer.planner.plan import plan
-from optimizer.planner.retime import frechet_bound, optimal_time_law, retimed_inputs
+from optimizer.planner.retime import (frechet_bound, optimal_time_law, retimed_inputs,
+                                      retimed_path)
 from optimizer.problem import PlanRequest
 from optimizer.steering import ChainedPath
 from optimizer.verify import PlannedInputs
@@ -95,6 +96,8 @@ def test_retimed_inputs_run_the_same_geometric_path():
     tau = np.linspace(0.0, 1.0, 3001)
     sigma = np.interp(tau, law.knots_tau, law.knots_sigma)
     assert np.max(np.abs(retimed.z(tau) - geo.z(sigma))) < 1e-11
+    # the composed polynomials the planner uses are the integrated ones
+    assert np.max(np.abs(retimed_path(geo, law).z(tau) - retimed.z(tau))) < 1e-11
     # the law does what the LP says on its own samples' scale: d_a close to its value
     th1 = cf.from_chained(retimed.z(tau)).q[:, 1]
     d_a = np.max(np.abs(th1 - (D(10) + tau * D(20))))

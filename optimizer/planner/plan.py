@@ -114,8 +114,14 @@ def phi_search_bounds(req: PlanRequest) -> tuple[float, float]:
 
 def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
                 feasible: list[tuple[float, float]], timing: dict[str, float],
-                diagnostics: dict[str, Any]) -> Plan:
+                diagnostics: dict[str, Any], *, chained: ChainedPath | None = None,
+                geometry: ChainedPath | None = None) -> Plan:
     """Scale, sample, check, measure and verify a candidate; return it as a :class:`Plan`.
+
+    ``chained`` is the candidate's chained path when the method built it already (it must be
+    the path of ``inputs`` from the start); ``geometry`` a path that passes through exactly the
+    same states (a retimed plan's geometric path): the continuous region check then runs on
+    it, which is cheaper (one polynomial piece instead of many) and equivalent.
 
     Raises
     ------
@@ -129,9 +135,10 @@ def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
     cf = chained_form(robot)
     q0 = req.q_start()
     z0 = cf.to_chained(q0)
-    chained = ChainedPath.from_inputs(z0, inputs)
+    if chained is None:
+        chained = ChainedPath.from_inputs(z0, inputs)
     full = make_region(req, "full")
-    chk = full.check_path(chained)
+    chk = full.check_path(geometry if geometry is not None else chained)
     if not chk.ok:
         when = chk.first_crossing_tau
         raise InfeasibleError(
@@ -266,7 +273,7 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
     reach on it); for the other objectives the polynomial method's choice, which retiming does
     not change (``t_p``, ``||J_R(T)||_F`` and the region are geometric).
     """
-    from .retime import frechet_bound, optimal_time_law, retimed_inputs
+    from .retime import frechet_bound, optimal_time_law, retimed_path
 
     if req.constraint_points:
         raise InvalidRequestError(
@@ -329,14 +336,15 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
     t2 = time.perf_counter()
     cf = fam.cf
     law = optimal_time_law(lambda s: cf.from_chained(path.z(s)).q[:, 1], a, b)
-    inputs = retimed_inputs(path, law)
+    retimed = retimed_path(path, law)
     timing["time_law"] = time.perf_counter() - t2
     deadline.check("the time law")
-    return finish_plan(req, inputs, "retimed", feasible, timing,
+    return finish_plan(req, retimed.inputs, "retimed", feasible, timing,
                        {"objective": req.objective, "singularity": req.singularity,
                         "geometric_phi_change": dphi,
-                        "time_law": {"knots_t": (law.knots_tau * req.duration_or_default).tolist(),
-                                     "lp_d_a": law.deviation, "d_a_lower_bound": law.bound}})
+                        "time_law": {"knots_t_over_T": law.knots_tau.tolist(),
+                                     "lp_d_a": law.deviation, "d_a_lower_bound": law.bound}},
+                       chained=retimed, geometry=path)
 
 
 def _window_nodes(intervals: list[tuple[float, float]], count: int) -> np.ndarray:

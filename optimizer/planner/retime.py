@@ -32,8 +32,8 @@ from typing import Callable
 
 import clarabel
 import numpy as np
-from numpy.polynomial import Polynomial
 from scipy import sparse
+from scipy.special import comb
 
 from ..errors import NumericalError
 from ..steering import ChainedPath, InputSchedule
@@ -179,24 +179,44 @@ def _knots(th1_of_sigma: Callable[[np.ndarray], np.ndarray], K: int, grid: int =
     return knots
 
 
-def retimed_inputs(path: ChainedPath, law: TimeLaw) -> InputSchedule:
-    """The inputs that run ``path`` (one piece, constant ``V1``) along ``law``.
+def _shift_matrices(s0: np.ndarray, r: np.ndarray, size: int) -> np.ndarray:
+    """``T[j]`` maps the coefficients of ``p(sigma)`` to those of ``p(s0_j + r_j x)`` in ``x``:
+    ``T[j, k, i] = C(i, k) s0_j^(i-k) r_j^k`` (a Taylor shift and a scaling, exact)."""
+    i = np.arange(size)
+    k = i[:, None]
+    binom = comb(i[None, :], k)                                     # (size, size), 0 for i < k
+    power = np.clip(i[None, :] - k, 0, None)
+    return (binom[None] * s0[:, None, None] ** power[None]
+            * r[:, None, None] ** k[None])
+
+
+def retimed_path(path: ChainedPath, law: TimeLaw) -> ChainedPath:
+    """``path`` (one piece, constant ``V1``) run along ``law``: inputs and chained state.
 
     On piece ``j``: ``sigma = sigma_{j-1} + r_j (tau - tau_{j-1})`` with
-    ``r_j = (sigma_j - sigma_{j-1}) / (tau_j - tau_{j-1})``, so ``V1 = dphi r_j`` and
-    ``V2(tau) = r_j V2_geo(sigma(tau))`` (the chain rule); ``z`` is the same geometric path.
+    ``r_j = (sigma_j - sigma_{j-1}) / (tau_j - tau_{j-1})``, so ``V1 = dphi r_j``,
+    ``V2(tau) = r_j V2_geo(sigma(tau))`` (the chain rule) and ``z(tau) = z_geo(sigma(tau))``:
+    every polynomial of the geometric path composed with the piece's linear map, so the
+    retimed path passes through exactly the geometric path's states.
     """
     inp = path.inputs
     if inp.pieces != 1 or np.any(inp.v1[0][1:] != 0.0):
         raise ValueError("retiming needs a single-piece path with constant V1")
     dphi = float(inp.v1[0][0])
-    v2 = Polynomial(inp.v2[0])
-    K = law.pieces
     t, sg = law.knots_tau, law.knots_sigma
-    v1s, v2s = [], []
-    for p in range(K):
-        r = (sg[p + 1] - sg[p]) / (t[p + 1] - t[p])
-        comp = v2(Polynomial([sg[p], r]))          # V2_geo(sigma_{j-1} + r x)
-        v1s.append(np.array([dphi * r]))
-        v2s.append(r * comp.coef)
-    return InputSchedule(t.copy(), tuple(v1s), tuple(v2s), inp.duration)
+    s0 = sg[:-1]
+    r = np.diff(sg) / np.diff(t)
+    geo = path.polys[0]                                             # (n+1, deg+1)
+    Tz = _shift_matrices(s0, r, geo.shape[1])
+    zpolys = np.einsum("jki,ni->jnk", Tz, geo)                      # (K, n+1, deg+1)
+    v2 = inp.v2[0]
+    Tv = _shift_matrices(s0, r, v2.size)
+    v2s = r[:, None] * np.einsum("jki,i->jk", Tv, v2)
+    inputs = InputSchedule(t.copy(), tuple(np.array([dphi * x]) for x in r),
+                           tuple(v2s), inp.duration)
+    return ChainedPath(path.z0, inputs, tuple(zpolys))
+
+
+def retimed_inputs(path: ChainedPath, law: TimeLaw) -> InputSchedule:
+    """The inputs of :func:`retimed_path`."""
+    return retimed_path(path, law).inputs
