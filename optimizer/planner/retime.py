@@ -39,9 +39,9 @@ from ..errors import NumericalError
 from ..steering import ChainedPath, InputSchedule
 
 #: Pieces of the piecewise-linear time law.
-PIECES = 12
+PIECES = 8
 #: Samples of th1 per piece in the LP.
-SAMPLES_PER_PIECE = 12
+SAMPLES_PER_PIECE = 8
 #: phi may run at most this many times faster than under the paper's constant v1.
 MAX_SPEEDUP = 8.0
 #: Weight of the regulariser sum (h_j - 1/K)^2 (K h_j is the relative duration of piece j).
