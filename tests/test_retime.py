@@ -158,3 +158,16 @@ def test_auto_returns_the_best_of_polynomial_retimed_and_penalty():
     assert "retimed" in auto["tried"] and "penalty" in auto["tried"]
     assert auto["chosen"] == p.method
     assert (p.indicators.t_p, p.indicators.d_a) <= (r.indicators.t_p, r.indicators.d_a + 1e-12)
+
+
+def test_retimed_speed_bound_and_actuator_limits():
+    from optimizer.planner.retime import MAX_SPEEDUP
+    p = plan(_request([10, 10, 10], [30, 30, 30]))
+    dphi = p.diagnostics["geometric_phi_change"]
+    rates = np.array([v[0] for v in p.inputs.v1])          # V1 per piece (dz1/dtau)
+    assert np.all(rates > 0) and np.max(rates) <= MAX_SPEEDUP * dphi * (1 + 1e-6)
+    # with actuator limits the duration stretches until the sampled rates respect them
+    lim = 0.5
+    q = plan(_request([10, 10, 10], [30, 30, 30], max_u1=lim, max_u2=lim))
+    assert q.duration > 1.0
+    assert np.max(np.abs(q.path.u)) <= lim * (1 + 1e-3)
