@@ -407,8 +407,8 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
         is met, or until only rounding noise is left.
     accept : float
         Largest error estimate accepted (above ``tol`` only when the inputs' own rounding
-        noise, or the refinement bounds, stop the refinement); above it the run falls back
-        to DOP853.
+        noise, or the refinement bounds, stop the refinement); above it, and above ``tol``,
+        the run falls back to DOP853.
     initial_panels : int
         Panels per input piece before refinement.
     split : int
@@ -575,8 +575,8 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
         est.append(quad[s] + float(lam[s - 2]) * est[-1])
     energy_est = quad[nq] / abs(energy) if energy != 0.0 else (0.0 if quad[nq] == 0.0 else math.inf)
     estimate = max(max(est), energy_est)
-    if not estimate <= accept:
-        return failed(f"error estimate {estimate:.3g} above {accept:.3g} after {rounds} "
+    if not estimate <= max(accept, tol):
+        return failed(f"error estimate {estimate:.3g} above {max(accept, tol):.3g} after {rounds} "
                       f"refinements ({a.size} panels)")
 
     # samples: the integrated interpolant, a polynomial of degree p on each panel, known at the
