@@ -9,6 +9,7 @@ of a closed-form integrand. The reference and the cascade share only the planned
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -30,10 +31,11 @@ D = np.deg2rad
 #: Plans of the polynomial family for n = 3, 4, 5 (the n = 5 goal was produced by running a
 #: member of the family forward, so that the planner has something to find).
 REQUESTS = {
-    "n3_worked_example": dict(start=D([10, 10, 10]), goal=D([30, 30, 30])),
-    "n4_narrow_window": dict(start=D([47.7, 66.9, 44.9, 66.0]), goal=D([62.6, 72.2, 47.5, 71.9])),
-    "n5": dict(start=D([34.1586, 61.2241, 57.2974, 26.3407, 60.3174]),
-               goal=D([45.3168, 79.636, 61.2915, 35.2931, 78.2472])),
+    "n3_worked_example": {"start": D([10, 10, 10]), "goal": D([30, 30, 30])},
+    "n4_narrow_window": {"start": D([47.7, 66.9, 44.9, 66.0]),
+                         "goal": D([62.6, 72.2, 47.5, 71.9])},
+    "n5": {"start": D([34.1586, 61.2241, 57.2974, 26.3407, 60.3174]),
+           "goal": D([45.3168, 79.636, 61.2915, 35.2931, 78.2472])},
 }
 
 
@@ -46,7 +48,7 @@ def reference(u_scalar, q0, T, K, m, t_eval, breaks):
 
     x = np.concatenate([np.asarray(q0, float), [0.0]])
     samples = np.full((t_eval.size, x.size), np.nan)
-    for a, b in zip(breaks[:-1], breaks[1:]):
+    for a, b in itertools.pairwise(breaks):
         sol = solve_ivp(rhs, (a, b), x, method="DOP853", rtol=1e-12, atol=1e-14,
                         dense_output=True)
         assert sol.success, sol.message
@@ -232,7 +234,7 @@ def test_few_nodes_refine_and_stay_right(planned):
 
 def test_unmet_estimate_falls_back_to_dop853(planned):
     req, p, inputs, (final, _, _) = planned
-    kw = dict(nodes=8, initial_panels=1, max_rounds=0)
+    kw = {"nodes": 8, "initial_panels": 1, "max_rounds": 0}
     alone = integrate_cascade(p.robot, inputs.u, req.q_start(), p.duration, p.path.t,
                               inputs.breaks, **kw)
     assert not alone.success and "estimate" in alone.message
