@@ -314,3 +314,156 @@ def solve_polynomial(dphi: float, n: int, z0: np.ndarray, zT: np.ndarray, durati
             diagnostics={"condition_number": float(cond) if np.isfinite(cond) else None})
     a = np.linalg.solve(Ms, r) / scale
     return InputSchedule.single([float(dphi)], a.tolist(), duration)
+
+
+# ---------------------------------------------------------------------- batched family members
+#: Largest ``m * n * k`` of one matrix product in the batched helpers: below OpenBLAS's
+#: threading threshold, so that a product never starts (and waits for) BLAS threads; on a
+#: loaded machine a threaded product of this size costs milliseconds instead of microseconds.
+_MATMUL_CHUNK = 200_000
+
+
+def matmul_single_thread(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A @ B`` for 2-D arrays, in row blocks small enough to stay single-threaded."""
+    m, k = A.shape
+    cols = B.shape[1]
+    rows = max(1, _MATMUL_CHUNK // max(1, k * cols))
+    if m <= rows:
+        return A @ B
+    out = np.empty((m, cols))
+    for s in range(0, m, rows):
+        np.matmul(A[s:s + rows], B, out=out[s:s + rows])
+    return out
+
+
+def polyval_rows(coef: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Evaluate many polynomials at shared points: ``coef`` (..., L) in increasing powers,
+    ``x`` (G,); returns (..., G)."""
+    coef = np.asarray(coef, float)
+    x = np.asarray(x, float)
+    L = coef.shape[-1]
+    V = np.ones((L, x.size))
+    for j in range(1, L):
+        np.multiply(V[j - 1], x, out=V[j])
+    flat = coef.reshape(-1, L)
+    return matmul_single_thread(flat, V).reshape(coef.shape[:-1] + (x.size,))
+
+
+def polyval_each(coef: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Evaluate row-wise polynomials at row-wise points (Horner): ``coef`` (R, C, L),
+    ``x`` (R, T); returns (C, R, T) (component first, so that each component is contiguous)."""
+    L = coef.shape[-1]
+    cT = np.moveaxis(coef, 1, 0)                                   # (C, R, L)
+    out = np.repeat(cT[:, :, L - 1:L], x.shape[1], axis=2)
+    for j in range(L - 2, -1, -1):
+        out *= x
+        out += cT[:, :, j:j + 1]
+    return out
+
+
+class FamilySystem:
+    """The paper's family for fixed ``z0``, ``zT``, duration and constraint points, solved for
+    many ``dphi`` at once (eq 10-11).
+
+    Every row of the steering matrix targets ``z_{k+2}`` at some time and scales with
+    ``dphi^k``: ``M(dphi) = diag(dphi^k_r) C`` with a constant ``C``. So the ``V2``
+    coefficients of all members come from one factorisation of ``C``:
+    ``a = C^-1 (dphi^-k_r (target_r - free_r(dphi)))``. Members whose (column-scaled) steering
+    matrix is singular by the test of :func:`solve_polynomial` are flagged, as there.
+
+    Parameters
+    ----------
+    n : int
+    z0, zT : ndarray (n+1,)
+    duration : float
+    points : sequence of ConstraintPoint
+    """
+
+    def __init__(self, n: int, z0: np.ndarray, zT: np.ndarray, duration: float,
+                 points: Sequence[ConstraintPoint] = ()) -> None:
+        self.n = n
+        self.z0 = np.asarray(z0, float)
+        self.zT = np.asarray(zT, float)
+        self.p = p = n + len(points)
+        self.L = p + n                      # coefficients of z_{n+1} (degree p + n - 1)
+        t_rows = [1.0] * n + [cp.time / duration for cp in points]
+        k_rows = list(range(n)) + [cp.state - 2 for cp in points]
+        targets = list(self.zT[1:]) + [cp.value for cp in points]
+        self.t_rows = np.array(t_rows)
+        self.k_rows = np.array(k_rows)
+        self.targets = np.array(targets, float)
+        # i! / (i + k + 1)! t^(i + k + 1), as exact integer ratios first
+        self.C = np.array([[math.factorial(i) / math.factorial(i + k + 1) * t ** (i + k + 1)
+                            for i in range(p)] for k, t in zip(k_rows, t_rows)])
+        self.kmax = kmax = int(max(k_rows))
+        # free part of row r (V2 = 0) as a polynomial in dphi:
+        # sum_j dphi^j t_r^j / j! z0[k_r - j + 1]   (j = 0..k_r)
+        self.F = np.zeros((kmax + 1, len(k_rows)))
+        for r, (k, t) in enumerate(zip(k_rows, t_rows)):
+            for j in range(k + 1):
+                self.F[j, r] = t ** j / math.factorial(j) * self.z0[k - j + 1]
+        with np.errstate(all="ignore"):
+            try:
+                inv_norm = float(np.linalg.norm(np.linalg.inv(self.C), 2))
+            except np.linalg.LinAlgError:
+                inv_norm = math.inf
+        self.regular = math.isfinite(inv_norm)
+        # The singularity test of solve_polynomial (condition number of the column-scaled
+        # matrix M(dphi) = diag(dphi^k_r) C) depends on |dphi| only and is bounded by
+        # sqrt(p) ||C||_F ||C^-1|| (max(1, |dphi|) / min(1, |dphi|))^kmax: inside
+        # 1/rho < |dphi| < rho it passes for sure; outside it is computed exactly.
+        K0 = math.sqrt(p) * float(np.linalg.norm(self.C)) * inv_norm
+        if not self.regular or K0 >= MAX_CONDITION:
+            self.rho = 1.0
+        elif kmax == 0:
+            self.rho = math.inf
+        else:
+            self.rho = (MAX_CONDITION / K0) ** (1.0 / kmax)
+        self.inv_j = 1.0 / np.arange(1, self.L)
+
+    def coefficients(self, dphis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``V2`` coefficients (D, p) of the members and a mask of the regular ones (the others'
+        rows are zero)."""
+        d = np.atleast_1d(np.asarray(dphis, float))
+        D = d.size
+        ad = np.abs(d)
+        ok = ad >= MIN_ABS_DPHI                        # False for NaN too
+        dd = np.where(ok, d, 1.0)
+        pw = np.empty((D, self.kmax + 1))              # dphi^j
+        pw[:, 0] = 1.0
+        for j in range(1, self.kmax + 1):
+            np.multiply(pw[:, j - 1], dd, out=pw[:, j])
+        free = pw @ self.F if D * self.F.size < 50_000 else matmul_single_thread(pw, self.F)
+        dpow = pw[:, self.k_rows]                      # (D, R)
+        rhs = (self.targets - free) / dpow
+        if not self.regular:
+            return np.zeros((D, self.p)), np.zeros(D, bool)
+        a = np.linalg.solve(self.C, rhs.T).T
+        check = ok & ~((ad > 1.0 / self.rho) & (ad < self.rho))
+        if check.any():
+            idx = np.nonzero(check)[0]
+            M = dpow[idx, :, None] * self.C[None]
+            scale = np.linalg.norm(M, axis=1, keepdims=True)
+            scale[scale == 0.0] = 1.0
+            with np.errstate(all="ignore"):
+                cond = np.linalg.cond(M / scale)
+            ok[idx] &= np.isfinite(cond) & (cond <= MAX_CONDITION)
+        ok &= np.isfinite(a).all(axis=1)
+        a[~ok] = 0.0
+        return a, ok
+
+    def polys(self, dphis: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """Coefficients (D, n+1, L) in increasing powers of ``tau`` of ``z1..z_{n+1}`` of the
+        members with ``V1 = dphi`` and ``V2`` coefficients ``a`` (D, p)."""
+        d = np.atleast_1d(np.asarray(dphis, float))
+        D, n, L, p = d.size, self.n, self.L, self.p
+        c = np.zeros((D, n + 1, L))
+        c[:, 0, 0] = self.z0[0]
+        c[:, 0, 1] = d
+        c[:, 1, 0] = self.z0[1]
+        c[:, 1, 1:p + 1] = a / np.arange(1, p + 1)
+        scale = d[:, None] * self.inv_j[None, :]                     # dphi / (j + 1)
+        for k in range(2, n + 1):
+            c[:, k, 0] = self.z0[k]
+            np.multiply(c[:, k - 1, :-1], scale, out=c[:, k, 1:])
+        return c
