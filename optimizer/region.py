@@ -9,29 +9,49 @@ Margins
 ``full``: the smallest distance (rad) of ``th_1..th_{n-1}`` from their bounds (and of ``th_n``
 from its bounds when given) over the path; negative outside. ``z2``: ``-max z2`` over the path.
 
+At one point the inverse map is taken top-down (``th_n``, then ``th_{n-1}``, ...). The point's
+signed margin is the smallest margin of the joints found so far (``th_n`` and ``th_{n-1}`` down
+to the first joint the inverse cannot give), and, when the inverse fails at some joint, the
+margin of that joint extended outside by its local shape (see :meth:`Region.signed_margin_z`):
+inside the region this is the joints' distance from their bounds; outside it is negative.
+
 A path is checked on the continuous path, not only on samples: the signed margin is evaluated on
 a dense grid that also contains the exact roots and critical points of the polynomial boundary
-conditions (``z2 = 0`` and ``z_n in {0, K_n}``), every sampled local minimum is refined by bounded
-scalar minimisation, and the first crossing is located by Brent's method.
+conditions (``z2 = 0`` and ``z_n in {0, K_n}``), every sampled local minimum is refined by
+zooming in (all of them, for all paths of a batch, at once), and the first crossing is located
+by Brent's method. The work is vectorised over many paths (:meth:`Region.poly_minimum`), so
+that the planner checks whole sets of candidate members in one call.
+
+Speed: the inverse map is evaluated with numpy in closed form for n = 3 and, for n >= 4, by
+numpy code generated once per robot from the CasADi expressions of the chained form
+(:func:`_compile_sx`); a grid of members is reduced per member in ``w = cos(th)^m`` space
+(:meth:`Region.grid_margins`), where every joint's margin is monotone, so that no angle is
+computed per sample.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Callable, Sequence
 
+import casadi as ca
 import numpy as np
-from numpy.polynomial import polynomial as P
 from scipy.optimize import brentq
 
-from .chained_form import ChainedForm, chained_form
+from .chained_form import W_TOL, ChainedForm, chained_form
 from .errors import InvalidRequestError
 from .model import Robot
-from .steering import ChainedPath
+from .steering import ChainedPath, polyval_each
 
 CRITERIA = ("full", "z2")
 HALF_PI = 0.5 * math.pi
+#: Zoom of every sampled local minimum: nodes per bracket and rounds (each round shrinks the
+#: bracket (ZOOM_POINTS - 1) / 2 = 16-fold), then one parabolic step: from nodes 1e-5 apart it
+#: puts the minimum of a smooth margin to ~1e-10 in time, its value exact to rounding.
+ZOOM_POINTS = 33
+ZOOM_ROUNDS = 2
 
 
 @dataclass(frozen=True)
@@ -56,6 +76,144 @@ class PathCheck:
     first_crossing_tau: float | None
 
 
+@dataclass(frozen=True)
+class PolyMinimum:
+    """Smallest signed margin of many polynomial paths (:meth:`Region.poly_minimum`).
+
+    Attributes
+    ----------
+    margin, argmin : ndarray (R,)
+        Per path, the smallest margin over its span and the local time where it is attained.
+    joint, side, outside : ndarray (R,)
+        At the argmin: the joint whose margin it is (1..n; 0 under ``z2``), the side of its
+        range (0: the lower bound, 1: the upper bound) and whether the inverse map fails there
+        (the margin is the extended one). Only with ``detail=True``.
+    samples : tuple or None
+        ``(x, values, rows, cols, lo, best, arg)``: the sampled local times and margins (R, T),
+        and per zoomed bracket its path, sample index, left end, minimum and argmin (only with
+        ``keep=True``).
+    """
+
+    margin: np.ndarray
+    argmin: np.ndarray
+    joint: np.ndarray | None = None
+    side: np.ndarray | None = None
+    outside: np.ndarray | None = None
+    samples: tuple[np.ndarray, ...] | None = None
+
+
+# ---------------------------------------------------------------------- numpy from CasADi
+_UNARY = {ca.OP_NEG: "-{0}", ca.OP_SQ: "{0} * {0}", ca.OP_TWICE: "{0} + {0}",
+          ca.OP_COS: "_np.cos({0})", ca.OP_SIN: "_np.sin({0})", ca.OP_SQRT: "_np.sqrt({0})",
+          ca.OP_ACOS: "_np.arccos({0})", ca.OP_ASIN: "_np.arcsin({0})",
+          ca.OP_FABS: "_np.abs({0})", ca.OP_INV: "1.0 / {0}", ca.OP_EXP: "_np.exp({0})",
+          ca.OP_LOG: "_np.log({0})", ca.OP_TAN: "_np.tan({0})"}
+_BINARY = {ca.OP_ADD: "{0} + {1}", ca.OP_SUB: "{0} - {1}", ca.OP_MUL: "{0} * {1}",
+           ca.OP_DIV: "{0} / {1}", ca.OP_POW: "{0} ** {1}", ca.OP_CONSTPOW: "{0} ** {1}"}
+
+
+def _compile_sx(f: ca.Function) -> Callable[[Sequence[Any]], list[Any]] | None:
+    """The SX function ``f`` (one vector input, one vector output) as numpy code: a callable
+    taking the input's entries (arrays or numbers that broadcast) and returning the output's
+    entries. ``None`` when ``f`` uses an operation not translated here.
+
+    One numpy operation per SX instruction, on all points at once: for thousands of points this
+    is many times faster than CasADi's column-by-column evaluation.
+    """
+    if not f.is_a("SXFunction") or f.n_in() != 1 or f.n_out() != 1:
+        return None
+    consts: list[float] = []
+    lines = ["def _f(x):", f"    out = [0.0] * {f.nnz_out(0)}"]
+    for k in range(f.n_instructions()):
+        op = f.instruction_id(k)
+        i = f.instruction_input(k)
+        o = f.instruction_output(k)
+        if op == ca.OP_CONST:
+            consts.append(float(f.instruction_constant(k)))
+            lines.append(f"    w{o[0]} = _c[{len(consts) - 1}]")
+        elif op == ca.OP_INPUT:
+            lines.append(f"    w{o[0]} = x[{i[1]}]")
+        elif op == ca.OP_OUTPUT:
+            lines.append(f"    out[{o[1]}] = w{i[0]}")
+        elif op in _UNARY:
+            lines.append(f"    w{o[0]} = " + _UNARY[op].format(f"w{i[0]}"))
+        elif op in _BINARY:
+            lines.append(f"    w{o[0]} = " + _BINARY[op].format(f"w{i[0]}", f"w{i[1]}"))
+        else:
+            return None
+    lines.append("    return out")
+    scope: dict[str, Any] = {"_np": np, "_c": consts}
+    exec("\n".join(lines), scope)  # noqa: S102 - code generated from the instruction list above
+    fn: Callable[[Sequence[Any]], list[Any]] = scope["_f"]
+    return fn
+
+
+class _Levels:
+    """``a_k``, ``b_k`` of the top-down inverse map (``z_k = a_k w_k + b_k``) as numpy code.
+
+    Level n is ``z_n = K_n w_n``. For n = 3, level 2 is ``a_2 = -m3 K2 K3 c2^(m3-1) s2``; for
+    n >= 4 the CasADi expressions of :class:`optimizer.chained_form.SymbolicChainedForm` are
+    translated once (:func:`_compile_sx`), with CasADi itself as the fallback.
+    """
+
+    def __init__(self, robot: Robot, cf: ChainedForm) -> None:
+        self.n = n = robot.n
+        self.K = robot.gains
+        self.m = robot.exponents
+        self.fns: dict[int, Callable[[Sequence[Any]], list[Any]]] = {}
+        if n > 3:
+            sym = cf.symbolic
+            for k in range(2, n):
+                fn = _compile_sx(sym.ab[k])
+                self.fns[k] = fn if fn is not None else _casadi_caller(sym.ab[k], n)
+
+    def ab(self, k: int, th: dict[int, Any], cs: dict[int, Any]) -> tuple[Any, Any]:
+        """``(a_k, b_k)`` from the angles ``th[j]`` (j >= k) and their cosines ``cs[j]``."""
+        n = self.n
+        if k == n:
+            return self.K[-1], 0.0
+        if n == 3:  # k = 2
+            K2, K3 = self.K
+            m3 = self.m[1]
+            c2 = cs[2]
+            with np.errstate(invalid="ignore"):
+                s2 = np.sqrt(1.0 - c2 * c2)
+            cp = c2 * c2 if m3 == 3 else c2 ** (m3 - 1)
+            return (-m3 * K2 * K3) * cp * s2, 0.0
+        q: list[Any] = [0.0] * (n + 1)
+        for j in range(k, n + 1):
+            q[j] = th[j]
+        with np.errstate(all="ignore"):
+            out = self.fns[k](q)
+        return out[0], out[1]
+
+
+def _casadi_caller(f: ca.Function, n: int) -> Callable[[Sequence[Any]], list[Any]]:
+    def call(q: Sequence[Any]) -> list[Any]:
+        arrs = np.broadcast_arrays(*[np.asarray(x, float) for x in q])
+        shape = arrs[0].shape
+        res = np.asarray(f(np.vstack([a.ravel() for a in arrs])))
+        return [res[r].reshape(shape) for r in range(res.shape[0])]
+    return call
+
+
+@functools.lru_cache(maxsize=64)
+def _levels(robot: Robot) -> _Levels:
+    return _Levels(robot, chained_form(robot))
+
+
+def _root_m(w: Any, m: int) -> Any:
+    """``w^(1/m)`` (the cosine of the joint angle)."""
+    if m == 1:
+        return w
+    if m == 2:
+        return np.sqrt(w)
+    if m == 3:
+        return np.cbrt(w)
+    return w ** (1.0 / m)
+
+
+# ---------------------------------------------------------------------- region
 class Region:
     """The singularity-free region of one robot, with optional joint bounds.
 
@@ -100,6 +258,19 @@ class Region:
         self.lower = lo
         self.upper = hi
         self.has_custom_bounds = joint_bounds is not None
+        self._n = n
+        self._m = robot.exponents
+        # joints 1..n-1 with their default range (0, pi/2): the margin is min(th, pi/2 - th)
+        self._default = [bool(lo[j - 1] == 0.0 and hi[j - 1] == HALF_PI) for j in range(1, n)]
+        self._thn_bounded = bool(np.isfinite(lo[n - 1]) or np.isfinite(hi[n - 1]))
+        self._lv: _Levels | None = None
+
+    @property
+    def _level_maps(self) -> _Levels:
+        if self._lv is None:
+            self._lv = _levels(self.robot) if self.cf is chained_form(self.robot) \
+                else _Levels(self.robot, self.cf)
+        return self._lv
 
     # --------------------------------------------------------------- points
     def margin_q(self, q: np.ndarray) -> np.ndarray:
@@ -123,51 +294,396 @@ class Region:
                     f"bound is violated there", field=f"{field}[{i}]")
 
     def signed_margin_z(self, z: np.ndarray) -> np.ndarray:
-        """Continuous signed margin of chained points (see the module docstring); shape (N,)."""
+        """Continuous signed margin of chained points (see the module docstring); shape (N,).
+
+        Outside, the margin of the joint where the inverse fails is extended by its local shape
+        at the boundary: ``th ~ pi/2 - w^(1/m)`` near ``w = cos(th)^m = 0`` and
+        ``th ~ sqrt(2 (1 - w) / m)`` near ``w = 1``, so the margin stays continuous (and of one
+        scale) across the boundary.
+        """
         zz = np.atleast_2d(np.asarray(z, float))
+        return np.asarray(self.values([zz[:, k] for k in range(1, self._n + 1)]))
+
+    def values(self, Zr: Sequence[np.ndarray] | np.ndarray, detail: bool = False) -> Any:
+        """Signed margins of points given by their chained components ``Zr = [z2, ..., z_{n+1}]``
+        (arrays of one shape). With ``detail``: ``(margin, joint, side, outside)`` (see
+        :class:`PolyMinimum`)."""
+        n = self._n
+        z2 = np.asarray(Zr[0], float)
         if self.criterion == "z2":
-            return -zz[:, 1]
-        inv = self.cf.from_chained(zz)
-        out = np.empty(zz.shape[0])
-        v = inv.valid
-        if v.any():
-            out[v] = self.margin_q(inv.q[v])
-        if (~v).any():
-            bad = np.nonzero(~v)[0]
-            lvl = inv.failed_level[bad]
-            wk = inv.w[bad, lvl - 1]
-            m = np.array(self.robot.exponents)[lvl - 1]
-            # Outside, extend the angle margin by its local shape at the boundary:
-            # th ~ pi/2 - w^(1/m) near w = 0 and th ~ sqrt(2 (1 - w) / m) near w = 1, so the
-            # margin stays continuous (and of one scale) across the boundary.
+            if detail:
+                zero = np.zeros(z2.shape, int)
+                return -z2, zero, zero + 1, np.zeros(z2.shape, bool)
+            return -z2
+        lv = self._level_maps
+        shape = z2.shape
+        h = np.full(shape, np.inf)
+        joint: Any = None
+        side: Any = None
+        outside: Any = None
+        if detail:
+            joint = np.zeros(shape, int)
+            side = np.zeros(shape, int)
+            outside = np.zeros(shape, bool)
+        thn = np.asarray(Zr[n - 1], float)
+        if self._thn_bounded:
+            lo_n, hi_n = self.lower[n - 1], self.upper[n - 1]
+            a_, b_ = thn - lo_n, hi_n - thn
+            h = np.minimum(a_, b_)
+            if detail:
+                joint[...] = n
+                side = (b_ < a_).astype(int)
+        # non-finite components need no test of their own: they make some w non-finite, and
+        # the inverse fails there (margin -pi/2)
+        alive: np.ndarray | None = None
+        th: dict[int, Any] = {n: thn}
+        cs: dict[int, Any] = {}
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            for k in range(n, 1, -1):
+                j = k - 1
+                m = self._m[k - 2]
+                a, b = lv.ab(k, th, cs)
+                zk = np.asarray(Zr[k - 2], float)
+                w = zk / a if _is_zero(b) else (zk - b) / a
+                good = (w > W_TOL) & (w < 1.0 - W_TOL)
+                bad = ~good if alive is None else (alive & ~good)
+                if bad.any():
+                    below = -np.abs(w) ** (1.0 / m)
+                    above = -np.sqrt(2.0 * np.abs(w - 1.0) / m)
+                    ext = np.where(w <= 0.5, below, above)
+                    ext = np.where(np.isfinite(ext), np.minimum(ext, 0.0), -HALF_PI)
+                    hn = np.minimum(h, ext)
+                    if detail:
+                        upd = bad & (ext < h)
+                        joint = np.where(upd, j, joint)
+                        side = np.where(upd, (w <= 0.5).astype(int), side)
+                        outside = np.where(upd, True, outside)
+                    h = np.where(bad, hn, h)
+                    alive = good if alive is None else (alive & good)
+                    if not alive.any():
+                        break
+                c = _root_m(w, m)
+                t = np.arccos(c)
+                if self._default[j - 1]:
+                    ml, mh = t, HALF_PI - t
+                else:
+                    ml, mh = t - self.lower[j - 1], self.upper[j - 1] - t
+                mk = np.minimum(ml, mh)
+                hn = np.minimum(h, mk)
+                if detail:
+                    upd = mk < h if alive is None else (alive & (mk < h))
+                    joint = np.where(upd, j, joint)
+                    side = np.where(upd, (mh < ml).astype(int), side)
+                    outside = np.where(upd, False, outside)
+                h = hn if alive is None else np.where(alive, hn, h)
+                th[j] = t
+                cs[j] = c
+        if self._thn_bounded:
+            h = np.where(np.isnan(h), -HALF_PI, h)
+        if detail:
+            return h, joint, side, outside
+        return h
+
+    def _level_value(self, w: np.ndarray, j: int) -> np.ndarray:
+        """Signed margin of joint ``j`` as a function of ``w = cos(th_j)^m`` (extended outside);
+        NaN stays NaN, other non-finite values give -pi/2."""
+        m = self._m[j - 1]
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            valid = (w > W_TOL) & (w < 1.0 - W_TOL)
+            t = np.arccos(_root_m(np.clip(w, 0.0, 1.0), m))
+            if self._default[j - 1]:
+                inside = np.minimum(t, HALF_PI - t)
+            else:
+                inside = np.minimum(t - self.lower[j - 1], self.upper[j - 1] - t)
+            below = -np.abs(w) ** (1.0 / m)
+            above = -np.sqrt(2.0 * np.abs(w - 1.0) / m)
+            out = np.where(valid, inside, np.where(w <= 0.5, below, above))
+            out = np.where(np.isinf(w), -HALF_PI, out)
+            out = np.where(np.isnan(w), np.nan, np.minimum(out, np.where(valid, np.inf, 0.0)))
+        return np.asarray(out)
+
+    def grid_margins(self, Zr: Sequence[np.ndarray] | np.ndarray, angles: Sequence[int] = ()
+                     ) -> Any:
+        """Per member, the smallest signed margin of its sampled points: ``Zr = [z2, ...,
+        z_{n+1}]``, each of shape (G, D) (samples first, one column per member); returns (D,),
+        and with ``angles`` also ``{j: th_j}`` (G, D) for those joints (NaN or meaningless
+        where the inverse fails; under ``full`` only).
+
+        Equal to ``signed_margin_z`` minimised over each column, computed per joint in
+        ``w = cos(th)^m`` space: a joint's (extended) margin is unimodal in ``w``, so its
+        smallest value over a column is attained at the column's smallest or largest ``w``;
+        only those two values per member and joint are turned into angles. For n >= 4 the
+        lower levels (long expressions) are evaluated only where the levels above are valid.
+        """
+        n = self._n
+        z2 = np.asarray(Zr[0])
+        if self.criterion == "z2":
+            with np.errstate(invalid="ignore"):
+                res = -np.max(z2, axis=0)
+            return (res, {}) if angles else res
+        lv = self._level_maps
+        G, D = z2.shape
+        res = np.full(D, np.inf)
+        if self._thn_bounded:
+            thn = np.asarray(Zr[n - 1])
+            res = np.minimum(np.min(thn, axis=0) - self.lower[n - 1],
+                             self.upper[n - 1] - np.max(thn, axis=0))
+        kept: dict[int, np.ndarray] = {}
+        if n in angles:
+            kept[n] = np.asarray(Zr[n - 1])
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            # level n: w_n = z_n / K_n, every point
+            j = n - 1
+            w = np.asarray(Zr[n - 2]) * (1.0 / self.robot.gains[-1])
+            vmin = self._level_value(np.min(w, axis=0), j)
+            vmax = self._level_value(np.max(w, axis=0), j)
+            res = np.fmin(res, np.fmin(np.where(np.isnan(vmin), -HALF_PI, vmin),
+                                       np.where(np.isnan(vmax), -HALF_PI, vmax)))
+            alive = (w > W_TOL) & (w < 1.0 - W_TOL)
+            c = _root_m(w, self._m[n - 2])
+            cs: dict[int, Any] = {j: c}
+            th: dict[int, Any] = {n: Zr[n - 1]}
+            if n > 3 or j in angles:
+                th[j] = np.arccos(c)
+                if j in angles:
+                    kept[j] = th[j]
+            flat: np.ndarray | None = None      # compressed: indices of the live points
+            for k in range(n - 1, 1, -1):
+                j = k - 1
+                if flat is None and n > 3 and k > 2 and np.count_nonzero(alive) < 0.75 * G * D:
+                    flat = np.flatnonzero(alive)
+                    th = {i: np.asarray(v).ravel()[flat] for i, v in th.items()}
+                    cs = {i: np.asarray(v).ravel()[flat] for i, v in cs.items()}
+                if flat is None:
+                    a, b = lv.ab(k, th, cs)
+                    zk = np.asarray(Zr[k - 2])
+                    w = zk / a if _is_zero(b) else (zk - b) / a
+                    wm = w.copy()
+                    np.copyto(wm, np.nan, where=~alive)
+                else:
+                    if flat.size:
+                        a, b = lv.ab(k, th, cs)
+                        zk = np.asarray(Zr[k - 2]).ravel()[flat]
+                        w = zk / a if _is_zero(b) else (zk - b) / a
+                    else:
+                        w = np.zeros(0)
+                    wm = np.full(G * D, np.nan)
+                    wm[flat] = w
+                    wm = wm.reshape(G, D)
+                vmin = self._level_value(np.fmin.reduce(wm, axis=0), j)
+                vmax = self._level_value(np.fmax.reduce(wm, axis=0), j)
+                res = np.fmin(res, np.fmin(vmin, vmax))
+                need = k > 2 or j in angles
+                if need:
+                    c = _root_m(w, self._m[k - 2])
+                    t = np.arccos(c) if (n > 3 or j in angles) else None
+                    if j in angles and t is not None:
+                        if flat is None:
+                            kept[j] = t
+                        else:
+                            full_t = np.full(G * D, np.nan)
+                            full_t[flat] = t
+                            kept[j] = full_t.reshape(G, D)
+                if k > 2:
+                    good = (w > W_TOL) & (w < 1.0 - W_TOL)
+                    if flat is None:
+                        alive = alive & good
+                        cs[j] = c
+                        if t is not None:
+                            th[j] = t
+                    else:
+                        flat = flat[good]
+                        th = {i: v[good] for i, v in th.items()}
+                        cs = {i: v[good] for i, v in cs.items()}
+                        cs[j] = c[good]
+                        if t is not None:
+                            th[j] = t[good]
+        if angles:
+            return res, kept
+        return res
+
+    # --------------------------------------------------------------- polynomial paths
+    def _exact_points(self, coef: np.ndarray, span: np.ndarray, roots: bool = True
+                      ) -> np.ndarray | None:
+        """Critical points (and with ``roots`` also roots) in [0, span] of the polynomial
+        boundary conditions, per path (R, Q); NaN where a slot holds none.
+
+        The critical points alone make the sampled margin exact where a polynomial condition
+        is the closest (its extreme is a sample), and catch every excursion across such a
+        boundary between samples (the excursion holds an extreme); the roots locate crossings.
+        """
+        n = self._n
+        R, _, L = coef.shape
+        if L < 2:
+            return None
+        z2 = coef[:, 1, :]
+        polys = [_polyder(z2)]
+        if roots:
+            polys.append(z2)
+        if self.criterion == "full":
+            zn = coef[:, n - 1, :]
+            polys.append(_polyder(zn))
+            if roots:
+                znk = zn.copy()
+                znk[:, 0] -= self.robot.gains[-1]
+                polys += [zn, znk]
+        Pm = np.stack(polys, axis=1)                              # (R, Q, L)
+        Q = Pm.shape[1]
+        out = _real_roots(Pm.reshape(R * Q, L)).reshape(R, Q * (L - 1))
+        sp = span[:, None]
+        with np.errstate(invalid="ignore"):
+            out[~((out >= 0.0) & (out <= sp))] = np.nan
+        return out
+
+    def poly_minimum(self, coef: np.ndarray, span: np.ndarray | None = None, grid: int = 257,
+                     detail: bool = False, keep: bool = False, roots: bool = False
+                     ) -> PolyMinimum:
+        """Smallest signed margin over many polynomial paths at once, on the continuous paths.
+
+        Parameters
+        ----------
+        coef : ndarray (R, n+1, L)
+            Per path, the coefficients (increasing powers of the local time ``x``) of
+            ``z1..z_{n+1}``.
+        span : ndarray (R,), optional
+            The paths live on ``x in [0, span]`` (default 1).
+        grid : int
+            Uniform samples per path before the exact points and the zoom.
+        detail, keep : bool
+            See :class:`PolyMinimum`.
+        roots : bool
+            Also sample the roots of the polynomial conditions (to locate crossings; the
+            margin and its sign need only their critical points).
+        """
+        coef = np.asarray(coef, float)
+        R = coef.shape[0]
+        sp = np.ones(R) if span is None else np.asarray(span, float)
+        z2only = self.criterion == "z2"
+        comps = coef[:, 1:2, :] if z2only else coef[:, 1:, :]
+        X = sp[:, None] * np.linspace(0.0, 1.0, grid)[None, :]
+        E = self._exact_points(coef, sp, roots=roots)
+        if E is not None:
+            # empty slots become extra samples inside the span (off the uniform grid)
+            Q = E.shape[1]
+            fill = sp[:, None] * ((np.arange(Q) + 0.6180339887) / (Q + 1))[None, :]
+            E = np.where(np.isnan(E), fill, E)
+            X = np.concatenate([X, E], axis=1)
+            X.sort(axis=1)
+        Z = polyval_each(comps, X)                                   # (C, R, T)
+        v = np.asarray(self.values(Z))
+        rows = np.arange(R)
+        i = np.argmin(v, axis=1)
+        best = v[rows, i]
+        arg = X[rows, i]
+        zoom: tuple[np.ndarray, ...] = ()
+        if not z2only:
+            T = X.shape[1]
+            left = np.concatenate([np.full((R, 1), np.inf), v[:, :-1]], axis=1)
+            right = np.concatenate([v[:, 1:], np.full((R, 1), np.inf)], axis=1)
+            rr, cc = np.nonzero((v <= left) & (v <= right))
+            lo = X[rr, np.maximum(cc - 1, 0)]
+            hi = X[rr, np.minimum(cc + 1, T - 1)]
+            zb, za = self._zoom(comps, rr, lo, hi)
+            better = zb < best[rr]
+            if better.any():
+                # per path, the best zoomed bracket
+                order = np.lexsort((zb, rr))
+                r_sorted = rr[order]
+                first = np.ones(order.size, bool)
+                first[1:] = r_sorted[1:] != r_sorted[:-1]
+                sel = order[first]
+                upd = zb[sel] < best[rr[sel]]
+                tgt = rr[sel][upd]
+                best[tgt] = zb[sel][upd]
+                arg[tgt] = za[sel][upd]
+            zoom = (rr, cc, lo, zb, za)
+        out = PolyMinimum(best, arg, samples=(X, v) + zoom if keep else None)
+        if detail:
+            Zp = polyval_each(comps, arg[:, None])
+            _, joint, side, outside = self.values(Zp, detail=True)
+            out = PolyMinimum(best, arg, joint[:, 0], side[:, 0], outside[:, 0], out.samples)
+        return out
+
+    def _zoom(self, comps: np.ndarray, rows: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+              points: int = ZOOM_POINTS, rounds: int = ZOOM_ROUNDS
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Minimise the margin on many brackets ``[lo_i, hi_i]`` of paths ``rows`` at once.
+
+        Each round samples every bracket at ``points`` nodes and shrinks it to the two cells
+        around its best node; then the vertex of the parabola through the best node and its
+        neighbours is tried (the margin is smooth at its local minima: a local minimum of a
+        minimum of smooth functions is a local minimum of one of them). The result is the best
+        margin evaluated, never an extrapolation.
+        """
+        K = lo.size
+        best = np.full(K, np.inf)
+        arg = lo.copy()
+        if K == 0:
+            return best, arg
+        C = comps[rows]
+        u = np.linspace(0.0, 1.0, points)
+        ar = np.arange(K)
+        lo = lo.copy()
+        hi = hi.copy()
+        t = v = j = None
+        for _ in range(rounds):
+            t = lo[:, None] + (hi - lo)[:, None] * u[None, :]
+            v = np.asarray(self.values(polyval_each(C, t)))
+            j = np.argmin(v, axis=1)
+            vj = v[ar, j]
+            tj = t[ar, j]
+            better = vj < best
+            best = np.where(better, vj, best)
+            arg = np.where(better, tj, arg)
+            step = (hi - lo) / (points - 1)
+            lo, hi = np.maximum(tj - step, lo), np.minimum(tj + step, hi)
+        assert t is not None and v is not None and j is not None
+        # parabolic vertex through the best node of the last round and its neighbours
+        jm = np.clip(j, 1, points - 2)
+        x0, x1, x2 = t[ar, jm - 1], t[ar, jm], t[ar, jm + 1]
+        f0, f1, f2 = v[ar, jm - 1], v[ar, jm], v[ar, jm + 1]
+        with np.errstate(all="ignore"):
+            num = (x1 - x0) ** 2 * (f1 - f2) - (x1 - x2) ** 2 * (f1 - f0)
+            den = (x1 - x0) * (f1 - f2) - (x1 - x2) * (f1 - f0)
+            xv = x1 - 0.5 * num / den
+        ok = np.isfinite(xv) & (den != 0.0)
+        xv = np.clip(np.where(ok, xv, x1), x0, x2)
+        fv = np.asarray(self.values(polyval_each(C, xv[:, None])))[:, 0]
+        better = fv < best
+        best = np.where(better, fv, best)
+        arg = np.where(better, xv, arg)
+        return best, arg
+
+    def linearised(self, margin: np.ndarray, joint: np.ndarray, side: np.ndarray,
+                   outside: np.ndarray) -> np.ndarray:
+        """The margin mapped to the distance from the boundary in ``w = cos(th)^m`` space, of
+        the joint and side that attain it: same sign, but smooth across the boundary (the angle
+        margin behaves like ``sqrt`` or ``cbrt`` of the distance there), for root finding."""
+        F = np.asarray(margin, float)
+        if self.criterion == "z2":
+            return F
+        n = self._n
+        out = F.copy()
+        for j in range(1, n):
+            sel = joint == j
+            if not sel.any():
+                continue
+            m = self._m[j - 1]
+            lo, hi = self.lower[j - 1], self.upper[j - 1]
+            f = F[sel]
+            s = side[sel]
+            ex = outside[sel]
+            wl, wh = math.cos(lo) ** m, max(math.cos(hi), 0.0) ** m
             with np.errstate(invalid="ignore", over="ignore"):
-                below = -np.abs(wk) ** (1.0 / m)
-                above = -np.sqrt(2.0 * np.abs(wk - 1.0) / m)
-            ext = np.where(wk <= 0.5, below, above)
-            out[bad] = np.where(np.isfinite(ext), np.minimum(ext, 0.0), -HALF_PI)
+                in_lo = wl - np.cos(np.clip(lo + f, 0.0, HALF_PI)) ** m
+                in_hi = np.cos(np.clip(hi - f, 0.0, HALF_PI)) ** m - wh
+                out_lo = wl - (1.0 + 0.5 * m * f * f)
+                out_hi = -np.abs(f) ** m - wh
+            out[sel] = np.where(ex, np.where(s == 0, out_lo, out_hi),
+                                np.where(s == 0, in_lo, in_hi))
         return out
 
     # --------------------------------------------------------------- paths
-    def _exact_points(self, path: ChainedPath) -> list[float]:
-        """Roots and critical points in [0, 1] of the polynomial boundary conditions."""
-        n = self.robot.n
-        comps = [(1, 0.0)]  # z2 = 0
-        if self.criterion == "full":
-            Kn = self.robot.gains[-1]
-            comps += [(n - 1, 0.0), (n - 1, Kn)]  # z_n in {0, K_n}  <=>  th_{n-1} in {pi/2, 0}
-        pts: list[float] = []
-        for k, level in comps:
-            for a, b, c in path.component_pieces(k):
-                c = np.array(c, float)
-                c[0] -= level
-                for poly in (c, P.polyder(c)):
-                    if poly.size < 2 or not np.any(poly[1:]):
-                        continue
-                    r = P.polyroots(poly)
-                    r = r[np.abs(r.imag) < 1e-9].real + a
-                    pts.extend(float(x) for x in r if a <= x <= b)
-        return pts
-
     def check_path(self, path: ChainedPath, grid: int = 257, locate: bool = True) -> PathCheck:
         """Check a chained path on [0, 1] against the region, on the continuous path.
 
@@ -175,94 +691,122 @@ class Region:
         ----------
         path : ChainedPath
         grid : int
-            Number of uniform samples before refinement.
+            Number of uniform samples (per input piece) before refinement.
         locate : bool
             Locate the first crossing (skip it when only the margin is needed).
         """
-        taus = np.unique(np.concatenate([np.linspace(0.0, 1.0, grid), path.inputs.breaks,
-                                         np.array(self._exact_points(path))]))
+        breaks = np.asarray(path.inputs.breaks, float)
+        S = len(path.polys)
+        L = max(p.shape[1] for p in path.polys)
+        coef = np.zeros((S, self._n + 1, L))
+        for s, arr in enumerate(path.polys):
+            coef[s, :, :arr.shape[1]] = arr
+        span = np.diff(breaks)[:S]
+        res = self.poly_minimum(coef, span, grid=grid, keep=True, roots=locate)
+        s_best = int(np.argmin(res.margin))
+        best_val = float(res.margin[s_best])
+        best_tau = float(breaks[s_best] + res.argmin[s_best])
+        assert res.samples is not None
+        X, v = res.samples[0], res.samples[1]
+        taus = (breaks[:S, None] + X).ravel()
+        vals = v.ravel()
+        crossing: float | None = None
         if self.criterion == "z2":
-            return self._check_z2(path, taus)
+            # z2 is a polynomial: its maximum is attained at a critical point or an end, both
+            # among the samples; the crossing is an exact root (allow for its rounding)
+            bad = np.nonzero(-vals >= -1e-13)[0]
+            if bad.size:
+                crossing = float(taus[bad[0]])
+            return PathCheck(ok=best_val > 0.0, margin=best_val, argmin_tau=best_tau,
+                             first_crossing_tau=crossing)
+        if best_val > 0.0:
+            return PathCheck(ok=True, margin=best_val, argmin_tau=best_tau,
+                             first_crossing_tau=None)
+        if not locate:
+            return PathCheck(ok=False, margin=best_val, argmin_tau=best_tau,
+                             first_crossing_tau=best_tau)
 
         def h(t: float) -> float:
             return float(self.signed_margin_z(path.z(np.array([t])))[0])
 
-        vals = self.signed_margin_z(path.z(taus))
-        crossing: float | None = None
         bad = np.nonzero(vals <= 0.0)[0]
         if bad.size:
             j = int(bad[0])
-            crossing = 0.0 if (j == 0 or not locate) else _root(h, taus[j - 1], taus[j])
-        # Refine every sampled local minimum (ends included) by zooming in, all at once.
-        last = len(taus) - 1
-        cand = np.array([i for i in range(len(taus))
-                         if (i == 0 or vals[i] <= vals[i - 1])
-                         and (i == last or vals[i] <= vals[i + 1])])
-        lo = taus[np.maximum(cand - 1, 0)]
-        hi = taus[np.minimum(cand + 1, last)]
-        mins, argmins = _zoom_minimise(lambda t: self.signed_margin_z(path.z(t)), lo, hi)
-        best_val, best_tau = float(vals.min()), float(taus[int(vals.argmin())])
-        k = int(np.argmin(mins))
-        if mins[k] < best_val:
-            best_val, best_tau = float(mins[k]), float(argmins[k])
-        for i, val, tm in zip(cand, mins, argmins):
-            if val <= 0.0 and vals[i] > 0.0 and locate:
-                # a dip between samples: the crossing is between the left sample and the minimum
-                left = float(lo[list(cand).index(i)])
-                c = _root(h, left, float(tm)) if h(left) > 0.0 else left
-                if crossing is None or c < crossing:
-                    crossing = c
-        if not locate and best_val <= 0.0 and crossing is None:
-            crossing = best_tau  # not located: only known to exist
-        ok = crossing is None and best_val > 0.0
-        return PathCheck(ok=ok, margin=best_val, argmin_tau=best_tau, first_crossing_tau=crossing)
-
-    def _check_z2(self, path: ChainedPath, taus: np.ndarray) -> PathCheck:
-        # z2 is a polynomial: its maximum is attained at a critical point or an end, which
-        # _exact_points already put into taus; the crossing is an exact root.
-        z2 = path.z(taus)[:, 1]
-        i = int(np.argmax(z2))
-        margin = -float(z2[i])
-        crossing = None
-        # the exact roots of z2 are among taus; allow for their rounding when locating
-        bad = np.nonzero(z2 >= -1e-13)[0]
-        if bad.size:
-            crossing = float(taus[bad[0]])
-        return PathCheck(ok=margin > 0.0, margin=margin, argmin_tau=float(taus[i]),
+            crossing = 0.0 if j == 0 else _root(h, float(taus[j - 1]), float(taus[j]))
+        rr, cc, lo, zb, za = res.samples[2:]
+        for r, c_, left, val, tm in zip(rr, cc, lo, zb, za):
+            if val > 0.0 or v[r, c_] <= 0.0:
+                continue
+            # a dip between samples: the crossing is between the bracket's left end and the
+            # minimum (the sampled node in the middle of the bracket was inside)
+            a = float(breaks[r] + left)
+            b = float(breaks[r] + tm)
+            c = _root(h, a, b) if h(a) > 0.0 else a
+            if crossing is None or c < crossing:
+                crossing = c
+        if crossing is None:
+            crossing = best_tau
+        return PathCheck(ok=False, margin=best_val, argmin_tau=best_tau,
                          first_crossing_tau=crossing)
 
 
-def _root(f, a: float, b: float) -> float:
+def _is_zero(x: Any) -> bool:
+    return isinstance(x, float) and x == 0.0
+
+
+def _polyder(c: np.ndarray) -> np.ndarray:
+    """Derivative of row-wise polynomials (R, L), padded back to L coefficients."""
+    out = np.zeros_like(c)
+    out[:, :-1] = c[:, 1:] * np.arange(1, c.shape[1])
+    return out
+
+
+def _real_roots(Pm: np.ndarray) -> np.ndarray:
+    """Real roots of many polynomials (M, L) (increasing powers): (M, L - 1), NaN-padded.
+
+    Coefficients below 1e-14 of a polynomial's largest one are dropped from the top (they only
+    move roots far outside [0, 1]); the roots are the eigenvalues of the companion matrices,
+    all in one batched call (a lower degree is padded with a diagonal block whose eigenvalues,
+    2 and up, lie outside [0, 1]).
+    """
+    M, L = Pm.shape
+    out = np.full((M, L - 1), np.nan)
+    absc = np.abs(Pm)
+    tol = 1e-14 * absc.max(axis=1, keepdims=True)
+    big = absc > tol
+    deg = (L - 1) - np.argmax(big[:, ::-1], axis=1)
+    deg[~big.any(axis=1)] = 0
+    use = np.nonzero(deg >= 1)[0]
+    if use.size == 0:
+        return out
+    dm = int(deg[use].max())
+    d = deg[use]
+    c = Pm[use, :dm + 1]
+    lead = c[np.arange(use.size), d]
+    comp = np.zeros((use.size, dm, dm))
+    ii = np.arange(dm)
+    # companion of the monic polynomial of degree d in the top-left d x d block
+    comp[:, ii[1:], ii[:-1]] = (ii[1:][None, :] < d[:, None])
+    col = -c[:, :dm] / lead[:, None]
+    rows_ok = ii[None, :] < d[:, None]
+    comp[np.arange(use.size)[:, None], ii[None, :], (d - 1)[:, None]] = np.where(rows_ok, col, 0.0)
+    pad = ~rows_ok
+    diag = comp[:, ii, ii]
+    comp[:, ii, ii] = np.where(pad, 2.0 + ii[None, :], diag)
+    ev = np.linalg.eigvals(comp[:, ::-1, ::-1])
+    real = np.where(np.abs(ev.imag) < 1e-9, ev.real, np.nan)
+    real[np.abs(real) > 1.5] = np.nan
+    out[use, :dm] = real
+    return out
+
+
+def _root(f: Callable[[float], float], a: float, b: float) -> float:
     """The boundary crossing in [a, b] where f(a) > 0 >= f(b) (Brent; bisection if f is flat)."""
     fa, fb = f(a), f(b)
     if fa <= 0.0:
         return a
     if fb == 0.0:
         return b
+    if fb > 0.0:
+        return b
     return float(brentq(f, a, b, xtol=1e-13, maxiter=200))
-
-
-def _zoom_minimise(f, lo: np.ndarray, hi: np.ndarray, points: int = 33, rounds: int = 5
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Minimise ``f`` (vectorised over times) on many brackets ``[lo_i, hi_i]`` at once.
-
-    Each round samples every bracket at ``points`` nodes and shrinks it to the two cells around
-    its best node (a factor ``(points - 1) / 2`` per round), so five rounds shrink a bracket by
-    16^5 ~ 1e6: for the smooth margins here the minimum is then exact to rounding.
-    """
-    lo = np.asarray(lo, float).copy()
-    hi = np.asarray(hi, float).copy()
-    grid = np.linspace(0.0, 1.0, points)
-    best = np.full(lo.size, np.inf)
-    arg = lo.copy()
-    for _ in range(rounds):
-        t = lo[:, None] + (hi - lo)[:, None] * grid[None, :]
-        v = f(t.ravel()).reshape(t.shape)
-        j = np.argmin(v, axis=1)
-        rows = np.arange(lo.size)
-        better = v[rows, j] < best
-        best = np.where(better, v[rows, j], best)
-        arg = np.where(better, t[rows, j], arg)
-        step = (hi - lo) / (points - 1)
-        lo, hi = np.maximum(t[rows, j] - step, lo), np.minimum(t[rows, j] + step, hi)
-    return best, arg
