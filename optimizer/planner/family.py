@@ -1,28 +1,34 @@
 """The paper's input family for one request: ``v1 = b0`` constant, ``v2`` polynomial (eq 8-11).
 
 For fixed start, goal, duration and constraint points the family has one parameter, ``dphi``.
-:class:`PolynomialFamily` evaluates a member (chained path, region margin, indicators) and
-memoises it, so that the interval search and the objective search share the work.
+:class:`PolynomialFamily` evaluates members (chained path, region margin, indicators), many at
+once: the steering systems of all members share one factorisation
+(:class:`optimizer.steering.FamilySystem`), the paths are polynomial coefficient arrays, and the
+region checks and the indicators are vectorised over members (:meth:`Region.poly_minimum`,
+:meth:`Region.grid_margins`). Single members are memoised (:attr:`PolynomialFamily.evaluate`).
 """
 
 from __future__ import annotations
 
 import functools
-from typing import Callable
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
 from ..chained_form import ChainedForm, chained_form
-from ..indicators import count_reversals, line_deviation, sensitivity_frobenius
+from ..indicators import REVERSAL_DEAD_BAND, count_reversals, sensitivity_frobenius
 from ..model import Robot
-from ..region import PathCheck, Region
-from ..steering import (MAX_CONDITION, MIN_ABS_DPHI, ChainedPath, ConstraintPoint, InputSchedule,
-                        affine_basis_batch, solve_polynomial)
+from ..region import PathCheck, PolyMinimum, Region
+from ..steering import (ChainedPath, ConstraintPoint, FamilySystem, InputSchedule,
+                        matmul_single_thread, polyval_rows, solve_polynomial)
 from ..errors import SingularSystemError
 
 #: Normalised-time samples used to evaluate indicators inside searches.
 SEARCH_SAMPLES = 1001
+
+_INF = float("inf")
+_NO_TP = 10 ** 6
 
 
 @dataclass(frozen=True)
@@ -41,6 +47,34 @@ class MemberEval:
     d_a: float
     sensitivity: float
     energy: float
+
+
+@dataclass(frozen=True)
+class SampledMembers:
+    """Indicators of many members on sampled times (:meth:`PolynomialFamily.sample`).
+
+    ``ok``: regular, and every sample inside the full region (and ``z2 < 0`` under the ``z2``
+    criterion) with a positive margin; ``margin``: the smallest margin over the samples;
+    ``t_p``, ``d_a``, ``energy``: as in :class:`MemberEval` (``10**6``, ``inf`` where not ok;
+    ``t_p`` and ``energy`` only when asked for). ``dev``: ``|th1 - line|`` (D, G) when kept.
+    """
+
+    dphi: np.ndarray
+    ok: np.ndarray
+    margin: np.ndarray
+    d_a: np.ndarray
+    t_p: np.ndarray | None = None
+    energy: np.ndarray | None = None
+    dev: np.ndarray | None = None
+
+    def member(self, i: int, n: int) -> MemberEval:
+        d = float(self.dphi[i])
+        if not self.ok[i]:
+            return MemberEval(d, False, float(self.margin[i]), _NO_TP, _INF, _INF, _INF)
+        return MemberEval(d, True, float(self.margin[i]),
+                          int(self.t_p[i]) if self.t_p is not None else _NO_TP,
+                          float(self.d_a[i]), float(sensitivity_frobenius(d, n)),
+                          float(self.energy[i]) if self.energy is not None else _INF)
 
 
 class PolynomialFamily:
@@ -77,6 +111,8 @@ class PolynomialFamily:
         # SolverTimeoutError when the request's time is up
         self.deadline_check = deadline or (lambda stage: None)
         self.evaluate = functools.lru_cache(maxsize=4096)(self._evaluate)
+        # eq (10-11) for all members at once
+        self.system = FamilySystem(self.n, self.z0, self.zT, self.duration, points)
 
     def inputs(self, dphi: float) -> InputSchedule:
         return solve_polynomial(dphi, self.n, self.z0, self.zT, self.duration, self.points)
@@ -92,77 +128,128 @@ class PolynomialFamily:
             return PathCheck(False, -np.inf, 0.0, 0.0)
 
     def margin(self, dphi: float) -> float:
+        """Region margin of a member's continuous path (request's criterion); -pi if singular."""
         self.deadline_check("the interval search")
-        try:
-            m = self.region.check_path(self.path(dphi), locate=False).margin
-        except SingularSystemError:
-            return -np.pi
-        return float(m) if np.isfinite(m) else -np.pi
+        return float(self.margins(np.array([float(dphi)])).margin[0])
+
+    # ------------------------------------------------------------------ many members at once
+    def polys(self, dphis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Chained paths of many members: coefficients (D, n+1, L) in powers of ``tau`` and a
+        mask of the members whose steering system is regular."""
+        d = np.atleast_1d(np.asarray(dphis, float))
+        a, ok = self.system.coefficients(d)
+        return self.system.polys(d, a), ok
+
+    def margins(self, dphis: np.ndarray, detail: bool = False) -> PolyMinimum:
+        """Region margins (request's criterion) of many members' continuous paths at once
+        (:meth:`Region.poly_minimum`); -pi for singular members."""
+        coef, ok = self.polys(dphis)
+        res = self.region.poly_minimum(coef, detail=detail)
+        m = np.where(ok & np.isfinite(res.margin), res.margin, -np.pi)
+        return PolyMinimum(m, res.argmin, res.joint, res.side, res.outside)
+
+    def full_margins(self, dphis: np.ndarray) -> np.ndarray:
+        """Margins in the full region (with the request's joint bounds) of many members."""
+        coef, ok = self.polys(dphis)
+        res = self.full.poly_minimum(coef)
+        return np.where(ok & np.isfinite(res.margin), res.margin, -np.pi)
+
+    def _components(self, coef: np.ndarray, taus: np.ndarray, only_z2: bool = False
+                    ) -> np.ndarray:
+        """``z2..z_{n+1}`` (or ``z2`` only) of members at shared times, component first and
+        samples before members: (C, G, D)."""
+        comps = coef[:, 1:2, :] if only_z2 else coef[:, 1:, :]
+        C, L = comps.shape[1], comps.shape[2]
+        taus = np.asarray(taus, float)
+        V = np.ones((taus.size, L))
+        for j in range(1, L):
+            np.multiply(V[:, j - 1], taus, out=V[:, j])
+        cT = np.ascontiguousarray(comps.transpose(2, 1, 0)).reshape(L, -1)   # (L, C*D)
+        return matmul_single_thread(V, cT).reshape(taus.size, C, -1).transpose(1, 0, 2)
 
     def batch_z(self, dphis: np.ndarray, taus: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Chained states of many members at once: ``z`` of shape (D, G, n+1), a mask of
         members whose steering system is regular (eq 10-11 solved as a stack), and the ``V2``
         coefficients (D, p)."""
-        dphis = np.asarray(dphis, float)
-        n, p = self.n, self.n + len(self.points)
-        ok = np.abs(dphis) >= MIN_ABS_DPHI
-        d = np.where(ok, dphis, 1.0)
-        # steering systems (eq 11) of all members at once: terminal rows, then constraint rows
-        t_rows = np.array([1.0] + [cp.time / self.duration for cp in self.points])
-        free_r, basis_r = affine_basis_batch(d, n, self.z0, p, t_rows)
-        M = np.concatenate([basis_r[:, 0]] + [basis_r[:, 1 + j, cp.state - 2][:, None, :]
-                                              for j, cp in enumerate(self.points)], axis=1)
-        r = np.concatenate([self.zT[None, 1:] - free_r[:, 0]]
-                           + [cp.value - free_r[:, 1 + j, cp.state - 2][:, None]
-                              for j, cp in enumerate(self.points)], axis=1)
-        scale = np.linalg.norm(M, axis=1, keepdims=True)
-        scale[scale == 0.0] = 1.0
-        Mscaled = M / scale
-        cond = np.linalg.cond(Mscaled)
-        ok &= np.isfinite(cond) & (cond < MAX_CONDITION)
-        Mscaled[~ok] = np.eye(p)
-        a = np.linalg.solve(Mscaled, r[..., None])[..., 0] / scale[:, 0, :]
-        free, basis = affine_basis_batch(d, n, self.z0, p, taus)
-        z = np.empty((d.size, taus.size, n + 1))
-        z[:, :, 0] = self.z0[0] + d[:, None] * taus[None, :]
-        z[:, :, 1:] = free + np.einsum("dgki,di->dgk", basis, a)
+        d = np.atleast_1d(np.asarray(dphis, float))
+        a, ok = self.system.coefficients(d)
+        coef = self.system.polys(d, a)
+        z = polyval_rows(coef, np.asarray(taus, float)).transpose(0, 2, 1)
         return z, ok, a
 
     def coarse_margins(self, dphis: np.ndarray, grid: int = 97) -> np.ndarray:
         """Region margin on a coarse time grid for many ``dphi`` at once (an upper bound of the
         continuous margin; used only to find brackets, never as the answer)."""
         taus = np.linspace(0.0, 1.0, grid)
-        z, ok, _ = self.batch_z(dphis, taus)
-        h = self.region.signed_margin_z(z.reshape(-1, self.n + 1)).reshape(dphis.size, grid)
-        return np.where(ok, h.min(axis=1), -np.pi)
+        coef, ok = self.polys(dphis)
+        Z = self._components(coef, taus, only_z2=self.region.criterion == "z2")
+        h = self.region.grid_margins(Z)
+        return np.where(ok, h, -np.pi)
 
+    def sample(self, dphis: np.ndarray, taus: np.ndarray | None = None, tp: bool = True,
+               energy: bool = False, keep_dev: bool = False) -> SampledMembers:
+        """Indicators of many members on sampled times (default: the search samples); ``ok``
+        means valid at the samples only (the continuous check is :meth:`margins`')."""
+        d = np.atleast_1d(np.asarray(dphis, float))
+        tau = self.tau if taus is None else np.asarray(taus, float)
+        coef, regular = self.polys(d)
+        Z = self._components(coef, tau)                              # (n, G, D)
+        n = self.n
+        angles = tuple(range(1, n + 1)) if energy else (1,)
+        marg, th = self.full.grid_margins(Z, angles=angles)
+        if self.region is not self.full:
+            marg = np.minimum(marg, -np.max(Z[0], axis=0))
+        ok = regular & (marg > 0.0)
+        th1 = th[1]                                                  # (G, D)
+        with np.errstate(invalid="ignore"):
+            dev = np.abs(th1 - (th1[:1] + tau[:, None] * (th1[-1:] - th1[:1])))
+            d_a = np.where(ok, np.max(dev, axis=0), _INF)
+        t_p = None
+        if tp:
+            t_p = np.full(d.size, _NO_TP)
+            if ok.any():
+                t_p[ok] = _reversals_cols(th1[:, ok])
+        en = None
+        if energy:
+            en = np.full(d.size, _INF)
+            idx = np.nonzero(ok)[0]
+            if idx.size:
+                G = tau.size
+                q = np.empty((idx.size, G, n + 1))
+                q[:, :, 0] = self.z0[0] + d[idx, None] * tau[None, :]
+                for j in range(1, n + 1):
+                    q[:, :, j] = th[j][:, idx].T
+                V = np.empty((idx.size, G, 2))
+                V[:, :, 0] = d[idx, None]
+                # V2 = dz2/dtau
+                c2 = coef[idx, 1, 1:] * np.arange(1, coef.shape[2])
+                V[:, :, 1] = polyval_rows(c2, tau)
+                with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                    U = self.cf.u_from_v(q.reshape(-1, n + 1), V.reshape(-1, 2)).reshape(
+                        idx.size, G, 2) / self.duration
+                    en[idx] = np.trapezoid(np.sum(U * U, axis=2), tau * self.duration, axis=1)
+        return SampledMembers(d, ok, marg, d_a, t_p, en, dev.T if keep_dev else None)
+
+    # ------------------------------------------------------------------ one member
     def _evaluate(self, dphi: float) -> MemberEval:
         self.deadline_check("the objective search")
-        inf = float("inf")
-        try:
-            path = self.path(dphi)
-        except SingularSystemError:
-            return MemberEval(dphi, False, -inf, 10 ** 6, inf, inf, inf)
-        chk = self.region.check_path(path)
-        ok = chk.ok
+        d = np.array([float(dphi)])
+        coef, regular = self.polys(d)
+        if not regular[0]:
+            return MemberEval(float(dphi), False, -_INF, _NO_TP, _INF, _INF, _INF)
+        margin = float(self.region.poly_minimum(coef).margin[0])
+        ok = margin > 0.0
         if ok and self.full is not self.region:
-            ok = self.full.check_path(path).ok
+            ok = float(self.full.poly_minimum(coef).margin[0]) > 0.0
         if not ok:
-            return MemberEval(dphi, False, chk.margin, 10 ** 6, inf, inf, inf)
-        z = path.z(self.tau)
-        inv = self.cf.from_chained(z)
-        if not inv.valid.all():
-            return MemberEval(dphi, False, chk.margin, 10 ** 6, inf, inf, inf)
-        q = inv.q
-        th1 = q[:, 1]
-        d_a = float(np.max(np.abs(line_deviation(self.tau, th1))))
-        t_p = count_reversals(th1)
-        V = path.inputs.V(self.tau)
-        U = self.cf.u_from_v(q, V) / self.duration
-        energy = float(np.trapezoid(np.sum(U * U, axis=1), self.tau * self.duration))
-        sens = float(sensitivity_frobenius(dphi, self.n))
-        return MemberEval(dphi, True, chk.margin, t_p, d_a, sens, energy)
+            return MemberEval(float(dphi), False, margin, _NO_TP, _INF, _INF, _INF)
+        s = self.sample(d, energy=True)
+        if not s.ok[0]:
+            return MemberEval(float(dphi), False, margin, _NO_TP, _INF, _INF, _INF)
+        return MemberEval(float(dphi), True, margin, int(s.t_p[0]) if s.t_p is not None else 0,
+                          float(s.d_a[0]), float(sensitivity_frobenius(float(dphi), self.n)),
+                          float(s.energy[0]) if s.energy is not None else _INF)
 
     def screen(self, dphis: np.ndarray) -> list[MemberEval]:
         """Indicators of many members on the search samples, vectorised; ``ok`` here means
@@ -170,31 +257,44 @@ class PolynomialFamily:
         dphis = np.asarray(dphis, float)
         if dphis.size == 0:
             return []
-        inf = float("inf")
-        G = self.tau.size
-        z, regular, a = self.batch_z(dphis, self.tau)
-        flat = z.reshape(-1, self.n + 1)
-        inv = self.cf.from_chained(flat)
-        valid = inv.valid.reshape(dphis.size, G).all(axis=1) & regular
-        marg = self.full.margin_q(inv.q).reshape(dphis.size, G).min(axis=1)
-        if self.region is not self.full:
-            marg = np.minimum(marg, -z[:, :, 1].max(axis=1))
-        q = inv.q.reshape(dphis.size, G, self.n + 1)
-        th1 = q[:, :, 1]
-        dev = th1 - (th1[:, :1] + self.tau[None, :] * (th1[:, -1:] - th1[:, :1]))
-        d_a = np.abs(dev).max(axis=1)
-        V2 = np.polynomial.polynomial.polyval(self.tau, a.T)          # (D, G)
-        V = np.stack([np.broadcast_to(dphis[:, None], V2.shape), V2], axis=-1)
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            # invalid members' rows are garbage (q = 0 there) and are discarded below
-            U = self.cf.u_from_v(inv.q, V.reshape(-1, 2)).reshape(dphis.size, G, 2) / self.duration
-            energy = np.trapezoid(np.sum(U * U, axis=2), self.tau * self.duration, axis=1)
-        out = []
-        for i, d in enumerate(dphis):
-            if not (valid[i] and marg[i] > 0):
-                out.append(MemberEval(float(d), False, float(marg[i]), 10 ** 6, inf, inf, inf))
-                continue
-            out.append(MemberEval(float(d), True, float(marg[i]), count_reversals(th1[i]),
-                                  float(d_a[i]), float(sensitivity_frobenius(d, self.n)),
-                                  float(energy[i])))
+        s = self.sample(dphis, energy=True)
+        return [s.member(i, self.n) for i in range(dphis.size)]
+
+
+def _reversals_cols(X: np.ndarray, dead_band: float = REVERSAL_DEAD_BAND) -> np.ndarray:
+    """:func:`optimizer.indicators.count_reversals` of every column of ``X`` (G, D), vectorised.
+
+    Columns whose turning points are all farther apart than the dead band (the usual case)
+    count their turning points; the others (zero steps, small wiggles) go through the scalar
+    rule.
+    """
+    G, D = X.shape
+    out = np.zeros(D, dtype=int)
+    if D == 0 or G < 3:
         return out
+    sg = np.sign(np.diff(X, axis=0))
+    flat = (sg == 0.0).any(axis=0)
+    turn = sg[1:] != sg[:-1]                      # (G-2, D): turning point at sample g + 1
+    g, r = np.nonzero(turn)
+    cnt = np.bincount(r, minlength=D)
+    slow = flat.copy()
+    if r.size:
+        order = np.lexsort((g, r))                # by member, then time
+        g, r = g[order], r[order]
+        vals = X[g + 1, r]
+        first = np.ones(r.size, bool)
+        first[1:] = r[1:] != r[:-1]
+        last = np.ones(r.size, bool)
+        last[:-1] = r[:-1] != r[1:]
+        small = np.zeros(D, bool)
+        if r.size > 1:
+            leg = np.abs(np.diff(vals))
+            inner = ~first[1:]
+            small[r[1:][inner & (leg <= dead_band)]] = True
+        small[r[first][np.abs(vals[first] - X[0, r[first]]) <= dead_band]] = True
+        small[r[last][np.abs(X[-1, r[last]] - vals[last]) <= dead_band]] = True
+        slow |= small
+    out[:] = cnt
+    for i in np.nonzero(slow)[0]:
+        out[i] = count_reversals(X[:, i], dead_band)
+    return out

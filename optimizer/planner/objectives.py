@@ -5,9 +5,23 @@
   ``|dphi|`` only, so this is the smallest ``|dphi|`` with the fewest ``t_p``.
 * ``weighted``: smallest ``w_da d_a + w_s ||J_R(T)||_F + w_e energy + w_tp t_p``.
 
-Each objective is optimised continuously: a scan inside every interval (at most 0.05 deg apart)
-finds the best node, then bounded Brent minimisation (or bisection for a boundary optimum)
-refines it to 1e-9 rad on the true function.
+Each objective is optimised continuously, all candidate members of a step evaluated at once:
+
+1. a screen of nodes inside every interval (at most 0.05 deg apart) on the search samples finds
+   the best node; the nodes are first scored on every fifth sample, which bounds ``t_p`` and
+   ``d_a`` from below (a subset of the samples), and only the nodes whose bound can beat the best
+   score found are scored on all samples; the winner is confirmed on the continuous path (else
+   the next best);
+2. the optimum between the winner's neighbouring nodes is refined to 1e-9 rad: ``d_a`` (and the
+   weighted score without energy and ``t_p`` terms) by zooming (65 members a round, the bracket
+   shrinking 32-fold) with ``th1`` evaluated only around the samples where the deviation can be
+   largest; ``tp_then_sensitivity`` by multisection toward the end with the smaller ``|dphi|``;
+   other weighted scores by zooming on all samples;
+3. the refined member is evaluated on all samples and checked on the continuous path; it is
+   returned only when it is feasible, keeps the fewest ``t_p`` and scores at least as well as
+   the node. When a shortcut of step 2 does not hold up (the largest deviation moved away from
+   the samples followed, ``t_p`` grew), the refinement is redone with bounded Brent
+   minimisation (bisection for ``tp_then_sensitivity``) on fully evaluated members.
 """
 
 from __future__ import annotations
@@ -18,11 +32,19 @@ from typing import Callable
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from ..indicators import sensitivity_frobenius
 from ..problem import Weights
-from .family import MemberEval, PolynomialFamily
+from .family import MemberEval, PolynomialFamily, SampledMembers
 
 SCAN_STEP = math.radians(0.05)
 XATOL = 1e-9
+#: The first screen uses every COARSE_STRIDE-th search sample (a subset: lower bounds).
+COARSE_STRIDE = 5
+#: Members per zoom round (the bracket shrinks (ZOOM_MEMBERS - 1) / 2-fold a round).
+ZOOM_MEMBERS = 65
+#: Members per multisection round of ``tp_then_sensitivity``.
+SECTION_MEMBERS = 7
+_BAD = 1e9
 
 
 def _nodes(a: float, b: float) -> np.ndarray:
@@ -36,58 +58,350 @@ def _score(obj: str, w: Weights) -> Callable[[MemberEval], tuple[float, float]]:
     if obj == "tp_then_sensitivity":
         return lambda e: (float(e.t_p), abs(e.dphi))
     if obj == "weighted":
-        return lambda e: (0.0, w.d_a * e.d_a + w.sensitivity * e.sensitivity
-                          + w.energy * e.energy + w.t_p * e.t_p)
+        # terms with weight 0 are left out (an indicator not computed is inf)
+        terms = [(c, f) for c, f in ((w.d_a, "d_a"), (w.sensitivity, "sensitivity"),
+                                     (w.energy, "energy"), (w.t_p, "t_p")) if c != 0.0]
+        return lambda e: (0.0, float(sum(c * getattr(e, f) for c, f in terms)))
     raise ValueError(obj)
+
+
+def _keys(obj: str, w: Weights, s: SampledMembers, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(primary, secondary)`` score arrays of sampled members (inf where not ok)."""
+    inf = np.inf
+    assert s.t_p is not None
+    tp = np.where(s.ok, s.t_p.astype(float), inf)
+    if obj == "tp_then_da":
+        return tp, np.where(s.ok, s.d_a, inf)
+    if obj == "tp_then_sensitivity":
+        return tp, np.where(s.ok, np.abs(s.dphi), inf)
+    sens = np.asarray(sensitivity_frobenius(s.dphi, n))
+    val = np.zeros(s.dphi.size)
+    if w.d_a != 0.0:
+        val = val + w.d_a * s.d_a
+    if w.sensitivity != 0.0:
+        val = val + w.sensitivity * sens
+    if w.t_p != 0.0:
+        val = val + w.t_p * tp
+    if w.energy != 0.0:
+        assert s.energy is not None
+        val = val + w.energy * s.energy
+    with np.errstate(invalid="ignore"):
+        return np.where(s.ok, 0.0, inf), np.where(s.ok, val, inf)
 
 
 def optimise(family: PolynomialFamily, intervals: list[tuple[float, float]], objective: str,
              weights: Weights) -> MemberEval | None:
-    """The best feasible member by ``objective``; ``None`` when no node is feasible."""
-    score = _score(objective, weights)
-    nodes: list[float] = []
+    """The best feasible member by ``objective``; ``None`` when no node is feasible.
+
+    The returned member's ``energy`` is computed only when the objective uses it (else inf).
+    """
+    _score(objective, weights)  # validates the objective
+    pieces = []
     for a, b in intervals:
         # stay a hair inside the closed interval: its ends are on the boundary (margin 0)
         eps = min(1e-7, 0.25 * (b - a))
-        nodes.extend(_nodes(a + eps, b - eps).tolist())
-    evals = family.screen(np.array(nodes))
-    feas = [(i, e) for i, e in enumerate(evals) if e.ok]
-    best_i, best = -1, None
-    # the screen is sampled: confirm the winner on the continuous path (else the next best)
-    for i, e in sorted(feas, key=lambda ie: score(ie[1])):
-        exact = family.evaluate(e.dphi)
-        if exact.ok:
-            best_i, best = i, exact
-            break
-    if best is None:
+        pieces.append(_nodes(a + eps, b - eps))
+    if not pieces:
         return None
+    nodes = np.concatenate(pieces)
+    screen = _Screen(family, nodes, objective, weights)
+    score = _score(objective, weights)
+    while True:
+        best_i = screen.next_best()
+        if best_i is None:
+            return None
+        node = screen.member(best_i)
+        lo = float(nodes[max(best_i - 1, 0)])
+        hi = float(nodes[min(best_i + 1, nodes.size - 1)])
+        cand: MemberEval | None = None
+        if objective == "tp_then_sensitivity":
+            cand = _refine_sensitivity(family, node, lo, hi)
+        elif hi > lo:
+            cand = _refine_zoom(family, node, lo, hi, screen, best_i, objective, weights)
+        if cand is not None and cand.ok and score(cand) <= score(node):
+            return cand
+        # the node itself, confirmed on the continuous path (else the next best node)
+        ok, m = _confirm(family, node.dphi)
+        if ok:
+            return MemberEval(node.dphi, True, m, node.t_p, node.d_a, node.sensitivity,
+                              node.energy)
+        screen.reject(best_i)
+
+
+# ---------------------------------------------------------------------- step 1: the screen
+def _uses_bounds(objective: str, w: Weights) -> bool:
+    """Scores on a subset of the samples bound the full scores from below."""
+    if objective != "weighted":
+        return True
+    return w.energy == 0.0 and w.d_a >= 0.0 and w.t_p >= 0.0
+
+
+def _confirm(family: PolynomialFamily, dphi: float) -> tuple[bool, float]:
+    """The member's continuous path is inside the request's region (and the full one)."""
+    family.deadline_check("the objective search")
+    m = float(family.margins(np.array([dphi])).margin[0])
+    ok = m > 0.0
+    if ok and family.full is not family.region:
+        ok = float(family.full_margins(np.array([dphi]))[0]) > 0.0
+    return ok, m
+
+
+def _member(family: PolynomialFamily, s: SampledMembers, i: int, margin: float) -> MemberEval:
+    e = s.member(i, family.n)
+    return MemberEval(e.dphi, e.ok, margin, e.t_p, e.d_a, e.sensitivity, e.energy)
+
+
+class _Screen:
+    """The nodes ranked by their score on all search samples, evaluated lazily: every node is
+    first scored on every COARSE_STRIDE-th sample (a lower bound), and nodes are scored on all
+    samples in the order of their bounds until the best full score beats every bound left.
+    Ties go to the first node, as in a full screen."""
+
+    def __init__(self, family: PolynomialFamily, nodes: np.ndarray, objective: str,
+                 w: Weights) -> None:
+        family.deadline_check("the objective search")
+        self.family, self.nodes, self.objective, self.w = family, nodes, objective, w
+        self.energy = objective == "weighted" and w.energy != 0.0
+        K = nodes.size
+        self.fine_p = np.full(K, np.inf)
+        self.fine_s = np.full(K, np.inf)
+        self.done = np.zeros(K, bool)
+        self.samples: dict[int, tuple[SampledMembers, int]] = {}
+        bounded = _uses_bounds(objective, w)
+        if bounded:
+            coarse = family.sample(nodes, taus=family.tau[::COARSE_STRIDE])
+            self.lb_p, self.lb_s = _keys(objective, w, coarse, family.n)
+        else:
+            self.lb_p, self.lb_s = np.full(K, -np.inf), np.full(K, -np.inf)
+        self.order = [int(i) for i in np.lexsort((np.arange(K), self.lb_s, self.lb_p))
+                      if np.isfinite(self.lb_p[i]) or not bounded]
+        self.pos = 0
+        self.chunk = 4
+        self.rejected: set[int] = set()
+
+    def evaluate(self, idx: list[int]) -> None:
+        idx = [i for i in idx if not self.done[i]]
+        if not idx:
+            return
+        self.family.deadline_check("the objective search")
+        ii = np.array(idx)
+        s = self.family.sample(self.nodes[ii], energy=self.energy, keep_dev=True)
+        p_, s_ = _keys(self.objective, self.w, s, self.family.n)
+        self.fine_p[ii], self.fine_s[ii] = p_, s_
+        self.done[ii] = True
+        for r, i in enumerate(idx):
+            self.samples[i] = (s, r)
+
+    def next_best(self) -> int | None:
+        while True:
+            cand = [(self.fine_p[i], self.fine_s[i], int(i)) for i in np.nonzero(self.done)[0]
+                    if int(i) not in self.rejected and np.isfinite(self.fine_p[i])]
+            best = min(cand) if cand else None
+            while self.pos < len(self.order) and self.done[self.order[self.pos]]:
+                self.pos += 1
+            nxt = self.order[self.pos] if self.pos < len(self.order) else None
+            if best is not None and (nxt is None
+                                     or best <= (self.lb_p[nxt], self.lb_s[nxt], nxt)):
+                return best[2]
+            if nxt is None:
+                return None
+            take = self.order[self.pos:self.pos + self.chunk]
+            self.chunk = min(2 * self.chunk, 64)
+            self.evaluate(take)
+
+    def member(self, i: int) -> MemberEval:
+        s, r = self.samples[i]
+        return _member(self.family, s, r, float(s.margin[r]))
+
+    def dev(self, idx: list[int]) -> tuple[np.ndarray, np.ndarray, bool]:
+        """``|th1 - line|`` rows, ``d_a`` and whether all sampled-feasible, for nodes."""
+        self.evaluate(idx)
+        rows = []
+        da = []
+        ok = True
+        for i in idx:
+            s, r = self.samples[i]
+            ok = ok and bool(s.ok[r])
+            assert s.dev is not None
+            rows.append(s.dev[r])
+            da.append(s.d_a[r])
+        return np.array(rows), np.array(da), ok
+
+    def reject(self, i: int) -> None:
+        self.rejected.add(i)
+
+
+# ---------------------------------------------------------------------- step 2: refinement
+def _refine_zoom(family: PolynomialFamily, best: MemberEval, lo: float, hi: float,
+                 screen: _Screen, best_i: int, objective: str, w: Weights
+                 ) -> MemberEval | None:
+    """The minimum of the score on [lo, hi], refined to XATOL and confirmed on the continuous
+    path; None when that fails."""
+    tp_best = best.t_p
+    restricted = objective == "tp_then_da" or (w.energy == 0.0 and w.t_p == 0.0)
+    n = family.n
+    nodes = screen.nodes
+    taus = family.tau
+    if restricted:
+        # the samples where |th1 - line| can be largest between the neighbouring nodes
+        nb = sorted({max(best_i - 1, 0), best_i, min(best_i + 1, nodes.size - 1)})
+        dev, da, ok3 = screen.dev(nb)
+        if not ok3:
+            restricted = False
+        else:
+            taus = family.tau[_hot_samples(dev, da)]
+
+    def scores(ds: np.ndarray) -> np.ndarray:
+        family.deadline_check("the objective search")
+        if restricted:
+            s = family.sample(ds, taus=taus, tp=False)
+            if objective == "tp_then_da":
+                return np.where(s.ok, s.d_a, _BAD)
+            sens = np.asarray(sensitivity_frobenius(ds, n))
+            val = w.sensitivity * sens if w.sensitivity != 0.0 else np.zeros(ds.size)
+            if w.d_a != 0.0:
+                val = val + w.d_a * s.d_a
+            return np.where(s.ok, val, _BAD)
+        s = family.sample(ds, energy=w.energy != 0.0 and objective == "weighted")
+        v_ = _keys(objective, w, s, n)[1]
+        if objective == "tp_then_da":
+            assert s.t_p is not None
+            return np.where(s.ok & (s.t_p <= tp_best), s.d_a, _BAD)
+        return np.where(np.isfinite(v_), v_, _BAD)
+
+    P = ZOOM_MEMBERS if restricted else 17
+    a, b = lo, hi
+    bd, bv = best.dphi, np.inf
+    while b - a > XATOL:
+        ds = np.linspace(a, b, P)
+        v = scores(ds)
+        j = int(np.argmin(v))
+        if v[j] < bv:
+            bd, bv = float(ds[j]), float(v[j])
+        step = (b - a) / (P - 1)
+        a, b = max(lo, float(ds[j]) - step), min(hi, float(ds[j]) + step)
+    cand = _full_member(family, bd, objective, w)
+    score = _score(objective, w)
+    if cand is not None and restricted and not score(cand)[1] <= bv + 1e-12 * max(1.0, abs(bv)):
+        cand = None          # the largest deviation left the samples followed
+    if cand is not None and objective != "weighted" and cand.t_p > tp_best:
+        cand = None
+    if cand is None:
+        # the shortcut did not hold: bounded Brent on fully evaluated members
+        return _refine_brent(family, best, lo, hi, objective, w)
+    return cand
+
+
+def _hot_samples(dev: np.ndarray, d_a: np.ndarray, gap: int = 150, pad: int = 8
+                 ) -> np.ndarray:
+    """Sample indices where ``|th1 - line|`` can be largest for members between the rows of
+    ``dev`` (neighbouring nodes): around the significant local maxima of every row (at least
+    half its largest deviation), maxima closer than ``gap`` samples joined into one range (a
+    maximum moves with dphi), widened by ``pad``; plus both ends (they define the line)."""
+    G = dev.shape[1]
+    pos: list[int] = []
+    for row, top in zip(dev, d_a):
+        inner = np.nonzero((row[1:-1] >= row[:-2]) & (row[1:-1] >= row[2:])
+                           & (row[1:-1] >= 0.5 * top))[0] + 1
+        pos.extend(int(g) for g in inner)
+        pos.append(int(np.argmax(row)))
+    sel = np.zeros(G, bool)
+    sel[0] = sel[-1] = True
+    pos.sort()
+    start = prev = pos[0]
+    for g in pos[1:] + [None]:  # type: ignore[list-item]
+        if g is not None and g - prev <= gap:
+            prev = g
+            continue
+        sel[max(start - pad, 0):min(prev + pad, G - 1) + 1] = True
+        if g is not None:
+            start = prev = g
+    return np.nonzero(sel)[0]
+
+
+def _full_member(family: PolynomialFamily, dphi: float, objective: str, w: Weights
+                 ) -> MemberEval | None:
+    """A member evaluated on all samples and on the continuous path; None if not feasible."""
+    family.deadline_check("the objective search")
+    s = family.sample(np.array([dphi]), energy=objective == "weighted" and w.energy != 0.0)
+    if not s.ok[0]:
+        return None
+    ok, m = _confirm(family, dphi)
+    if not ok:
+        return None
+    return _member(family, s, 0, m)
+
+
+def _refine_brent(family: PolynomialFamily, best: MemberEval, lo: float, hi: float,
+                  objective: str, w: Weights) -> MemberEval | None:
+    score = _score(objective, w)
     tp_best = best.t_p
 
     def restricted(d: float) -> float:
         e = family.evaluate(float(d))
         if not e.ok or (objective != "weighted" and e.t_p > tp_best):
-            return 1e9
+            return _BAD
         return score(e)[1]
 
-    lo = nodes[max(best_i - 1, 0)]
-    hi = nodes[min(best_i + 1, len(nodes) - 1)]
-    if objective == "tp_then_sensitivity":
-        # the optimum is where |dphi| is smallest inside the {t_p = min} set: a boundary
-        toward = lo if abs(lo) < abs(best.dphi) else hi
-        good, bad = best.dphi, toward
-        if restricted(bad) < 1e9:
-            return family.evaluate(float(bad))
-        while abs(good - bad) > XATOL:
-            mid = 0.5 * (good + bad)
-            if restricted(mid) < 1e9:
-                good = mid
-            else:
-                bad = mid
-        return family.evaluate(float(good))
-    if hi > lo:
-        res = minimize_scalar(restricted, bounds=(lo, hi), method="bounded",
-                              options={"xatol": XATOL, "maxiter": 200})
-        cand = family.evaluate(float(res.x))
-        if cand.ok and score(cand) <= score(best):
-            return cand
-    return best
+    res = minimize_scalar(restricted, bounds=(lo, hi), method="bounded",
+                          options={"xatol": XATOL, "maxiter": 200})
+    cand = family.evaluate(float(res.x))
+    return cand if cand.ok else None
+
+
+def _refine_sensitivity(family: PolynomialFamily, best: MemberEval, lo: float, hi: float
+                        ) -> MemberEval | None:
+    """Smallest |dphi| inside the {t_p = min} set next to ``best``: a boundary, found by
+    multisection toward the bracket end with the smaller |dphi|; confirmed on the continuous
+    path (None when that fails)."""
+    tp_best = best.t_p
+    toward = lo if abs(lo) < abs(best.dphi) else hi
+
+    def passes(ds: np.ndarray) -> np.ndarray:
+        family.deadline_check("the objective search")
+        s = family.sample(ds)
+        assert s.t_p is not None
+        return s.ok & (s.t_p <= tp_best)
+
+    if passes(np.array([toward]))[0]:
+        e = _full_member(family, toward, "tp_then_sensitivity", Weights())
+        if e is not None:
+            return e
+        return _bisect_sensitivity(family, best, toward)
+    good, bad = best.dphi, toward
+    while abs(good - bad) > XATOL:
+        ts = np.linspace(0.0, 1.0, SECTION_MEMBERS + 2)[1:-1]
+        ds = good + ts * (bad - good)
+        ok = passes(ds)
+        fail = np.nonzero(~ok)[0]
+        k = int(fail[0]) if fail.size else ds.size
+        if k > 0:
+            good = float(ds[k - 1])
+        if k < ds.size:
+            bad = float(ds[k])
+    e = _full_member(family, good, "tp_then_sensitivity", Weights())
+    if e is not None and e.t_p <= tp_best:
+        return e
+    return _bisect_sensitivity(family, best, toward)
+
+
+def _bisect_sensitivity(family: PolynomialFamily, best: MemberEval, toward: float
+                        ) -> MemberEval | None:
+    """The original scalar rule on fully evaluated members (fallback)."""
+    tp_best = best.t_p
+
+    def ok(d: float) -> bool:
+        e = family.evaluate(float(d))
+        return e.ok and e.t_p <= tp_best
+
+    good, bad = best.dphi, toward
+    if ok(bad):
+        return family.evaluate(float(bad))
+    while abs(good - bad) > XATOL:
+        mid = 0.5 * (good + bad)
+        if ok(mid):
+            good = mid
+        else:
+            bad = mid
+    e = family.evaluate(float(good))
+    return e if e.ok else None
