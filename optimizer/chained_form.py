@@ -181,8 +181,8 @@ class ChainedForm:
         if self.backend == "closed":
             u, w = _closed_u_from_zv(self.robot, zz, vv)
         else:
-            uw = np.asarray(self._sym.u_w_from_zv(zz.T, vv.T))
-            u, w = uw[:2].T, uw[2:].T
+            uw = _eval_columns(self._sym.u_w_from_zv, self._sym.u_w_maps, zz, vv)
+            u, w = uw[:, :2], uw[:, 2:]
         if zz.shape[0] and not (W_TOL < w.min() and w.max() < 1.0 - W_TOL   # NaN fails too
                                 and np.isfinite(zz).all()):
             with np.errstate(invalid="ignore"):
@@ -242,6 +242,37 @@ class ChainedForm:
     def symbolic(self) -> "SymbolicChainedForm":
         """The CasADi expressions and Functions (for NLPs built on top of the transform)."""
         return self._sym
+
+
+def _eval_columns(f: ca.Function, maps: dict[int, ca.Function], *args: np.ndarray) -> np.ndarray:
+    """Evaluate ``f`` (column-vector inputs, one column-vector output) at many points at once.
+
+    ``args[i]`` has one row per point, shape (N, size of input i); the result has one row per
+    point. ``f.map(N)`` (kept in ``maps``: building it costs more than evaluating it) is called
+    through CasADi's copy-free buffer interface: a numpy array with one row per point is, byte
+    for byte, the column-major matrix of N columns that the mapped function expects. That
+    avoids the numpy <-> DM conversions, which cost as much as the evaluation for a few hundred
+    points (CasADi versions without ``Function.buffer`` get the ordinary call).
+    """
+    N = args[0].shape[0]
+    if N == 0:
+        return np.empty((0, f.size1_out(0)))
+    mapped = maps.get(N)
+    if mapped is None:
+        if len(maps) >= 64:  # the node counts repeat (multiples of the panel size): few sizes
+            maps.clear()
+        mapped = maps[N] = f.map(N)
+    if not hasattr(mapped, "buffer"):
+        out = mapped(*[a.T for a in args])
+        return np.asarray(out, dtype=float).reshape(-1, N).T.copy()
+    cols = [np.ascontiguousarray(a, dtype=float) for a in args]
+    res = np.empty((N, f.size1_out(0)))
+    buf, run = mapped.buffer()
+    for i, c in enumerate(cols):
+        buf.set_arg(i, memoryview(c))
+    buf.set_res(0, memoryview(res))
+    run()
+    return res
 
 
 # ---------------------------------------------------------------------- closed form n = 3
@@ -379,6 +410,7 @@ class SymbolicChainedForm:
         # instructions instead of ~2100).
         u_w = ca.vertcat(vs[0], (vs[1] - al * vs[0]) / be, *w_z)
         self.u_w_from_zv = ca.Function("u_w_from_zv", [zsym, vs], [ca.cse(u_w)])
+        self.u_w_maps: dict[int, ca.Function] = {}  # u_w_from_zv.map(N) by N
 
     def inverse_expr(self, z: ca.MX | ca.SX) -> tuple[list, list]:
         """Symbolic inverse map for NLPs: ``(th, w)`` with ``th[i-1] = theta_i`` and
