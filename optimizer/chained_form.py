@@ -268,9 +268,10 @@ def _eval_columns(f: ca.Function, maps: dict[int, ca.Function], *args: np.ndarra
     cols = [np.ascontiguousarray(a, dtype=float) for a in args]
     res = np.empty((N, f.size1_out(0)))
     buf, run = mapped.buffer()
+    # (CasADi's stubs list a byte size as well; the Python binding takes it from the buffer)
     for i, c in enumerate(cols):
-        buf.set_arg(i, memoryview(c))
-    buf.set_res(0, memoryview(res))
+        buf.set_arg(i, c.data)  # type: ignore[call-arg]
+    buf.set_res(0, res.data)  # type: ignore[call-arg]
     run()
     return res
 
