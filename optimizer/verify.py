@@ -563,6 +563,7 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
             err = np.concatenate([in_err[:2], e, in_err[2:]])
             mark = _marks(err, np.concatenate([in_coef[:2], c, in_coef[2:]]), w, share * h)
             if not (mark.any() and fits(mark)):
+                bounded = bool(mark.any())  # stopped by max_rounds / max_panels
                 break
         rounds += 1
         # cut the marked panels (toward their rough end); inputs evaluated in the next round
@@ -579,8 +580,8 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
     energy_est = quad[nq] / abs(energy) if energy != 0.0 else (0.0 if quad[nq] == 0.0 else math.inf)
     estimate = max(max(est), energy_est)
     if not estimate <= max(accept, tol):
-        return failed(f"error estimate {estimate:.3g} above {max(accept, tol):.3g} after {rounds} "
-                      f"refinements ({a.size} panels)")
+        return failed(f"error estimate {estimate:.3g} above {max(accept, tol):.3g} after "
+                      f"{rounds} refinements ({a.size} panels)")
 
     # samples: the integrated interpolant, a polynomial of degree p on each panel, known at the
     # p nodes and both ends: barycentric interpolation through those p + 2 values is exact
@@ -608,8 +609,10 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                 ts = float(np.min(tt[out]))
                 singular_time = ts if singular_time is None else min(singular_time, ts)
     msg = (f"cascade quadrature: {a.size} panels x {p} nodes, {rounds} refinements, error "
-           f"estimate {estimate:.2g}" + (" (limited by the inputs' rounding noise)"
-                                         if estimate > tol else ""))
+           f"estimate {estimate:.2g}")
+    if estimate > tol:
+        msg += (" (above the target: refinement bounds reached)" if bounded else
+                " (above the target: limited by the inputs' rounding noise)")
     return Replay(t=t_eval, q=q, final=final, singular=singular_time is not None,
                   singular_time=singular_time, success=True, message=msg, energy=energy,
                   integrator=CASCADE_NAME, error_estimate=estimate, evaluations=evaluations,
