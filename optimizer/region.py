@@ -50,7 +50,7 @@ HALF_PI = 0.5 * math.pi
 #: Zoom of every sampled local minimum: nodes per bracket and rounds (each round shrinks the
 #: bracket (ZOOM_POINTS - 1) / 2 = 16-fold), then one parabolic step: from nodes 1e-5 apart it
 #: puts the minimum of a smooth margin to ~1e-10 in time, its value exact to rounding.
-ZOOM_POINTS = 33
+ZOOM_POINTS = 17
 ZOOM_ROUNDS = 2
 
 
@@ -264,6 +264,12 @@ class Region:
         self._default = [bool(lo[j - 1] == 0.0 and hi[j - 1] == HALF_PI) for j in range(1, n)]
         self._thn_bounded = bool(np.isfinite(lo[n - 1]) or np.isfinite(hi[n - 1]))
         self._lv: _Levels | None = None
+        # n = 3 with the default ranges: a short path for points all inside (see _values3)
+        self._fast3 = n == 3 and all(self._default) and not self._thn_bounded
+        if n == 3:
+            K2, K3 = robot.gains
+            self._inv_k3 = 1.0 / K3
+            self._neg_a = -robot.exponents[1] * K2 * K3
 
     @property
     def _level_maps(self) -> _Levels:
@@ -315,6 +321,10 @@ class Region:
                 zero = np.zeros(z2.shape, int)
                 return -z2, zero, zero + 1, np.zeros(z2.shape, bool)
             return -z2
+        if self._fast3 and not detail:
+            h = self._values3(z2, np.asarray(Zr[1], float))
+            if h is not None:
+                return h
         lv = self._level_maps
         shape = z2.shape
         h = np.full(shape, np.inf)
@@ -384,23 +394,47 @@ class Region:
             return h, joint, side, outside
         return h
 
-    def _level_value(self, w: np.ndarray, j: int) -> np.ndarray:
-        """Signed margin of joint ``j`` as a function of ``w = cos(th_j)^m`` (extended outside);
-        NaN stays NaN, other non-finite values give -pi/2."""
+    def _values3(self, z2: np.ndarray, z3: np.ndarray) -> np.ndarray | None:
+        """:meth:`values` for n = 3 with the default joint ranges where every point is inside
+        (None otherwise): ``min(th, pi/2 - th) = pi/4 - |th - pi/4|`` for th1, th2."""
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            w3 = z3 * self._inv_k3
+            c2 = _root_m(w3, self._m[1])
+            c2sq = c2 * c2
+            s2 = np.sqrt(1.0 - c2sq)
+            cp = c2sq if self._m[1] == 3 else c2 ** (self._m[1] - 1)
+            w2 = z2 / ((cp * s2) * self._neg_a)
+            lo = np.minimum(w3, w2)
+            hi = np.maximum(w3, w2)
+            if not (lo.min() > W_TOL and hi.max() < 1.0 - W_TOL):
+                return None
+            q = 0.25 * math.pi
+            t2 = np.abs(np.arccos(c2) - q)
+            t1 = np.abs(np.arccos(_root_m(w2, self._m[0])) - q)
+            return q - np.maximum(t1, t2)
+
+    def _level_value(self, wmin: np.ndarray, wmax: np.ndarray, j: int, nan: float = np.nan
+                     ) -> np.ndarray:
+        """Smallest signed margin of joint ``j`` over sets of points given by their smallest and
+        largest ``w = cos(th_j)^m`` (the margin, extended outside, is unimodal in ``w``);
+        a NaN bound (no point) gives ``nan``, other non-finite values -pi/2."""
         m = self._m[j - 1]
+        D = wmin.size
+        w = np.concatenate([wmin, wmax])
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             valid = (w > W_TOL) & (w < 1.0 - W_TOL)
             t = np.arccos(_root_m(np.clip(w, 0.0, 1.0), m))
             if self._default[j - 1]:
-                inside = np.minimum(t, HALF_PI - t)
+                out = np.minimum(t, HALF_PI - t)
             else:
-                inside = np.minimum(t - self.lower[j - 1], self.upper[j - 1] - t)
-            below = -np.abs(w) ** (1.0 / m)
-            above = -np.sqrt(2.0 * np.abs(w - 1.0) / m)
-            out = np.where(valid, inside, np.where(w <= 0.5, below, above))
-            out = np.where(np.isinf(w), -HALF_PI, out)
-            out = np.where(np.isnan(w), np.nan, np.minimum(out, np.where(valid, np.inf, 0.0)))
-        return np.asarray(out)
+                out = np.minimum(t - self.lower[j - 1], self.upper[j - 1] - t)
+            if not valid.all():
+                below = -np.abs(w) ** (1.0 / m)
+                above = -np.sqrt(2.0 * np.abs(w - 1.0) / m)
+                ext = np.minimum(np.where(w <= 0.5, below, above), 0.0)
+                ext = np.where(np.isinf(w), -HALF_PI, np.where(np.isnan(w), nan, ext))
+                out = np.where(valid, out, ext)
+        return np.fmin(out[:D], out[D:])
 
     def grid_margins(self, Zr: Sequence[np.ndarray] | np.ndarray, angles: Sequence[int] = ()
                      ) -> Any:
@@ -435,10 +469,8 @@ class Region:
             # level n: w_n = z_n / K_n, every point
             j = n - 1
             w = np.asarray(Zr[n - 2]) * (1.0 / self.robot.gains[-1])
-            vmin = self._level_value(np.min(w, axis=0), j)
-            vmax = self._level_value(np.max(w, axis=0), j)
-            res = np.fmin(res, np.fmin(np.where(np.isnan(vmin), -HALF_PI, vmin),
-                                       np.where(np.isnan(vmax), -HALF_PI, vmax)))
+            res = np.fmin(res, self._level_value(np.min(w, axis=0), np.max(w, axis=0), j,
+                                                 nan=-HALF_PI))
             alive = (w > W_TOL) & (w < 1.0 - W_TOL)
             c = _root_m(w, self._m[n - 2])
             cs: dict[int, Any] = {j: c}
@@ -470,9 +502,8 @@ class Region:
                     wm = np.full(G * D, np.nan)
                     wm[flat] = w
                     wm = wm.reshape(G, D)
-                vmin = self._level_value(np.fmin.reduce(wm, axis=0), j)
-                vmax = self._level_value(np.fmax.reduce(wm, axis=0), j)
-                res = np.fmin(res, np.fmin(vmin, vmax))
+                res = np.fmin(res, self._level_value(np.fmin.reduce(wm, axis=0),
+                                                     np.fmax.reduce(wm, axis=0), j))
                 need = k > 2 or j in angles
                 if need:
                     c = _root_m(w, self._m[k - 2])
@@ -560,7 +591,7 @@ class Region:
         sp = np.ones(R) if span is None else np.asarray(span, float)
         z2only = self.criterion == "z2"
         comps = coef[:, 1:2, :] if z2only else coef[:, 1:, :]
-        X = sp[:, None] * np.linspace(0.0, 1.0, grid)[None, :]
+        X = sp[:, None] * _unit_grid(grid)[None, :]
         E = self._exact_points(coef, sp, roots=roots)
         if E is not None:
             # empty slots become extra samples inside the span (off the uniform grid)
@@ -572,87 +603,96 @@ class Region:
         Z = polyval_each(comps, X)                                   # (C, R, T)
         v = np.asarray(self.values(Z))
         rows = np.arange(R)
-        i = np.argmin(v, axis=1)
-        best = v[rows, i]
-        arg = X[rows, i]
-        zoom: tuple[np.ndarray, ...] = ()
-        if not z2only:
-            T = X.shape[1]
-            left = np.concatenate([np.full((R, 1), np.inf), v[:, :-1]], axis=1)
-            right = np.concatenate([v[:, 1:], np.full((R, 1), np.inf)], axis=1)
-            rr, cc = np.nonzero((v <= left) & (v <= right))
-            lo = X[rr, np.maximum(cc - 1, 0)]
-            hi = X[rr, np.minimum(cc + 1, T - 1)]
-            zb, za = self._zoom(comps, rr, lo, hi)
-            better = zb < best[rr]
-            if better.any():
-                # per path, the best zoomed bracket
-                order = np.lexsort((zb, rr))
-                r_sorted = rr[order]
-                first = np.ones(order.size, bool)
-                first[1:] = r_sorted[1:] != r_sorted[:-1]
-                sel = order[first]
-                upd = zb[sel] < best[rr[sel]]
-                tgt = rr[sel][upd]
-                best[tgt] = zb[sel][upd]
-                arg[tgt] = za[sel][upd]
-            zoom = (rr, cc, lo, zb, za)
-        out = PolyMinimum(best, arg, samples=(X, v) + zoom if keep else None)
+        if z2only:
+            # -z2 is exact at the samples: its extremes (critical points) are among them
+            i = np.argmin(v, axis=1)
+            best, arg = v[rows, i], X[rows, i]
+            out = PolyMinimum(best, arg, samples=(X, v) if keep else None)
+            if detail:
+                zero = np.zeros(R, int)
+                out = PolyMinimum(best, arg, zero, zero + 1, zero.astype(bool), out.samples)
+            return out
+        # every sampled local minimum (ends included), zoomed; the global sampled minimum is
+        # one of them, and each zoom re-evaluates its centre
+        T = X.shape[1]
+        lm = np.empty(v.shape, bool)
+        lm[:, 1:-1] = (v[:, 1:-1] <= v[:, :-2]) & (v[:, 1:-1] <= v[:, 2:])
+        lm[:, 0] = v[:, 0] <= v[:, 1]
+        lm[:, -1] = v[:, -1] <= v[:, -2]
+        rr, cc = np.nonzero(lm)
+        lo = X[rr, np.maximum(cc - 1, 0)]
+        hi = X[rr, np.minimum(cc + 1, T - 1)]
+        zb, za, dets = self._zoom(comps, rr, lo, hi, detail)
+        # per path, its best bracket (rr is sorted)
+        first = np.ones(rr.size, bool)
+        first[1:] = rr[1:] != rr[:-1]
+        starts = np.flatnonzero(first)
+        seg = np.cumsum(first) - 1
+        segmin = np.minimum.reduceat(zb, starts)
+        hit = np.flatnonzero(zb <= segmin[seg])
+        hs = np.ones(hit.size, bool)
+        hs[1:] = seg[hit[1:]] != seg[hit[:-1]]
+        pick = hit[hs]                                              # one bracket per path
+        best = zb[pick]
+        arg = za[pick]
+        out = PolyMinimum(best, arg,
+                          samples=(X, v, rr, cc, lo, zb, za) if keep else None)
         if detail:
-            Zp = polyval_each(comps, arg[:, None])
-            _, joint, side, outside = self.values(Zp, detail=True)
-            out = PolyMinimum(best, arg, joint[:, 0], side[:, 0], outside[:, 0], out.samples)
+            assert dets is not None
+            out = PolyMinimum(best, arg, dets[0][pick], dets[1][pick], dets[2][pick],
+                              out.samples)
         return out
 
     def _zoom(self, comps: np.ndarray, rows: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-              points: int = ZOOM_POINTS, rounds: int = ZOOM_ROUNDS
-              ) -> tuple[np.ndarray, np.ndarray]:
+              detail: bool = False, points: int = ZOOM_POINTS, rounds: int = ZOOM_ROUNDS
+              ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...] | None]:
         """Minimise the margin on many brackets ``[lo_i, hi_i]`` of paths ``rows`` at once.
 
         Each round samples every bracket at ``points`` nodes and shrinks it to the two cells
         around its best node; then the vertex of the parabola through the best node and its
         neighbours is tried (the margin is smooth at its local minima: a local minimum of a
         minimum of smooth functions is a local minimum of one of them). The result is the best
-        margin evaluated, never an extrapolation.
+        margin evaluated, never an extrapolation. With ``detail``, also the joint, side and
+        outside flag at each bracket's result.
         """
         K = lo.size
-        best = np.full(K, np.inf)
-        arg = lo.copy()
-        if K == 0:
-            return best, arg
         C = comps[rows]
-        u = np.linspace(0.0, 1.0, points)
+        u = _unit_grid(points)
         ar = np.arange(K)
-        lo = lo.copy()
-        hi = hi.copy()
+        best = np.full(K, np.inf)
+        arg = lo
         t = v = j = None
         for _ in range(rounds):
             t = lo[:, None] + (hi - lo)[:, None] * u[None, :]
             v = np.asarray(self.values(polyval_each(C, t)))
             j = np.argmin(v, axis=1)
-            vj = v[ar, j]
-            tj = t[ar, j]
-            better = vj < best
-            best = np.where(better, vj, best)
-            arg = np.where(better, tj, arg)
-            step = (hi - lo) / (points - 1)
-            lo, hi = np.maximum(tj - step, lo), np.minimum(tj + step, hi)
+            best = v[ar, j]
+            arg = t[ar, j]
+            step = (hi - lo) * (1.0 / (points - 1))
+            lo, hi = np.maximum(arg - step, lo), np.minimum(arg + step, hi)
         assert t is not None and v is not None and j is not None
+        # (each round re-samples its best node: best never increases)
         # parabolic vertex through the best node of the last round and its neighbours
         jm = np.clip(j, 1, points - 2)
         x0, x1, x2 = t[ar, jm - 1], t[ar, jm], t[ar, jm + 1]
         f0, f1, f2 = v[ar, jm - 1], v[ar, jm], v[ar, jm + 1]
         with np.errstate(all="ignore"):
-            num = (x1 - x0) ** 2 * (f1 - f2) - (x1 - x2) ** 2 * (f1 - f0)
-            den = (x1 - x0) * (f1 - f2) - (x1 - x2) * (f1 - f0)
-            xv = x1 - 0.5 * num / den
-        ok = np.isfinite(xv) & (den != 0.0)
-        xv = np.clip(np.where(ok, xv, x1), x0, x2)
-        fv = np.asarray(self.values(polyval_each(C, xv[:, None])))[:, 0]
-        better = fv < best
-        best = np.where(better, fv, best)
-        arg = np.where(better, xv, arg)
-        return best, arg
+            d10, d12 = x1 - x0, x1 - x2
+            g12, g10 = f1 - f2, f1 - f0
+            den = d10 * g12 - d12 * g10
+            xv = x1 - 0.5 * (d10 * d10 * g12 - d12 * d12 * g10) / den
+        xv = np.clip(np.where(np.isfinite(xv), xv, x1), x0, x2)
+        pts = np.concatenate([xv, arg]) if detail else xv
+        Cp = np.concatenate([C, C]) if detail else C
+        res = self.values(polyval_each(Cp, pts[:, None]), detail=detail)
+        if not detail:
+            fv = np.asarray(res)[:, 0]
+            better = fv < best
+            return np.where(better, fv, best), np.where(better, xv, arg), None
+        fv2, jt, sd, ou = (np.asarray(r)[:, 0] for r in res)
+        better = fv2[:K] < fv2[K:]
+        sel = np.where(better, ar, ar + K)
+        return fv2[sel], pts[sel], (jt[sel], sd[sel], ou[sel])
 
     def linearised(self, margin: np.ndarray, joint: np.ndarray, side: np.ndarray,
                    outside: np.ndarray) -> np.ndarray:
@@ -748,6 +788,13 @@ class Region:
             crossing = best_tau
         return PathCheck(ok=False, margin=best_val, argmin_tau=best_tau,
                          first_crossing_tau=crossing)
+
+
+@functools.lru_cache(maxsize=32)
+def _unit_grid(points: int) -> np.ndarray:
+    g = np.linspace(0.0, 1.0, points)
+    g.flags.writeable = False
+    return g
 
 
 def _is_zero(x: Any) -> bool:

@@ -242,6 +242,8 @@ def _refine_zoom(family: PolynomialFamily, best: MemberEval, lo: float, hi: floa
     n = family.n
     nodes = screen.nodes
     taus = family.tau
+    dev = np.zeros((0, taus.size))
+    da = np.zeros(0)
     if restricted:
         # the samples where |th1 - line| can be largest between the neighbouring nodes
         nb = sorted({max(best_i - 1, 0), best_i, min(best_i + 1, nodes.size - 1)})
@@ -270,66 +272,80 @@ def _refine_zoom(family: PolynomialFamily, best: MemberEval, lo: float, hi: floa
         return np.where(np.isfinite(v_), v_, _BAD)
 
     P = ZOOM_MEMBERS if restricted else 17
-    a, b = lo, hi
-    bd, bv = best.dphi, np.inf
-    while b - a > XATOL:
-        ds = np.linspace(a, b, P)
-        v = scores(ds)
-        j = int(np.argmin(v))
-        if v[j] < bv:
-            bd, bv = float(ds[j]), float(v[j])
-        step = (b - a) / (P - 1)
-        a, b = max(lo, float(ds[j]) - step), min(hi, float(ds[j]) + step)
-    cand = _full_member(family, bd, objective, w)
     score = _score(objective, w)
-    if cand is not None and restricted and not score(cand)[1] <= bv + 1e-12 * max(1.0, abs(bv)):
-        cand = None          # the largest deviation left the samples followed
-    if cand is not None and objective != "weighted" and cand.t_p > tp_best:
-        cand = None
-    if cand is None:
-        # the shortcut did not hold: bounded Brent on fully evaluated members
-        return _refine_brent(family, best, lo, hi, objective, w)
-    return cand
+    for _ in range(4):
+        a, b = lo, hi
+        bd, bv = best.dphi, np.inf
+        while b - a > XATOL:
+            ds = np.linspace(a, b, P)
+            v = scores(ds)
+            j = int(np.argmin(v))
+            if v[j] < bv:
+                bd, bv = float(ds[j]), float(v[j])
+            step = (b - a) / (P - 1)
+            a, b = max(lo, float(ds[j]) - step), min(hi, float(ds[j]) + step)
+        cand, dev1 = _full_member(family, bd, objective, w)
+        if cand is not None and restricted and \
+                not score(cand)[1] <= bv + 1e-12 * max(1.0, abs(bv)):
+            # the largest deviation of the result lies away from the samples followed: follow
+            # its maxima too and zoom again
+            assert dev1 is not None
+            dev = np.vstack([dev, dev1])
+            da = np.append(da, cand.d_a)
+            taus = family.tau[_hot_samples(dev, da)]
+            continue
+        if cand is not None and objective != "weighted" and cand.t_p > tp_best:
+            break
+        if cand is not None:
+            return cand
+        break
+    # the shortcut did not hold: bounded Brent on fully evaluated members
+    return _refine_brent(family, best, lo, hi, objective, w)
 
 
 def _hot_samples(dev: np.ndarray, d_a: np.ndarray, gap: int = 150, pad: int = 8
                  ) -> np.ndarray:
     """Sample indices where ``|th1 - line|`` can be largest for members between the rows of
-    ``dev`` (neighbouring nodes): around the significant local maxima of every row (at least
-    half its largest deviation), maxima closer than ``gap`` samples joined into one range (a
-    maximum moves with dphi), widened by ``pad``; plus both ends (they define the line)."""
+    ``dev`` (members evaluated on all samples): the range swept by the rows' largest
+    deviations (it moves with dphi), and around the other significant local maxima of every
+    row (at least half its largest deviation; maxima closer than ``gap`` samples joined into
+    one range), widened by ``pad``; plus both ends (they define the line)."""
     G = dev.shape[1]
-    pos: list[int] = []
-    for row, top in zip(dev, d_a):
-        inner = np.nonzero((row[1:-1] >= row[:-2]) & (row[1:-1] >= row[2:])
-                           & (row[1:-1] >= 0.5 * top))[0] + 1
-        pos.extend(int(g) for g in inner)
-        pos.append(int(np.argmax(row)))
     sel = np.zeros(G, bool)
     sel[0] = sel[-1] = True
+    top = np.argmax(dev, axis=1)
+    sel[max(int(top.min()) - pad, 0):min(int(top.max()) + pad, G - 1) + 1] = True
+    pos: list[int] = []
+    for row, m in zip(dev, d_a):
+        inner = np.nonzero((row[1:-1] >= row[:-2]) & (row[1:-1] >= row[2:])
+                           & (row[1:-1] >= 0.5 * m))[0] + 1
+        pos.extend(int(g) for g in inner)
     pos.sort()
-    start = prev = pos[0]
-    for g in pos[1:] + [None]:  # type: ignore[list-item]
-        if g is not None and g - prev <= gap:
-            prev = g
-            continue
-        sel[max(start - pad, 0):min(prev + pad, G - 1) + 1] = True
-        if g is not None:
+    if pos:
+        start = prev = pos[0]
+        for g in pos[1:] + [-1]:
+            if g >= 0 and g - prev <= gap:
+                prev = g
+                continue
+            sel[max(start - pad, 0):min(prev + pad, G - 1) + 1] = True
             start = prev = g
     return np.nonzero(sel)[0]
 
 
 def _full_member(family: PolynomialFamily, dphi: float, objective: str, w: Weights
-                 ) -> MemberEval | None:
-    """A member evaluated on all samples and on the continuous path; None if not feasible."""
+                 ) -> tuple[MemberEval | None, np.ndarray | None]:
+    """A member evaluated on all samples and on the continuous path (None if not feasible),
+    and its ``|th1 - line|`` on the samples."""
     family.deadline_check("the objective search")
-    s = family.sample(np.array([dphi]), energy=objective == "weighted" and w.energy != 0.0)
+    s = family.sample(np.array([dphi]), energy=objective == "weighted" and w.energy != 0.0,
+                      keep_dev=True)
+    dev = s.dev[0] if s.dev is not None else None
     if not s.ok[0]:
-        return None
+        return None, dev
     ok, m = _confirm(family, dphi)
     if not ok:
-        return None
-    return _member(family, s, 0, m)
+        return None, dev
+    return _member(family, s, 0, m), dev
 
 
 def _refine_brent(family: PolynomialFamily, best: MemberEval, lo: float, hi: float,
@@ -364,7 +380,7 @@ def _refine_sensitivity(family: PolynomialFamily, best: MemberEval, lo: float, h
         return s.ok & (s.t_p <= tp_best)
 
     if passes(np.array([toward]))[0]:
-        e = _full_member(family, toward, "tp_then_sensitivity", Weights())
+        e = _full_member(family, toward, "tp_then_sensitivity", Weights())[0]
         if e is not None:
             return e
         return _bisect_sensitivity(family, best, toward)
@@ -379,7 +395,7 @@ def _refine_sensitivity(family: PolynomialFamily, best: MemberEval, lo: float, h
             good = float(ds[k - 1])
         if k < ds.size:
             bad = float(ds[k])
-    e = _full_member(family, good, "tp_then_sensitivity", Weights())
+    e = _full_member(family, good, "tp_then_sensitivity", Weights())[0]
     if e is not None and e.t_p <= tp_best:
         return e
     return _bisect_sensitivity(family, best, toward)
