@@ -24,7 +24,7 @@ from fastapi import Request
 from optimizer.errors import PlannerError
 from optimizer.problem import PlanRequest
 
-from .jobs import robot_from
+from .robot_spec import robot_from
 from .problems import ServiceProblem
 from .settings import Settings
 from .workers import JobTimeout, Overloaded, WorkerLost, WorkerPool

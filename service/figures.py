@@ -38,12 +38,10 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
+from .formats import FORMATS, KINDS
+
 __all__ = ["FORMATS", "KINDS", "joint_angles", "chained_state", "robustness", "sweep", "render"]
 
-#: Output format -> media type.
-FORMATS: dict[str, str] = {"png": "image/png", "svg": "image/svg+xml"}
-#: Figure kinds accepted by :func:`render`.
-KINDS = ("joint_angles", "chained_state", "robustness", "sweep")
 
 #: Width of every figure (inches) and PNG resolution: 9 in x 100 dpi = 900 px.
 WIDTH = 9.0

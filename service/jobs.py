@@ -13,6 +13,7 @@ never parses or re-encodes a large result in its event loop)::
 
 from __future__ import annotations
 
+import base64
 import logging
 import time
 from typing import Any, Callable
@@ -28,6 +29,7 @@ from optimizer.problem import PlanRequest
 from optimizer.results import json_safe
 
 from .encoding import finite_json
+from .robot_spec import robot_from
 
 log = logging.getLogger("service.worker")
 
@@ -49,16 +51,6 @@ def warm_up() -> dict[str, Any]:
     cf.from_chained(cf.to_chained(q))
     cf.symbolic.forward(q)
     return {"robot": robot.n, "seconds": time.perf_counter() - t0}
-
-
-def robot_from(spec: dict[str, Any] | None, n: int) -> Robot:
-    """The robot of a request: the given gains/exponents, else ``Robot.default(n)``.
-
-    Same rule as :meth:`optimizer.problem.PlanRequest.from_dict`.
-    """
-    if not spec or (spec.get("gains") is None and spec.get("exponents") is None):
-        return Robot.default(n)
-    return Robot(tuple(spec.get("gains") or ()), tuple(spec.get("exponents") or ()))
 
 
 def job_plan(payload: Payload) -> dict[str, Any]:
@@ -143,13 +135,6 @@ def run_job(kind: str, payload: Payload) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------- figures
-# Imported here (not lazily) so that the forkserver preloads matplotlib with this module and a
-# worker's first figure does not pay for the import.
-import base64  # noqa: E402
-
-from . import figures as _figures  # noqa: E402
-
-
 def job_figure(payload: Payload) -> dict[str, Any]:
     """``POST /v1/figures/{kind}``: compute the data exactly as the JSON routes do, then draw it.
 
@@ -158,11 +143,16 @@ def job_figure(payload: Payload) -> dict[str, Any]:
     ``chained_state``), of the ``sweep`` job (``sweep``) or of the ``robustness`` job
     (``robustness``; the runs' paths are always computed, they are what the figure draws).
 
+    matplotlib is imported here, by a worker's first figure (about 0.5 s, within the figure's
+    drawing allowance), not when the workers start: it would double their start time and add
+    some 40 MB to each of them.
+
     Returns
     -------
     dict
         ``figure``, ``format``, ``media_type`` and ``data`` (the image, base64).
     """
+    from . import figures as _figures
     kind, fmt, inner = payload["figure"], payload["format"], payload["request"]
     data: dict[str, Any]
     if kind in ("joint_angles", "chained_state"):

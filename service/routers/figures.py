@@ -26,7 +26,7 @@ from fastapi import APIRouter, Query, Request
 from starlette.responses import Response
 
 from ..dispatch import check_plan, run_job
-from ..figures import FORMATS
+from ..formats import FORMATS
 from ..problems import ServiceProblem
 from ..schemas import Schemas
 from . import ERROR_RESPONSES
