@@ -1,15 +1,16 @@
-"""``python -m service``: run the planning service with uvicorn on the configured host/port."""
+"""``python -m service``: run the planning service with uvicorn on the configured host/port.
+
+The workers' forkserver is started first, before the server imports its web stack, so that the
+solver modules load and warm up (:mod:`service.preload`) on another core while uvicorn and the
+app load here: the service is ready about as soon as the slower of the two is done.
+"""
 
 from __future__ import annotations
 
 import math
+import os
 import signal
 from types import FrameType
-
-import uvicorn
-
-from .logs import configure_logging
-from .settings import Settings
 
 
 def _exit_cleanly(signum: int, frame: FrameType | None) -> None:
@@ -23,11 +24,37 @@ def _exit_cleanly(signum: int, frame: FrameType | None) -> None:
     raise SystemExit(0)
 
 
+def start_forkserver() -> None:
+    """Start the workers' forkserver now (it imports :data:`service.workers.PRELOAD`).
+
+    Only with the ``forkserver`` start method (``PLANNER_START_METHOD``, the default); the pool
+    then uses this forkserver. Failing here is harmless: the pool starts it when it needs it.
+    """
+    if os.environ.get("PLANNER_START_METHOD", "forkserver") != "forkserver":
+        return
+    try:
+        import multiprocessing
+        from multiprocessing import forkserver
+
+        from .workers import PRELOAD
+
+        multiprocessing.get_context("forkserver").set_forkserver_preload(PRELOAD)
+        forkserver.ensure_running()
+    except Exception:  # noqa: BLE001 - an optimisation only
+        pass
+
+
 def main() -> None:
     """Read the settings from the environment, set up JSON logs and serve ``service.main:app``."""
+    signal.signal(signal.SIGTERM, _exit_cleanly)
+    start_forkserver()
+    import uvicorn
+
+    from .logs import configure_logging
+    from .settings import Settings
+
     settings = Settings()
     configure_logging(settings.log_level)
-    signal.signal(signal.SIGTERM, _exit_cleanly)
     uvicorn.run("service.main:app", host=settings.host, port=settings.port,
                 log_level=settings.log_level, log_config=None, access_log=False,
                 proxy_headers=True, server_header=False,

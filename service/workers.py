@@ -7,23 +7,32 @@ runs in a separate *process*, and a solve that overruns must be killed. A
 ``concurrent.futures.ProcessPoolExecutor`` cannot kill one task, so the pool is our own:
 
 * ``size`` worker processes, created with the ``forkserver`` (default) or ``spawn`` start
-  method, never a plain ``fork`` of the threaded server. Each worker is connected to the server
-  by **one duplex pipe** and runs :func:`_worker_main`: it warms up once (builds the default
-  robot's CasADi chained form, :func:`service.jobs.warm_up`), says ``ready``, then answers one
-  ``(kind, payload)`` message at a time with a plain dict (:func:`service.jobs.run_job`).
+  method, never a plain ``fork`` of the threaded server. The forkserver imports the solver
+  modules and warms up once (:data:`PRELOAD`: :mod:`service.preload` builds the default robot's
+  CasADi chained form), so that every worker it forks starts ready to plan; each worker is
+  connected to the server by **one duplex pipe** (a Unix socket pair) and runs
+  :func:`_worker_main`: it warms up (a no-op when the forkserver did), says ``ready``, then
+  answers one ``(kind, payload)`` message at a time with a plain dict
+  (:func:`service.jobs.run_job`; a result's JSON is encoded by the worker).
+* The server's end of each pipe is an asyncio transport (:class:`_PipeProtocol`): a job is
+  written to it without blocking and its answer is read by the event loop as it arrives, with
+  multiprocessing's framing (so the worker side is a plain blocking
+  :class:`multiprocessing.connection.Connection`). No helper thread per request: a thread
+  hand-off and its wake-ups cost more CPU than the whole HTTP request.
 * Idle workers sit in an ``asyncio.Queue``. A request takes one (waiting if none is idle),
-  sends its job and waits for the answer in a helper thread (``loop.run_in_executor``:
-  ``conn.poll(limit)`` then ``conn.recv()``), so the event loop never blocks.
-* **Time limit**: the helper thread polls at most ``limit`` seconds (the router passes
-  ``time_limit`` plus most of the grace, see :data:`service.dispatch.ANSWER_MARGIN`). On overrun
-  it SIGKILLs that worker at once, the request is answered ``timeout`` (504) without waiting for
-  the process to be reaped, and a replacement process is started in the background; it joins
-  the idle queue once warmed up. A worker that dies (crash, OOM kill) is replaced the same way
-  (``numerical_failure``).
+  sends its job and awaits a future that the pipe's protocol resolves.
+* **Time limit**: each job arms a timer of ``limit`` seconds (the router passes ``time_limit``
+  plus most of the grace, see :data:`service.dispatch.ANSWER_MARGIN`). When it fires, that
+  worker is SIGKILLed at once, the request is answered ``timeout`` (504) without waiting for the
+  process to be reaped (a helper thread reaps it), and a replacement process is started in the
+  background; it joins the idle queue once ready. A worker whose pipe closes (crash, OOM kill)
+  is replaced the same way (``numerical_failure`` for its job, if it had one; an idle worker
+  that dies is replaced before any request can take it).
 * **Bounded queue**: at most ``queue_size`` requests may wait for a worker; the next one is
   refused at once with :class:`Overloaded` (503 ``overloaded`` with ``Retry-After``).
 * A request whose client goes away does not leak its worker: the worker is returned (or
-  replaced) by a callback on the helper thread's future, never by the request's coroutine.
+  replaced) by the pipe's protocol or the timer when the job ends, never by the request's
+  coroutine.
 """
 
 from __future__ import annotations
@@ -31,18 +40,23 @@ from __future__ import annotations
 import asyncio
 import logging
 import multiprocessing
+import os
+import pickle
 import signal
+import socket
+import struct
 import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any, Callable
 
 log = logging.getLogger("service.workers")
 
-#: Modules a forkserver imports once, so that every forked worker starts with them loaded.
-PRELOAD = ["service.jobs"]
+#: Modules a forkserver imports once, so that every forked worker starts with them loaded (and
+#: warmed up: :mod:`service.preload`).
+PRELOAD = ["service.preload"]
 
 
 class PoolError(Exception):
@@ -98,68 +112,155 @@ def _worker_main(conn: Connection, warmup: bool, log_level: str) -> None:
 
 
 # ---------------------------------------------------------------------------- server side
-@dataclass(eq=False)
+_HEADER = struct.Struct("!i")
+_LONG_HEADER = struct.Struct("!Q")
+
+
+def _frame(message: Any) -> list[bytes]:
+    """``message`` pickled, with the length header of :class:`multiprocessing.connection`."""
+    data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+    n = len(data)
+    if n > 0x7FFFFFFF:
+        return [_HEADER.pack(-1) + _LONG_HEADER.pack(n), data]
+    return [_HEADER.pack(n), data]
+
+
+class _PipeProtocol(asyncio.Protocol):
+    """The server's end of a worker's pipe: unframes and unpickles the worker's messages."""
+
+    def __init__(self, worker: "_Worker") -> None:
+        self.worker = worker
+        self.buffer = bytearray()
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.worker.transport = transport  # type: ignore[assignment]
+
+    def data_received(self, data: bytes) -> None:
+        buf = self.buffer
+        buf += data
+        while True:
+            n = len(buf)
+            if n < 4:
+                return
+            (size,) = _HEADER.unpack_from(buf)
+            start = 4
+            if size == -1:
+                if n < 12:
+                    return
+                (size,) = _LONG_HEADER.unpack_from(buf, 4)
+                start = 12
+            end = start + size
+            if n < end:
+                return
+            try:
+                message = pickle.loads(buf[start:end])
+            except Exception:  # noqa: BLE001 - a garbled pipe: treat the worker as lost
+                log.exception("unreadable message from worker %s", self.worker.ident)
+                self.worker.retire()
+                self.worker.on_lost()
+                return
+            del buf[:end]
+            self.worker.on_message(message)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.worker.on_lost()
+
+
 class _Worker:
-    """One worker process and the server's end of its pipe."""
+    """One worker process, the server's end of its pipe and the job it runs (if any).
 
-    process: Any
-    conn: Connection
-    ident: int
-    ready_info: dict[str, Any] = field(default_factory=dict)
+    At most one job (or the wait for ``ready``) is outstanding: :meth:`begin` sends it and arms
+    its timer; exactly one of the answer (:meth:`on_message`), the timer (:meth:`_on_timeout`)
+    or the pipe closing (:meth:`on_lost`) ends it, resolving the request's future (unless the
+    request went away) and calling ``on_end(worker, exc)``.
+    """
 
-    def wait_ready(self, timeout: float) -> None:
-        """Block until the worker has warmed up (runs in a helper thread)."""
-        if not self.conn.poll(timeout):
-            self.kill()
-            raise WorkerLost(f"worker {self.ident} did not start within {timeout:g} s")
-        try:
-            tag, info = self.conn.recv()
-        except (EOFError, OSError) as exc:
-            self.kill()
-            raise WorkerLost(f"worker {self.ident} ended while starting") from exc
-        self.ready_info = info
+    def __init__(self, process: Any, ident: int) -> None:
+        self.process = process
+        self.ident = ident
+        self.transport: asyncio.Transport | None = None
+        self.ready_info: dict[str, Any] = {}
+        self.dead = False      # its pipe closed
+        self.retired = False   # taken out of the pool (killed or stopped)
+        self.on_idle_lost: Callable[[_Worker], None] | None = None
+        self._future: asyncio.Future[Any] | None = None
+        self._timer: asyncio.TimerHandle | None = None
+        self._on_end: Callable[[_Worker, BaseException | None], None] | None = None
+        self._limit = 0.0
 
-    def call(self, message: tuple[str, dict[str, Any]], limit: float) -> dict[str, Any]:
-        """Send one job and wait at most ``limit`` s for its answer (runs in a helper thread).
+    @property
+    def busy(self) -> bool:
+        return self._future is not None
 
-        Raises
-        ------
-        JobTimeout
-            No answer in time; the process has been killed.
-        WorkerLost
-            The process ended before answering.
-        """
-        try:
-            self.conn.send(message)
-            if not self.conn.poll(limit):
-                # SIGKILL at once and answer; the process is reaped later (:meth:`kill`), so
-                # that the answer does not wait for the kernel to tear the process down
-                if self.process.is_alive():
-                    self.process.kill()
-                raise JobTimeout(limit)
-            return self.conn.recv()
-        except (EOFError, OSError, BrokenPipeError) as exc:
-            self.kill()
-            raise WorkerLost(f"worker {self.ident} ended unexpectedly") from exc
+    def begin(self, message: Any, limit: float,
+              on_end: Callable[["_Worker", BaseException | None], None] | None = None,
+              ) -> asyncio.Future[Any]:
+        """Send ``message`` (unless None) and expect one answer within ``limit`` s."""
+        if self.dead or self.retired or (message is not None and self.transport is None):
+            raise WorkerLost(f"worker {self.ident} ended unexpectedly")
+        frame = _frame(message) if message is not None else None
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[Any] = loop.create_future()
+        self._future, self._on_end, self._limit = future, on_end, limit
+        self._timer = loop.call_later(limit, self._on_timeout)
+        if frame is not None and self.transport is not None:
+            self.transport.writelines(frame)
+        return future
 
-    def stop(self, timeout: float = 2.0) -> None:
-        """Ask the worker to exit; kill it if it does not within ``timeout``."""
-        try:
-            self.conn.send(None)
-        except (OSError, ValueError):
-            pass
-        self.process.join(timeout)
-        self.kill()
+    def _end(self, result: Any = None, exc: BaseException | None = None) -> None:
+        future, on_end, timer = self._future, self._on_end, self._timer
+        self._future = self._on_end = self._timer = None
+        if timer is not None:
+            timer.cancel()
+        if future is not None and not future.done():
+            if exc is not None:
+                future.set_exception(exc)
+            else:
+                future.set_result(result)
+        if on_end is not None:
+            on_end(self, exc)
 
-    def kill(self) -> None:
-        """SIGKILL the process (if alive), reap it and close the pipe."""
+    def on_message(self, message: Any) -> None:
+        if self._future is None:  # nothing expected (cannot happen: one job at a time)
+            log.warning("unexpected message from worker %s", self.ident)
+            return
+        self._end(result=message)
+
+    def _on_timeout(self) -> None:
+        # SIGKILL at once and answer; the process is reaped later (:meth:`reap`), so that the
+        # answer does not wait for the kernel to tear the process down
+        self.retire()
+        self._end(exc=JobTimeout(self._limit))
+
+    def on_lost(self) -> None:
+        if self.dead:
+            return
+        self.dead = True
+        if self._future is not None:
+            self._end(exc=WorkerLost(f"worker {self.ident} ended unexpectedly"))
+        elif not self.retired and self.on_idle_lost is not None:
+            self.on_idle_lost(self)
+
+    def retire(self) -> None:
+        """SIGKILL the process (if alive) and close the pipe, without waiting."""
+        self.retired = True
         if self.process.is_alive():
             self.process.kill()
-        self.process.join(5.0)
-        try:
-            self.conn.close()
-        except OSError:
-            pass
+        if self.transport is not None:
+            self.transport.abort()
+
+    def send_stop(self) -> None:
+        """Ask the worker to exit (it finishes nothing: call only when it is idle)."""
+        self.retired = True
+        if self.transport is not None and not self.dead:
+            self.transport.writelines(_frame(None))
+
+    def reap(self, timeout: float = 5.0) -> None:
+        """Wait for the process to end, SIGKILL it after ``timeout`` s (in a helper thread)."""
+        self.process.join(timeout)
+        if self.process.is_alive():
+            self.process.kill()
+            self.process.join(5.0)
 
 
 @dataclass(frozen=True)
@@ -209,7 +310,8 @@ class WorkerPool:
         self._ctx: Any = multiprocessing.get_context(start_method)
         if start_method == "forkserver":
             self._ctx.set_forkserver_preload(PRELOAD)
-        self._threads = ThreadPoolExecutor(max_workers=2 * size + 2,
+        # process starts (the first one waits for the forkserver's imports) and reaping only
+        self._threads = ThreadPoolExecutor(max_workers=size + 2,
                                            thread_name_prefix="planner-pool")
         self._idle: asyncio.Queue[_Worker] | None = None
         self._all: set[_Worker] = set()
@@ -225,9 +327,9 @@ class WorkerPool:
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
-        """Start the workers; return at once (they warm up in the background).
+        """Start the workers; return at once (they start in the background).
 
-        :attr:`ready` turns True when the initial workers have warmed up.
+        :attr:`ready` turns True when the initial workers are ready to plan.
         """
         self._idle = asyncio.Queue()
         self._started = True
@@ -257,9 +359,17 @@ class WorkerPool:
         with self._lock:
             workers = list(self._all)
             self._all.clear()
+        for w in workers:
+            if w.busy:
+                w.retire()
+            else:
+                w.send_stop()
         if workers:
-            await asyncio.gather(*(loop.run_in_executor(self._threads, w.stop)
+            await asyncio.gather(*(loop.run_in_executor(self._threads, w.reap, 2.0)
                                    for w in workers), return_exceptions=True)
+        for w in workers:
+            if w.transport is not None:
+                w.transport.abort()
         self._threads.shutdown(wait=False, cancel_futures=True)
 
     def stats(self) -> PoolStats:
@@ -304,17 +414,20 @@ class WorkerPool:
             self.release(1)
             if self._idle is None or self._closing:
                 raise Overloaded("the worker pool is not running")
-        assert self._idle is not None
-        self._waiting += 1
-        try:
-            worker = await self._idle.get()
-        finally:
-            self._waiting -= 1
-        loop = asyncio.get_running_loop()
-        fut: Future[dict[str, Any]] = self._threads.submit(worker.call, (kind, payload), limit)
-        fut.add_done_callback(
-            lambda f: loop.call_soon_threadsafe(self._finished, worker, f))
-        return await asyncio.wrap_future(fut)
+        idle = self._idle
+        assert idle is not None
+        while True:
+            if idle.empty():
+                self._waiting += 1
+                try:
+                    worker = await idle.get()
+                finally:
+                    self._waiting -= 1
+            else:
+                worker = idle.get_nowait()
+            if not (worker.dead or worker.retired):
+                break  # (a worker that died idle is being replaced: take the next)
+        return await worker.begin((kind, payload), limit, self._finished)  # type: ignore[no-any-return]
 
     def admit(self, reserve: int = 0) -> None:
         """Raise :class:`Overloaded` when a new request would exceed the queue bound.
@@ -341,24 +454,33 @@ class WorkerPool:
         self._reserved = max(self._reserved - count, 0)
 
     # ------------------------------------------------------------------ internals
-    def _finished(self, worker: _Worker, fut: Future[dict[str, Any]]) -> None:
+    def _finished(self, worker: _Worker, exc: BaseException | None) -> None:
         """Return the worker to the idle queue, or replace it if it was killed or died."""
-        exc = None if fut.cancelled() else fut.exception()
         if self._closing:
             return
         if isinstance(exc, (JobTimeout, WorkerLost)):
-            reason = "timeout" if isinstance(exc, JobTimeout) else "lost"
-            log.warning("replacing worker %s (%s)", worker.ident, reason)
-            with self._lock:
-                self._all.discard(worker)
-            self._threads.submit(worker.kill)  # reap it and close its pipe
-            self._restarts += 1
-            if self.on_restart is not None:
-                self.on_restart(reason)
-            self._spawn_task(self._replace())
+            self._replace_worker(worker, "timeout" if isinstance(exc, JobTimeout) else "lost")
+        elif worker.dead or worker.retired:
+            self._replace_worker(worker, "lost")
         else:
             assert self._idle is not None
             self._idle.put_nowait(worker)
+
+    def _idle_lost(self, worker: _Worker) -> None:
+        """A worker died while idle (OOM kill, an operator): replace it at once."""
+        if not self._closing:
+            self._replace_worker(worker, "lost")
+
+    def _replace_worker(self, worker: _Worker, reason: str) -> None:
+        log.warning("replacing worker %s (%s)", worker.ident, reason)
+        with self._lock:
+            self._all.discard(worker)
+        worker.retire()
+        self._threads.submit(worker.reap)  # reap the process in the background
+        self._restarts += 1
+        if self.on_restart is not None:
+            self.on_restart(reason)
+        self._spawn_task(self._replace())
 
     async def _replace(self, attempts: int = 3) -> None:
         """Start a replacement worker, retrying a failed start a few times."""
@@ -372,23 +494,38 @@ class WorkerPool:
 
     async def _start_worker(self) -> _Worker:
         loop = asyncio.get_running_loop()
-        worker = await loop.run_in_executor(self._threads, self._new_process)
+        worker, sock = await loop.run_in_executor(self._threads, self._new_process)
+        ready = worker.begin(None, self.start_timeout)  # before its message can arrive
+        try:
+            await loop.connect_accepted_socket(lambda: _PipeProtocol(worker), sock)
+        except BaseException:
+            sock.close()
+            worker.retire()
+            ready.cancel()
+            self._threads.submit(worker.reap)
+            raise
         with self._lock:
             self._all.add(worker)
         try:
-            await loop.run_in_executor(self._threads, worker.wait_ready, self.start_timeout)
-        except WorkerLost:
+            tag, info = await ready
+        except (JobTimeout, WorkerLost):
             with self._lock:
                 self._all.discard(worker)
-            raise
+            worker.retire()
+            self._threads.submit(worker.reap)
+            raise WorkerLost(f"worker {worker.ident} did not start within "
+                             f"{self.start_timeout:g} s or ended while starting") from None
+        worker.ready_info = info
         if self._closing:
             return worker
+        worker.on_idle_lost = self._idle_lost
         log.info("worker %s ready", worker.ident, extra={"warmup": worker.ready_info})
         assert self._idle is not None
         self._idle.put_nowait(worker)
         return worker
 
-    def _new_process(self) -> _Worker:
+    def _new_process(self) -> tuple[_Worker, socket.socket]:
+        """Start a worker process (blocking: runs in a helper thread); its pipe's socket."""
         ours, theirs = self._ctx.Pipe(duplex=True)
         with self._lock:
             ident = self._next_ident
@@ -396,10 +533,22 @@ class WorkerPool:
         proc = self._ctx.Process(target=_worker_main, args=(theirs, self.warmup, self.log_level),
                                  name=f"planner-worker-{ident}", daemon=True)
         t0 = time.perf_counter()
-        proc.start()
-        theirs.close()
+        try:
+            proc.start()
+        finally:
+            theirs.close()
+        try:
+            # a duplex Pipe is a Unix socket pair: our end becomes an asyncio transport
+            sock = socket.socket(fileno=os.dup(ours.fileno()))
+            sock.setblocking(False)
+        except BaseException:
+            proc.kill()
+            proc.join(5.0)
+            raise
+        finally:
+            ours.close()
         log.debug("worker %s started in %.3f s", ident, time.perf_counter() - t0)
-        return _Worker(process=proc, conn=ours, ident=ident)
+        return _Worker(process=proc, ident=ident), sock
 
     def _spawn_task(self, coro: Any) -> None:
         task = asyncio.ensure_future(coro)

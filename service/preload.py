@@ -1,0 +1,20 @@
+"""Imported once by the workers' forkserver (:data:`service.workers.PRELOAD`): the solver
+modules, then the warm-up (the default robot's CasADi chained form), so that every worker forked
+from it starts ready to plan, replacements included.
+
+matplotlib is not imported here: figures import it on first use (:func:`service.jobs.job_figure`),
+which keeps the start fast and the workers small.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from . import jobs, workers  # noqa: F401 - loaded once for every forked worker
+
+try:
+    WARMUP: dict = jobs.warm_up()
+except Exception as exc:  # noqa: BLE001 - an optimisation only; each worker warms up again
+    WARMUP = {"warmup_error": type(exc).__name__}
+    logging.getLogger("service.worker").warning("forkserver warm-up failed: %s",
+                                                type(exc).__name__)
