@@ -13,26 +13,42 @@ import sys
 import time
 from typing import Any
 
+try:
+    import orjson
+except ImportError:  # pragma: no cover - a declared dependency
+    orjson = None  # type: ignore[assignment]
+
 #: LogRecord attributes that are not user ``extra`` fields.
-_STANDARD = set(vars(logging.LogRecord("", 0, "", 0, "", (), None))) | {"message", "asctime"}
+_STANDARD = frozenset(vars(logging.LogRecord("", 0, "", 0, "", (), None))) | {"message", "asctime"}
 
 
 class JSONFormatter(logging.Formatter):
     """Format a record as one line of JSON."""
 
+    _second = -1
+    _stamp = ""
+
     def format(self, record: logging.LogRecord) -> str:
+        second = int(record.created)
+        if second != self._second:  # one strftime per second, not per line
+            self._stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(second))
+            self._second = second
         out: dict[str, Any] = {
-            "ts": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created))
-            + f".{int(record.msecs):03d}Z",
+            "ts": f"{self._stamp}.{int(record.msecs):03d}Z",
             "level": record.levelname.lower(),
             "logger": record.name,
             "message": record.getMessage(),
         }
-        for key, value in vars(record).items():
-            if key not in _STANDARD and not key.startswith("_") and key != "color_message":
+        for key, value in record.__dict__.items():
+            if key not in _STANDARD and key[:1] != "_" and key != "color_message":
                 out[key] = value  # (uvicorn's color_message repeats message with ANSI codes)
         if record.exc_info:
             out["exception"] = self.formatException(record.exc_info)
+        if orjson is not None:
+            try:
+                return orjson.dumps(out, default=str).decode("utf-8")
+            except (TypeError, ValueError):
+                pass
         return json.dumps(out, default=str)
 
 

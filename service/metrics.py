@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client import CONTENT_TYPE_LATEST
@@ -44,6 +44,9 @@ class Metrics:
         self.waiting = Gauge("planner_queue_waiting", "Requests waiting for a worker.",
                              registry=self.registry)
         self._pool_stats = pool_stats
+        # the labelled children, looked up once (``labels()`` costs more than the update)
+        self._request_children: dict[tuple[str, str, int], tuple[Any, Any]] = {}
+        self._solve_children: dict[tuple[str, str, str], Any] = {}
 
     def bind_pool(self, pool_stats: Callable[[], PoolStats]) -> None:
         """Read the pool gauges from ``pool_stats`` at each scrape."""
@@ -51,13 +54,22 @@ class Metrics:
 
     def observe_request(self, route: str, method: str, status: int, seconds: float) -> None:
         """Count one HTTP request and its latency."""
-        labels = (route, method, str(status))
-        self.requests.labels(*labels).inc()
-        self.latency.labels(*labels).observe(seconds)
+        key = (route, method, status)
+        children = self._request_children.get(key)
+        if children is None:  # (labels are bounded: route templates, methods, statuses)
+            labels = (route, method, str(status))
+            children = (self.requests.labels(*labels), self.latency.labels(*labels))
+            self._request_children[key] = children
+        children[0].inc()
+        children[1].observe(seconds)
 
     def observe_solve(self, job: str, method: str, outcome: str, seconds: float) -> None:
         """Record one job's time on a worker."""
-        self.solve.labels(job, method, outcome).observe(seconds)
+        key = (job, method, outcome)
+        child = self._solve_children.get(key)
+        if child is None:
+            child = self._solve_children[key] = self.solve.labels(job, method, outcome)
+        child.observe(seconds)
 
     def render(self) -> bytes:
         """The text exposition format."""
