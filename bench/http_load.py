@@ -1,36 +1,59 @@
-"""The HTTP service under load: cold start, latency and throughput, worker memory.
+"""The HTTP service under load: cold start, latency and throughput, server CPU, worker memory.
 
-The service (``service.main:app``) is started with uvicorn as a subprocess on 127.0.0.1 and a
-free port, with its default settings (``PLANNER_*`` environment variables are passed through;
-``PLANNER_HOST``/``PLANNER_PORT`` are set to match). Then:
+``python -m bench.http_load [--seconds 10] [--clients 1,8,32] [--jobs plan:polynomial,...]``
+(``python -m bench`` runs the same measurements as part of the whole benchmark).
+
+The service is started as it is deployed, ``python -m service`` (uvicorn, the JSON access log
+on, default settings; ``PLANNER_*`` environment variables are passed through and
+``PLANNER_HOST``/``PLANNER_PORT`` set to 127.0.0.1 and a free port), as a subprocess. Then:
 
 * **cold start**: from just before the process is spawned to ``GET /readyz`` answering 200,
   and to the first successful ``POST /v1/plans``;
-* **load**: for each method and each number of concurrent clients, that many httpx clients
-  (one asyncio loop in this process, keep-alive connections) post the same plan request in a
-  closed loop for a bounded time. Throughput counts the successful answers received within the
-  window; latencies are of every answer received (requests still unanswered ``drain`` seconds
-  after the window are cancelled and counted as ``unfinished``; when there are such requests,
-  the percentiles are those of the answered ones only, a lower bound). Between two levels the
-  bench waits until ``/readyz`` reports no busy or waiting worker;
+* **load**: for each job and each number of concurrent clients, that many clients (one asyncio
+  loop in this process, uvloop when installed, one keep-alive HTTP/1.1 connection each, a
+  minimal client written on asyncio streams: httpx spends about 1 ms of CPU per request, which
+  on two cores would be taken from the server) send requests in a closed loop for a bounded
+  time. Jobs:
+
+  ``plan:<method>``
+      ``POST /v1/plans`` with the paper-type goal [30, 30, 30] deg from a start drawn anew for
+      every request, uniformly within +-2 deg of [10, 10, 10] deg on every joint (every such
+      start is planned; no two requests are alike, so no cache could help), default samples;
+      a 200 must carry ``"status":"success"``.
+  ``transform``
+      ``POST /v1/transforms`` of one random point: a trivial job through the worker pool
+      (validation, dispatch, worker round trip, encoding), the service's own overhead.
+  ``robot``
+      ``GET /v1/robots/default``: answered in the event loop (middleware, routing, encoding).
+
+  Throughput counts the successful answers received within the window; latencies are of
+  every answer received (requests still unanswered ``drain`` seconds after the window are
+  cancelled and counted as ``unfinished``; the percentiles are then a lower bound). Between two
+  levels the bench waits until ``/readyz`` reports no busy or waiting worker;
+* **CPU**: during each window, the CPU seconds of this load generator, of the server's event-loop
+  process and of its workers (psutil), per answered request; the event loop's share is the
+  service's per-request overhead outside the job;
 * **memory**: resident set size (RSS) and unique set size (USS) of every process of the server's
   tree (psutil), idle after start and after the load.
 
-The load generator shares the machine's CPUs with the server.
+The load generator shares the machine's CPUs with the server; its CPU share is reported.
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
+import json
 import math
 import os
+import random
 import socket
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -38,14 +61,19 @@ from .stats import summarise
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: The paper-type goal of the HTTP measurements (deg).
+#: The paper-type goal of the HTTP measurements (deg); starts are drawn around HTTP_START_DEG.
 HTTP_START_DEG = (10.0, 10.0, 10.0)
 HTTP_GOAL_DEG = (30.0, 30.0, 30.0)
+#: Half-width (deg) of the uniform draw of each start angle around HTTP_START_DEG.
+START_SPREAD_DEG = 2.0
+
+#: Request factories: rng -> (method, path, body or None, check of a 200 body).
+Job = Callable[[random.Random], tuple[str, str, "bytes | None"]]
 
 
 def available() -> tuple[bool, str]:
     """Whether ``service.main:app`` imports and builds; the reason when not."""
-    for mod in ("httpx", "psutil", "uvicorn"):
+    for mod in ("psutil", "uvicorn"):
         try:
             __import__(mod)
         except Exception as exc:  # noqa: BLE001 - the reason is the result
@@ -69,14 +97,124 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def plan_body(method: str) -> dict[str, Any]:
-    """The JSON body of the paper-type plan request (radians)."""
-    return {"start": [math.radians(x) for x in HTTP_START_DEG],
+def plan_body(method: str, rng: random.Random | None = None) -> dict[str, Any]:
+    """The JSON body of a paper-type plan request (radians).
+
+    With ``rng``, every start angle is drawn uniformly within ``START_SPREAD_DEG`` of
+    ``HTTP_START_DEG``; without, the start is ``HTTP_START_DEG``.
+    """
+    start = [x + (rng.uniform(-START_SPREAD_DEG, START_SPREAD_DEG) if rng else 0.0)
+             for x in HTTP_START_DEG]
+    return {"start": [math.radians(x) for x in start],
             "goal": [math.radians(x) for x in HTTP_GOAL_DEG], "method": method}
 
 
+def job(name: str) -> tuple[Job, bytes | None]:
+    """The request factory of a job name and the marker a 200 body must contain (or None)."""
+    if name.startswith("plan:"):
+        method = name.split(":", 1)[1]
+        return (lambda rng: ("POST", "/v1/plans",
+                             json.dumps(plan_body(method, rng)).encode())), b'"status":"success"'
+    if name == "transform":
+        return (lambda rng: ("POST", "/v1/transforms", json.dumps({
+            "direction": "to_chained",
+            "points": [[rng.uniform(-1, 1)] + [rng.uniform(0.05, 1.5) for _ in range(3)]]}
+        ).encode())), b'"valid":'
+    if name == "robot":
+        return (lambda rng: ("GET", f"/v1/robots/default?n={rng.randint(3, 8)}", None)), \
+            b'"gains":'
+    raise ValueError(f"unknown job {name!r} (plan:<method>, transform, robot)")
+
+
+# ---------------------------------------------------------------------------- minimal client
+class HTTPError(Exception):
+    """A transport-level failure of :class:`Connection`."""
+
+
+class Connection:
+    """One keep-alive HTTP/1.1 connection on asyncio streams (just enough for this service).
+
+    Requests carry ``Content-Length``; answers are read by ``Content-Length`` (or chunked).
+    """
+
+    def __init__(self, host: str, port: int) -> None:
+        self.host, self.port = host, port
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+
+    async def _connect(self) -> None:
+        self.reader, self.writer = await asyncio.open_connection(self.host, self.port)
+        sock = self.writer.get_extra_info("socket")
+        if sock is not None:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        self.reader = self.writer = None
+
+    async def request(self, method: str, path: str, body: bytes | None = None,
+                      headers: dict[str, str] | None = None) -> tuple[int, bytes]:
+        """Send one request; ``(status, body)`` of the answer."""
+        if self.writer is None:
+            await self._connect()
+        assert self.reader is not None and self.writer is not None
+        head = f"{method} {path} HTTP/1.1\r\nHost: {self.host}:{self.port}\r\n"
+        if body is not None:
+            head += f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n"
+        for k, v in (headers or {}).items():
+            head += f"{k}: {v}\r\n"
+        try:
+            self.writer.write(head.encode("latin-1") + b"\r\n" + (body or b""))
+            raw = await self.reader.readuntil(b"\r\n\r\n")
+            lines = raw.split(b"\r\n")
+            status = int(lines[0].split(b" ", 2)[1])
+            length, chunked, close = -1, False, False
+            for line in lines[1:]:
+                name, _, value = line.partition(b":")
+                name = name.strip().lower()
+                if name == b"content-length":
+                    length = int(value)
+                elif name == b"transfer-encoding":
+                    chunked = b"chunked" in value.lower()
+                elif name == b"connection":
+                    close = b"close" in value.lower()
+            if chunked:
+                parts = []
+                while True:
+                    size = int((await self.reader.readuntil(b"\r\n")).split(b";")[0], 16)
+                    parts.append(await self.reader.readexactly(size + 2))
+                    if size == 0:
+                        break
+                data = b"".join(p[:-2] for p in parts)
+            elif length >= 0:
+                data = await self.reader.readexactly(length)
+            else:
+                data = await self.reader.read()
+                close = True
+        except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError,
+                ValueError, IndexError) as exc:
+            self.close()
+            raise HTTPError(f"{type(exc).__name__}: {exc}") from exc
+        if close:
+            self.close()
+        return status, data
+
+
+async def get_json(url: str, path: str, timeout: float = 5.0) -> tuple[int, Any]:
+    """One GET on a new connection: ``(status, parsed JSON body)``."""
+    host, port = url.split("//", 1)[1].split(":")
+    conn = Connection(host, int(port))
+    try:
+        status, data = await asyncio.wait_for(conn.request("GET", path), timeout)
+    finally:
+        conn.close()
+    return status, json.loads(data)
+
+
+# ---------------------------------------------------------------------------- the server
 class Server:
-    """The service under uvicorn in a subprocess.
+    """The service (``python -m service``) in a subprocess.
 
     Parameters
     ----------
@@ -97,9 +235,8 @@ class Server:
         self.t_spawn = math.nan
 
     def start(self) -> None:
-        """Spawn uvicorn (time origin of the cold start)."""
-        cmd = [sys.executable, "-m", "uvicorn", "service.main:app", "--host", "127.0.0.1",
-               "--port", str(self.port), "--no-access-log"]
+        """Spawn the service (time origin of the cold start)."""
+        cmd = [sys.executable, "-m", "service"]
         self.t_spawn = time.perf_counter()
         self.proc = subprocess.Popen(cmd, cwd=ROOT, env=self.env, stdout=self.log,
                                      stderr=subprocess.STDOUT)
@@ -113,9 +250,9 @@ class Server:
         return " | ".join(text.strip().splitlines()[-lines:])
 
     def stop(self, timeout: float = 5.0) -> float:
-        """SIGTERM uvicorn (it stops its worker pool); after ``timeout`` s SIGKILL it and every
-        process of its tree (by pid). Returns the seconds the graceful stop took (NaN when it
-        had to be killed)."""
+        """SIGTERM the service (it stops its worker pool); after ``timeout`` s SIGKILL it and
+        every process of its tree (by pid). Returns the seconds the graceful stop took (NaN when
+        it had to be killed)."""
         import psutil
         if self.proc is None:
             return math.nan
@@ -149,18 +286,16 @@ class Server:
             pass
         return graceful
 
-    def memory(self) -> list[dict[str, Any]]:
-        """RSS and USS (MB) of every process of the server's tree, with its role."""
+    def _tree(self) -> list[tuple[Any, str]]:
+        """``(psutil.Process, role)`` of every process of the server's tree."""
         import psutil
         if self.proc is None:
             return []
         root = psutil.Process(self.proc.pid)
-        procs = [root] + root.children(recursive=True)
         out = []
-        for p in procs:
+        for p in [root] + root.children(recursive=True):
             try:
                 cmd = " ".join(p.cmdline())
-                info = p.memory_full_info()
                 parent = p.ppid()
             except psutil.Error:
                 continue
@@ -173,17 +308,44 @@ class Server:
                 role = "forkserver"
             else:
                 role = "worker"
-            out.append({"pid": p.pid, "ppid": parent, "role": role,
-                        "rss_mb": info.rss / 2 ** 20, "uss_mb": info.uss / 2 ** 20})
+            out.append((p, role))
+        return out
+
+    def memory(self) -> list[dict[str, Any]]:
+        """RSS and USS (MB) of every process of the server's tree, with its role."""
+        import psutil
+        out = []
+        for p, role in self._tree():
+            try:
+                info = p.memory_full_info()
+                out.append({"pid": p.pid, "ppid": p.ppid(), "role": role,
+                            "rss_mb": info.rss / 2 ** 20, "uss_mb": info.uss / 2 ** 20})
+            except psutil.Error:
+                continue
+        return out
+
+    def cpu(self) -> dict[str, float]:
+        """CPU seconds (user + system) so far of the event-loop process and of the workers."""
+        import psutil
+        out = {"server": 0.0, "workers": 0.0}
+        for p, role in self._tree():
+            try:
+                t = p.cpu_times()
+            except psutil.Error:
+                continue
+            key = "server" if role.startswith("uvicorn") else "workers" if role == "worker" \
+                else None
+            if key:
+                out[key] += t.user + t.system
         return out
 
 
-async def _wait_ready(client: Any, url: str, deadline: float) -> float:
+async def _wait_ready(url: str, deadline: float) -> float:
     """Poll ``/readyz`` until 200; the ``perf_counter`` time it answered."""
     while time.perf_counter() < deadline:
         try:
-            r = await client.get(url + "/readyz", timeout=2.0)
-            if r.status_code == 200:
+            status, _ = await get_json(url, "/readyz", 2.0)
+            if status == 200:
                 return time.perf_counter()
         except Exception:  # noqa: BLE001 - not up yet
             pass
@@ -191,111 +353,150 @@ async def _wait_ready(client: Any, url: str, deadline: float) -> float:
     raise TimeoutError("the service did not become ready")
 
 
-async def _first_plan(client: Any, url: str, body: dict[str, Any], deadline: float) -> float:
+async def _first_plan(url: str, body: bytes, deadline: float) -> float:
     """Post until a plan succeeds; the ``perf_counter`` time it did."""
     last = ""
+    host, port = url.split("//", 1)[1].split(":")
     while time.perf_counter() < deadline:
+        conn = Connection(host, int(port))
         try:
-            r = await client.post(url + "/v1/plans", json=body, timeout=60.0)
-            if r.status_code == 200:
+            status, data = await asyncio.wait_for(conn.request("POST", "/v1/plans", body), 60)
+            if status == 200:
                 return time.perf_counter()
-            last = f"HTTP {r.status_code}: {r.text[:200]}"
+            last = f"HTTP {status}: {data[:200]!r}"
         except Exception as exc:  # noqa: BLE001 - retried
             last = f"{type(exc).__name__}: {exc}"
+        finally:
+            conn.close()
         await asyncio.sleep(0.01)
     raise TimeoutError(f"no successful plan: {last}")
 
 
 async def cold_start(server: Server, timeout: float = 120.0) -> dict[str, Any]:
     """Start ``server`` and time readiness and the first successful plan."""
-    import httpx
     server.start()
-    async with httpx.AsyncClient() as client:
-        deadline = time.perf_counter() + timeout
-        t_ready = await _wait_ready(client, server.url, deadline)
-        t_plan = await _first_plan(client, server.url, plan_body("polynomial"), deadline)
-        ready = await client.get(server.url + "/readyz")
+    deadline = time.perf_counter() + timeout
+    t_ready = await _wait_ready(server.url, deadline)
+    t_plan = await _first_plan(server.url, json.dumps(plan_body("polynomial")).encode(),
+                               deadline)
+    _, ready = await get_json(server.url, "/readyz")
     return {"ready_s": t_ready - server.t_spawn, "first_plan_s": t_plan - server.t_spawn,
-            "readyz": ready.json()}
+            "readyz": ready}
 
 
 async def wait_idle(url: str, timeout: float) -> float:
     """Wait until ``/readyz`` reports no busy and no waiting worker; seconds waited."""
-    import httpx
     t0 = time.perf_counter()
-    async with httpx.AsyncClient() as client:
-        while time.perf_counter() - t0 < timeout:
-            try:
-                st = (await client.get(url + "/readyz", timeout=2.0)).json()
-                if st.get("busy", 1) == 0 and st.get("waiting", 1) == 0 and \
-                        st.get("status") == "ready":
-                    return time.perf_counter() - t0
-            except Exception:  # noqa: BLE001 - retried
-                pass
-            await asyncio.sleep(0.05)
+    while time.perf_counter() - t0 < timeout:
+        try:
+            _, st = await get_json(url, "/readyz", 2.0)
+            if st.get("busy", 1) == 0 and st.get("waiting", 1) == 0 and \
+                    st.get("status") == "ready":
+                return time.perf_counter() - t0
+        except Exception:  # noqa: BLE001 - retried
+            pass
+        await asyncio.sleep(0.05)
     return math.nan
 
 
-async def load(url: str, body: dict[str, Any], clients: int, seconds: float,
-               drain: float) -> dict[str, Any]:
-    """``clients`` closed-loop clients posting ``body`` for ``seconds``.
+async def load(url: str, name: str, clients: int, seconds: float, drain: float,
+               server: Server | None = None, seed: int = 0) -> dict[str, Any]:
+    """``clients`` closed-loop clients sending job ``name``'s requests for ``seconds``.
 
     Returns
     -------
     dict
-        ``throughput`` (successful plans per second within the window), latency summary (s) and
-        p50/p99 (ms) of the answers, status counts, ``unfinished`` requests.
+        ``throughput`` (successful answers per second within the window), p50/p99/mean/max
+        (ms) of the answers, status counts, ``unfinished`` requests, and ``cpu``: CPU seconds
+        of the load generator, the server's event loop and its workers during the window, and
+        per answered request (ms).
     """
-    import httpx
+    make, marker = job(name)
+    host, port = url.split("//", 1)[1].split(":")
     latencies: list[float] = []
     ok_in_window = 0
     statuses: dict[str, int] = {}
-    limits = httpx.Limits(max_connections=clients + 2, max_keepalive_connections=clients + 2)
-    async with httpx.AsyncClient(limits=limits, timeout=httpx.Timeout(120.0)) as client:
-        t0 = time.perf_counter()
-        stop_at = t0 + seconds
+    conns = [Connection(host, int(port)) for _ in range(clients)]
+    t0 = time.perf_counter()
+    stop_at = t0 + seconds
 
-        async def one_client() -> None:
-            nonlocal ok_in_window
-            while time.perf_counter() < stop_at:
-                a = time.perf_counter()
-                try:
-                    r = await client.post(url + "/v1/plans", json=body)
-                    key = str(r.status_code)
-                    if r.status_code == 200:
-                        # the service must answer with a plan, not only a 200
-                        if r.json().get("status") != "success":
-                            key = "200-not-success"
-                except httpx.HTTPError as exc:
-                    key = type(exc).__name__
-                b = time.perf_counter()
-                latencies.append(b - a)
-                statuses[key] = statuses.get(key, 0) + 1
-                if key == "200" and b <= stop_at:
-                    ok_in_window += 1
+    async def one_client(conn: Connection, rng: random.Random) -> None:
+        nonlocal ok_in_window
+        while time.perf_counter() < stop_at:
+            method, path, body = make(rng)
+            a = time.perf_counter()
+            try:
+                status, data = await conn.request(method, path, body)
+                key = str(status)
+                if status == 200 and marker is not None and marker not in data:
+                    key = "200-unexpected-body"  # e.g. a plan that is not a success
+            except HTTPError as exc:
+                key = str(exc).split(":", 1)[0]
+            b = time.perf_counter()
+            latencies.append(b - a)
+            statuses[key] = statuses.get(key, 0) + 1
+            if key == "200" and b <= stop_at:
+                ok_in_window += 1
 
-        tasks = [asyncio.create_task(one_client()) for _ in range(clients)]
-        done, pending = await asyncio.wait(tasks, timeout=seconds + drain)
-        for t in pending:
-            t.cancel()
-        await asyncio.gather(*pending, return_exceptions=True)
+    cpu0 = server.cpu() if server is not None else None
+    own0 = time.process_time()
+    wall0 = time.perf_counter()
+    tasks = [asyncio.create_task(one_client(c, random.Random(seed * 1000 + i)))
+             for i, c in enumerate(conns)]
+    done, pending = await asyncio.wait(tasks, timeout=seconds + drain)
+    wall = time.perf_counter() - wall0
+    own = time.process_time() - own0
+    cpu1 = server.cpu() if server is not None else None
+    for t in pending:
+        t.cancel()
+    await asyncio.gather(*pending, return_exceptions=True)
+    for c in conns:
+        c.close()
     lat = np.asarray(latencies)
     summ = summarise(latencies)
+    answered = int(lat.size)
+    cpu: dict[str, Any] = {"wall_s": wall, "client_s": own}
+    if cpu0 is not None and cpu1 is not None:
+        cpu["server_s"] = cpu1["server"] - cpu0["server"]
+        cpu["workers_s"] = cpu1["workers"] - cpu0["workers"]
+        total = own + cpu["server_s"] + cpu["workers_s"]
+        cpu["client_share"] = own / total if total > 0 else math.nan
+    per = 1e3 / answered if answered else math.nan
+    cpu.update({k.replace("_s", "_ms_per_request"): v * per for k, v in list(cpu.items())
+                if k in ("client_s", "server_s", "workers_s")})
     return {
-        "clients": clients, "seconds": seconds, "throughput": ok_in_window / seconds,
-        "answered": int(lat.size), "unfinished": len(pending), "statuses": statuses,
+        "job": name, "clients": clients, "seconds": seconds,
+        "throughput": ok_in_window / seconds, "answered": answered,
+        "unfinished": len(pending), "statuses": statuses,
         "p50_ms": float(np.percentile(lat, 50) * 1e3) if lat.size else math.nan,
         "p99_ms": float(np.percentile(lat, 99) * 1e3) if lat.size else math.nan,
         "mean_ms": float(lat.mean() * 1e3) if lat.size else math.nan,
         "max_ms": float(lat.max() * 1e3) if lat.size else math.nan,
+        "cpu": cpu,
         "latency": {k: v for k, v in summ.as_dict().items() if k != "samples"},
     }
 
 
+def _describe(res: dict[str, Any]) -> str:
+    cpu = res["cpu"]
+    text = (f"{res['throughput']:.1f}/s, p50 {res['p50_ms']:.1f} ms, p99 {res['p99_ms']:.1f} ms"
+            f", statuses {res['statuses']}, unfinished {res['unfinished']}; CPU per request: "
+            f"client {cpu.get('client_ms_per_request', math.nan):.2f} ms")
+    if "server_ms_per_request" in cpu:
+        text += (f", event loop {cpu['server_ms_per_request']:.2f} ms, workers "
+                 f"{cpu['workers_ms_per_request']:.2f} ms (client share "
+                 f"{cpu['client_share']:.0%})")
+    return text
+
+
 async def _run(seconds: float, levels: tuple[int, ...], methods: tuple[str, ...],
-               cold_starts: int, drain: float, log: Any) -> dict[str, Any]:
+               cold_starts: int, drain: float, log: Any,
+               overhead_jobs: tuple[str, ...]) -> dict[str, Any]:
     out: dict[str, Any] = {"available": True, "start_deg": list(HTTP_START_DEG),
+                           "start_spread_deg": START_SPREAD_DEG,
                            "goal_deg": list(HTTP_GOAL_DEG), "seconds_per_level": seconds,
+                           "client": "asyncio streams, keep-alive HTTP/1.1"
+                                     + (" (uvloop)" if _uvloop() else ""),
                            "settings_env": {k: v for k, v in os.environ.items()
                                             if k.startswith("PLANNER_")}}
     colds = []
@@ -324,14 +525,22 @@ async def _run(seconds: float, levels: tuple[int, ...], methods: tuple[str, ...]
             loads[method] = []
             for c in levels:
                 idle = await wait_idle(server.url, 120.0)
-                res = await load(server.url, plan_body(method), c, seconds, drain)
+                res = await load(server.url, f"plan:{method}", c, seconds, drain, server)
                 res["waited_for_idle_s"] = idle
                 loads[method].append(res)
-                log(f"  {method} x{c}: {res['throughput']:.2f} plans/s, p50 "
-                    f"{res['p50_ms']:.0f} ms, p99 {res['p99_ms']:.0f} ms, statuses "
-                    f"{res['statuses']}, unfinished {res['unfinished']}")
+                log(f"  plan:{method} x{c}: {_describe(res)}")
             out["memory_after_" + method] = server.memory()
         out["load"] = loads
+        overhead: dict[str, list[dict[str, Any]]] = {}
+        for name in overhead_jobs:
+            overhead[name] = []
+            for c in levels:
+                idle = await wait_idle(server.url, 120.0)
+                res = await load(server.url, name, c, seconds, drain, server)
+                res["waited_for_idle_s"] = idle
+                overhead[name].append(res)
+                log(f"  {name} x{c}: {_describe(res)}")
+        out["overhead"] = overhead
         mems = [m for key in out if key.startswith("memory") for m in out[key]
                 if m["role"] == "worker"]
         out["worker_rss_mb_max"] = max((m["rss_mb"] for m in mems), default=math.nan)
@@ -342,9 +551,26 @@ async def _run(seconds: float, levels: tuple[int, ...], methods: tuple[str, ...]
     return out
 
 
+def _uvloop() -> bool:
+    try:
+        import uvloop  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _asyncio_run(coro: Any) -> Any:
+    """``asyncio.run`` on uvloop when installed (a cheaper client)."""
+    if _uvloop():
+        import uvloop
+        return uvloop.run(coro)
+    return asyncio.run(coro)
+
+
 def run(seconds: float = 10.0, levels: tuple[int, ...] = (1, 8, 32),
         methods: tuple[str, ...] = ("polynomial", "auto"), cold_starts: int = 3,
-        drain: float = 10.0, log: Any = print) -> dict[str, Any]:
+        drain: float = 10.0, log: Any = print,
+        overhead_jobs: tuple[str, ...] = ("transform", "robot")) -> dict[str, Any]:
     """All HTTP measurements, or ``{"available": False, "reason": ...}``.
 
     Parameters
@@ -354,13 +580,16 @@ def run(seconds: float = 10.0, levels: tuple[int, ...] = (1, 8, 32),
     levels : tuple of int
         Numbers of concurrent clients.
     methods : tuple of str
-        Plan methods posted.
+        Plan methods posted (``load``).
     cold_starts : int
         Server starts timed (the last one serves the load).
     drain : float
         Seconds allowed after a window for the requests still in flight.
     log : callable
         Progress printer.
+    overhead_jobs : tuple of str
+        Trivial jobs measured at the same levels (``overhead``): ``transform`` (through the
+        worker pool), ``robot`` (in the event loop).
 
     Returns
     -------
@@ -370,6 +599,40 @@ def run(seconds: float = 10.0, levels: tuple[int, ...] = (1, 8, 32),
     if not ok:
         return {"available": False, "reason": why}
     try:
-        return asyncio.run(_run(seconds, levels, methods, cold_starts, drain, log))
+        return _asyncio_run(_run(seconds, levels, methods, cold_starts, drain, log,
+                                 overhead_jobs))
     except Exception as exc:  # noqa: BLE001 - the reason is the result
         return {"available": False, "reason": f"{type(exc).__name__}: {exc}"}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m bench.http_load``: the HTTP part of the benchmark alone."""
+    p = argparse.ArgumentParser(prog="python -m bench.http_load", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seconds", type=float, default=10.0, help="seconds per level")
+    p.add_argument("--clients", default="1,8,32", help="comma-separated client counts")
+    p.add_argument("--methods", default="polynomial,auto", help="plan methods ('' for none)")
+    p.add_argument("--overhead", default="transform,robot",
+                   help="trivial jobs measured too ('' for none): transform, robot")
+    p.add_argument("--cold-starts", type=int, default=3)
+    p.add_argument("--drain", type=float, default=10.0)
+    p.add_argument("--json", type=Path, default=None, help="write the results here")
+    args = p.parse_args(argv)
+    split = (lambda s: tuple(x for x in s.split(",") if x))  # noqa: E731
+    out = run(args.seconds, tuple(int(c) for c in split(args.clients)), split(args.methods),
+              args.cold_starts, args.drain, log=lambda s: print(s, flush=True),
+              overhead_jobs=split(args.overhead))
+    if not out.get("available"):
+        print(f"not available: {out.get('reason')}")
+        return 1
+    cs = out["cold_start"]
+    print(f"cold start: ready {cs['ready_s']['median']:.2f} s, first plan "
+          f"{cs['first_plan_s']['median']:.2f} s (median of {len(cs['runs'])}); worker RSS max "
+          f"{out['worker_rss_mb_max']:.0f} MB, USS max {out['worker_uss_mb_max']:.0f} MB")
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
