@@ -13,8 +13,8 @@ Each objective is optimised continuously, all candidate members of a step evalua
    score found are scored on all samples; the winner is confirmed on the continuous path (else
    the next best);
 2. the optimum between the winner's neighbouring nodes is refined to 1e-9 rad: ``d_a`` (and the
-   weighted score without energy and ``t_p`` terms) by zooming (65 members a round, the bracket
-   shrinking 32-fold) with ``th1`` evaluated only around the samples where the deviation can be
+   weighted score without energy and ``t_p`` terms) by zooming (81 members a round, the bracket
+   shrinking 40-fold) with ``th1`` evaluated only around the samples where the deviation can be
    largest; ``tp_then_sensitivity`` by multisection toward the end with the smaller ``|dphi|``;
    other weighted scores by zooming on all samples;
 3. the refined member is evaluated on all samples and checked on the continuous path; it is
@@ -40,8 +40,10 @@ SCAN_STEP = math.radians(0.05)
 XATOL = 1e-9
 #: The first screen uses every COARSE_STRIDE-th search sample (a subset: lower bounds).
 COARSE_STRIDE = 5
-#: Members per zoom round (the bracket shrinks (ZOOM_MEMBERS - 1) / 2-fold a round).
-ZOOM_MEMBERS = 65
+#: Members per zoom round (the bracket shrinks (ZOOM_MEMBERS - 1) / 2-fold a round), fewer
+#: (down to 17) while members times samples followed would exceed ZOOM_POINTS_BUDGET.
+ZOOM_MEMBERS = 81
+ZOOM_POINTS_BUDGET = 8000
 #: Members per multisection round of ``tp_then_sensitivity``.
 SECTION_MEMBERS = 7
 _BAD = 1e9
@@ -241,9 +243,10 @@ def _refine_zoom(family: PolynomialFamily, best: MemberEval, lo: float, hi: floa
     restricted = objective == "tp_then_da" or (w.energy == 0.0 and w.t_p == 0.0)
     n = family.n
     nodes = screen.nodes
-    taus = family.tau
-    dev = np.zeros((0, taus.size))
+    G = family.tau.size
+    dev = np.zeros((0, G))
     da = np.zeros(0)
+    S0 = np.arange(G)
     if restricted:
         # the samples where |th1 - line| can be largest between the neighbouring nodes
         nb = sorted({max(best_i - 1, 0), best_i, min(best_i + 1, nodes.size - 1)})
@@ -251,39 +254,48 @@ def _refine_zoom(family: PolynomialFamily, best: MemberEval, lo: float, hi: floa
         if not ok3:
             restricted = False
         else:
-            taus = family.tau[_hot_samples(dev, da)]
+            S0 = _hot_samples(np.arange(G), dev, da, G)
 
-    def scores(ds: np.ndarray) -> np.ndarray:
+    def scores(ds: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         family.deadline_check("the objective search")
         if restricted:
-            s = family.sample(ds, taus=taus, tp=False)
+            s = family.sample(ds, taus=family.tau[S], tp=False, keep_dev=True)
             if objective == "tp_then_da":
-                return np.where(s.ok, s.d_a, _BAD)
+                return np.where(s.ok, s.d_a, _BAD), s.dev
             sens = np.asarray(sensitivity_frobenius(ds, n))
             val = w.sensitivity * sens if w.sensitivity != 0.0 else np.zeros(ds.size)
             if w.d_a != 0.0:
                 val = val + w.d_a * s.d_a
-            return np.where(s.ok, val, _BAD)
+            return np.where(s.ok, val, _BAD), s.dev
         s = family.sample(ds, energy=w.energy != 0.0 and objective == "weighted")
         v_ = _keys(objective, w, s, n)[1]
         if objective == "tp_then_da":
             assert s.t_p is not None
-            return np.where(s.ok & (s.t_p <= tp_best), s.d_a, _BAD)
-        return np.where(np.isfinite(v_), v_, _BAD)
+            return np.where(s.ok & (s.t_p <= tp_best), s.d_a, _BAD), None
+        return np.where(np.isfinite(v_), v_, _BAD), None
 
     P = ZOOM_MEMBERS if restricted else 17
     score = _score(objective, w)
     for _ in range(4):
         a, b = lo, hi
         bd, bv = best.dphi, np.inf
+        S = S0
         while b - a > XATOL:
-            ds = np.linspace(a, b, P)
-            v = scores(ds)
+            # members per round: fewer while many samples are followed
+            Pr = P if not restricted else \
+                int(max(17, min(P, (ZOOM_POINTS_BUDGET // max(S.size, 1)) | 1)))
+            ds = np.linspace(a, b, Pr)
+            v, devS = scores(ds, S)
             j = int(np.argmin(v))
             if v[j] < bv:
                 bd, bv = float(ds[j]), float(v[j])
-            step = (b - a) / (P - 1)
+            step = (b - a) / (Pr - 1)
             a, b = max(lo, float(ds[j]) - step), min(hi, float(ds[j]) + step)
+            if devS is not None:
+                # follow the maxima of the members around the new bracket only
+                rows = [max(j - 1, 0), j, min(j + 1, Pr - 1)]
+                if np.all(v[rows] < _BAD):
+                    S = _hot_samples(S, devS[rows], np.asarray(v[rows]), G)
         cand, dev1 = _full_member(family, bd, objective, w)
         if cand is not None and restricted and \
                 not score(cand)[1] <= bv + 1e-12 * max(1.0, abs(bv)):
@@ -292,7 +304,7 @@ def _refine_zoom(family: PolynomialFamily, best: MemberEval, lo: float, hi: floa
             assert dev1 is not None
             dev = np.vstack([dev, dev1])
             da = np.append(da, cand.d_a)
-            taus = family.tau[_hot_samples(dev, da)]
+            S0 = _hot_samples(np.arange(G), dev, da, G)
             continue
         if cand is not None and objective != "weighted" and cand.t_p > tp_best:
             break
@@ -303,23 +315,23 @@ def _refine_zoom(family: PolynomialFamily, best: MemberEval, lo: float, hi: floa
     return _refine_brent(family, best, lo, hi, objective, w)
 
 
-def _hot_samples(dev: np.ndarray, d_a: np.ndarray, gap: int = 150, pad: int = 8
-                 ) -> np.ndarray:
-    """Sample indices where ``|th1 - line|`` can be largest for members between the rows of
-    ``dev`` (members evaluated on all samples): the range swept by the rows' largest
-    deviations (it moves with dphi), and around the other significant local maxima of every
-    row (at least half its largest deviation; maxima closer than ``gap`` samples joined into
-    one range), widened by ``pad``; plus both ends (they define the line)."""
-    G = dev.shape[1]
+def _hot_samples(S: np.ndarray, dev: np.ndarray, d_a: np.ndarray, G: int, gap: int = 150,
+                 pad: int = 8) -> np.ndarray:
+    """Sample indices (of the G search samples) where ``|th1 - line|`` can be largest for
+    members between the rows of ``dev`` (their deviations at the samples ``S``): the range
+    swept by the rows' largest deviations (it moves with dphi), and around the other
+    significant local maxima of every row (at least half its largest deviation; maxima closer
+    than ``gap`` samples joined into one range), widened by ``pad``; plus both ends (they define
+    the line)."""
     sel = np.zeros(G, bool)
     sel[0] = sel[-1] = True
-    top = np.argmax(dev, axis=1)
+    top = S[np.argmax(dev, axis=1)]
     sel[max(int(top.min()) - pad, 0):min(int(top.max()) + pad, G - 1) + 1] = True
     pos: list[int] = []
     for row, m in zip(dev, d_a):
         inner = np.nonzero((row[1:-1] >= row[:-2]) & (row[1:-1] >= row[2:])
                            & (row[1:-1] >= 0.5 * m))[0] + 1
-        pos.extend(int(g) for g in inner)
+        pos.extend(int(S[g]) for g in inner)
     pos.sort()
     if pos:
         start = prev = pos[0]
