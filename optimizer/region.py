@@ -151,8 +151,8 @@ def _compile_sx(f: ca.Function) -> Callable[[Sequence[Any]], list[Any]] | None:
 class _Levels:
     """``a_k``, ``b_k`` of the top-down inverse map (``z_k = a_k w_k + b_k``) as numpy code.
 
-    Level n is ``z_n = K_n w_n``. For n = 3, level 2 is ``a_2 = -m3 K2 K3 c2^(m3-1) s2``; for
-    n >= 4 the CasADi expressions of :class:`optimizer.chained_form.SymbolicChainedForm` are
+    Level n is ``z_n = K_n w_n``; levels n - 1 and n - 2 in closed form (see :meth:`ab`); below
+    (n >= 5) the CasADi expressions of :class:`optimizer.chained_form.SymbolicChainedForm` are
     translated once (:func:`_compile_sx`), with CasADi itself as the fallback.
     """
 
@@ -161,9 +161,9 @@ class _Levels:
         self.K = robot.gains
         self.m = robot.exponents
         self.fns: dict[int, Callable[[Sequence[Any]], list[Any]]] = {}
-        if n > 3:
+        if n > 4:
             sym = cf.symbolic
-            for k in range(2, n):
+            for k in range(2, n - 2):
                 fn = _compile_sx(sym.ab[k])
                 self.fns[k] = fn if fn is not None else _casadi_caller(sym.ab[k], n)
 
@@ -172,14 +172,28 @@ class _Levels:
         n = self.n
         if k == n:
             return self.K[-1], 0.0
-        if n == 3:  # k = 2
-            K2, K3 = self.K
-            m3 = self.m[1]
-            c2 = cs[2]
+        K, m = self.K, self.m
+        if k >= n - 2:
+            # closed forms: z_n = K_n c^m_n (c = cos th_{n-1}), so
+            # a_{n-1} = -m_n K_{n-1} K_n c^(m_n-1) s, b_{n-1} = 0, and from
+            # z_{n-1} = a_{n-1}(th_{n-1}) w_{n-1}:
+            # a_{n-2} = K_{n-2} a_{n-1} d w_{n-1}/d th_{n-2}, b_{n-2} = K_{n-1} a'_{n-1} w_{n-1}^2
+            mn = m[-1]
+            c = cs[n - 1]
+            with np.errstate(invalid="ignore"):
+                s = np.sqrt(1.0 - c * c)
+            cm1 = c * c if mn == 3 else c ** (mn - 1)
+            a1 = (-mn * K[-2] * K[-1]) * cm1 * s
+            if k == n - 1:
+                return a1, 0.0
+            m1 = m[-2]
+            c2 = cs[n - 2]
             with np.errstate(invalid="ignore"):
                 s2 = np.sqrt(1.0 - c2 * c2)
-            cp = c2 * c2 if m3 == 3 else c2 ** (m3 - 1)
-            return (-m3 * K2 * K3) * cp * s2, 0.0
+            w1 = c2 * c2 if m1 == 2 else c2 ** m1
+            dw = -m1 * (c2 if m1 == 2 else c2 ** (m1 - 1)) * s2
+            da1 = (-mn * K[-2] * K[-1]) * (cm1 * c - (mn - 1) * c ** (mn - 2) * s * s)
+            return K[-3] * a1 * dw, K[-2] * da1 * w1 * w1
         q: list[Any] = [0.0] * (n + 1)
         for j in range(k, n + 1):
             q[j] = th[j]
@@ -489,7 +503,7 @@ class Region:
             c = _root_m(w, self._m[n - 2])
             cs: dict[int, Any] = {j: c}
             th: dict[int, Any] = {n: Zr[n - 1]}
-            if n > 3 or j in angles:
+            if n > 4 or j in angles:
                 th[j] = np.arccos(c)
                 if j in angles:
                     kept[j] = th[j]
@@ -521,7 +535,7 @@ class Region:
                 need = k > 2 or j in angles
                 if need:
                     c = _root_m(w, self._m[k - 2])
-                    t = np.arccos(c) if (n > 3 or j in angles) else None
+                    t = np.arccos(c) if (n > 4 or j in angles) else None
                     if j in angles and t is not None:
                         if flat is None:
                             kept[j] = t
@@ -826,9 +840,9 @@ def _real_roots(Pm: np.ndarray) -> np.ndarray:
     """Real roots of many polynomials (M, L) (increasing powers): (M, L - 1), NaN-padded.
 
     Coefficients below 1e-14 of a polynomial's largest one are dropped from the top (they only
-    move roots far outside [0, 1]); the roots are the eigenvalues of the companion matrices,
-    all in one batched call (a lower degree is padded with a diagonal block whose eigenvalues,
-    2 and up, lie outside [0, 1]).
+    move roots far outside [0, 1]). Degrees 1 and 2 in closed form; from degree 3 on the roots
+    are the eigenvalues of the companion matrices, all in one batched call (a lower degree is
+    padded with a diagonal block whose eigenvalues, 2 and up, lie outside [0, 1]).
     """
     M, L = Pm.shape
     out = np.full((M, L - 1), np.nan)
@@ -837,7 +851,23 @@ def _real_roots(Pm: np.ndarray) -> np.ndarray:
     big = absc > tol
     deg = (L - 1) - np.argmax(big[:, ::-1], axis=1)
     deg[~big.any(axis=1)] = 0
-    use = np.nonzero(deg >= 1)[0]
+    lin = np.nonzero(deg == 1)[0]
+    if lin.size:
+        with np.errstate(all="ignore"):
+            out[lin, 0] = -Pm[lin, 0] / Pm[lin, 1]
+    quad = np.nonzero(deg == 2)[0]
+    if quad.size:
+        # closed form, the stable way; a (numerically) double root counts as real
+        a, b, cc = Pm[quad, 2], Pm[quad, 1], Pm[quad, 0]
+        with np.errstate(all="ignore"):
+            disc = b * b - 4.0 * a * cc
+            disc = np.where((disc < 0.0) & (disc > -1e-12 * (b * b + np.abs(4.0 * a * cc))),
+                            0.0, disc)
+            sq = np.sqrt(disc)                                   # NaN where complex
+            q = -0.5 * (b + np.where(b >= 0.0, sq, -sq))
+            out[quad, 0] = q / a
+            out[quad, 1] = cc / q
+    use = np.nonzero(deg >= 3)[0]
     if use.size == 0:
         return out
     dm = int(deg[use].max())
