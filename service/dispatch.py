@@ -97,9 +97,16 @@ async def run_job(request: Request, kind: str, payload: dict[str, Any], time_lim
     ------
     ServiceProblem
     """
-    pool: WorkerPool = request.app.state.pool
-    settings: Settings = request.app.state.settings
-    metrics = request.app.state.metrics
+    return await execute(request.app.state, kind, payload, time_limit, method=method,
+                         admit=admit)
+
+
+async def execute(state: Any, kind: str, payload: dict[str, Any], time_limit: float, *,
+                  method: str, admit: bool = True) -> bytes:
+    """:func:`run_job` given the app's ``state`` (``pool``, ``settings``, ``metrics``)."""
+    pool: WorkerPool = state.pool
+    settings: Settings = state.settings
+    metrics = state.metrics
     started = time.perf_counter()
     try:
         wait = time_limit + max(settings.timeout_grace - ANSWER_MARGIN, 0.0)

@@ -26,6 +26,7 @@ from starlette.responses import Response
 from . import __version__
 from .auth import CHALLENGE, UNAUTHORIZED_DETAIL, authorized, encode_keys
 from .dispatch import request_id
+from .fastpath import FastPlanRoute
 from .metrics import Metrics
 from .middleware import RequestContextMiddleware
 from .problems import PROBLEM_MEDIA_TYPE, SafeJSONResponse, ServiceProblem
@@ -110,7 +111,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
 
     app.add_middleware(RequestContextMiddleware, max_body_bytes=settings.max_body_bytes,
-                       metrics=metrics, known_paths=lambda: known, api_keys=settings.api_keys)
+                       metrics=metrics, known_paths=lambda: known, api_keys=settings.api_keys,
+                       fast_routes=[FastPlanRoute(app.state, schemas)])
     if settings.cors_origins:  # outermost: its headers are on every answer, a 401 or 413 too
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST"],

@@ -9,6 +9,9 @@ log, and a last-resort guard that turns any unhandled exception into a problem d
 * Body limit: a ``Content-Length`` above ``max_body_bytes`` is refused at once (413, nothing is
   read); a body without one is read up to the limit and then refused the same way. Accepted
   bodies are buffered (they are small) and handed on unchanged.
+* Fast routes (:mod:`service.fastpath`): a valid ``POST /v1/plans`` is answered here, without
+  FastAPI's routing and dependency machinery; any other request (and any invalid one) goes on
+  to the app.
 * Metrics and the access log label a request by its route (``/v1/plans``): one of the app's
   known paths, ``/static`` for docs assets, ``unmatched`` for anything else (so that scanning
   clients cannot inflate the metrics' cardinality). Bodies are never logged.
@@ -21,7 +24,7 @@ import logging
 import os
 import re
 import time
-from typing import Callable, Sequence
+from typing import Callable, Protocol, Sequence
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -33,9 +36,20 @@ access_log = logging.getLogger("service.access")
 error_log = logging.getLogger("service.error")
 
 _REQUEST_ID = re.compile(r"^[A-Za-z0-9._-]{1,128}$")
-#: The request headers the middleware reads (request id, body length, API key).
-_HEADERS = frozenset({b"x-request-id", b"content-length", b"x-api-key", b"authorization"})
+#: The request headers the middleware reads (request id, body, API key).
+_HEADERS = frozenset({b"x-request-id", b"content-length", b"content-type", b"x-api-key",
+                      b"authorization"})
 _COUNTER_MASK = (1 << 64) - 1
+
+
+class FastRoute(Protocol):
+    """A route answered by the middleware itself (:class:`service.fastpath.FastPlanRoute`)."""
+
+    method: str
+    path: str
+
+    async def __call__(self, body: bytes, content_type: str | None, send: Send,
+                       request_id: str) -> bool: ...
 
 
 class RequestContextMiddleware:
@@ -50,11 +64,16 @@ class RequestContextMiddleware:
         Returns the app's route paths (called once, at the first request).
     api_keys : sequence of str
         Accepted keys for ``/v1`` (empty: no authentication).
+    fast_routes : sequence of FastRoute
+        Handlers tried first for their ``(method, path)`` once the key and the body size are
+        checked (:mod:`service.fastpath`); one that returns False leaves the request to the app.
     """
 
     def __init__(self, app: ASGIApp, *, max_body_bytes: int, metrics: Metrics,
-                 known_paths: Callable[[], set[str]], api_keys: Sequence[str] = ()) -> None:
+                 known_paths: Callable[[], set[str]], api_keys: Sequence[str] = (),
+                 fast_routes: Sequence[FastRoute] = ()) -> None:
         self.app = app
+        self.fast_routes = {(r.method, r.path): r for r in fast_routes}
         self.api_keys = encode_keys(api_keys)
         self.max_body_bytes = max_body_bytes
         self.metrics = metrics
@@ -104,14 +123,19 @@ class RequestContextMiddleware:
                 await self._problem(send_with_id, ServiceProblem(
                     "unauthorized", UNAUTHORIZED_DETAIL, headers=dict(CHALLENGE)), request_id)
                 return
-            body_receive = await self._checked_body(headers, receive)
-            if body_receive is None:
+            checked = await self._checked_body(headers, receive)
+            if checked is None:
                 await self._problem(send_with_id, ServiceProblem(
                     "invalid_request", f"the request body exceeds {self.max_body_bytes} bytes",
                     status=413, diagnostics={"max_body_bytes": self.max_body_bytes}),
                     request_id)
-            else:
-                await self.app(scope, body_receive, send_with_id)
+                return
+            body_receive, body = checked
+            fast = self.fast_routes.get((scope["method"], scope["path"]))
+            if fast is not None and body is not None and \
+                    await fast(body, headers.get("content-type"), send_with_id, request_id):
+                return
+            await self.app(scope, body_receive, send_with_id)
         except Exception:  # noqa: BLE001 - last resort: never a 500 nor a stack trace
             error_log.exception("unhandled error", extra={"request_id": request_id})
             if not status:
@@ -136,8 +160,10 @@ class RequestContextMiddleware:
         unique as a uuid4 across processes, without a system call per request)."""
         return self._id_prefix + format(next(self._id_counter) & _COUNTER_MASK, "016x")
 
-    async def _checked_body(self, headers: dict[str, str], receive: Receive) -> Receive | None:
-        """A receive callable replaying the (size-checked) body, or None when it is too big."""
+    async def _checked_body(self, headers: dict[str, str], receive: Receive,
+                            ) -> tuple[Receive, bytes | None] | None:
+        """A receive callable replaying the (size-checked) body and the body (None when the
+        client went away before its end), or None when it is too big."""
         length = headers.get("content-length")
         if length is not None:
             if not length.isdigit() or int(length) > self.max_body_bytes:
@@ -148,7 +174,7 @@ class RequestContextMiddleware:
             message = await receive()
             if message["type"] != "http.request":
                 # a disconnect before the body ended: hand it on as it came
-                return _replay([message], receive)
+                return _replay([message], receive), None
             chunk = message.get("body", b"")
             size += len(chunk)
             if size > self.max_body_bytes:
@@ -156,8 +182,9 @@ class RequestContextMiddleware:
             chunks.append(chunk)
             if not message.get("more_body", False):
                 break
-        return _replay([{"type": "http.request", "body": b"".join(chunks), "more_body": False}],
-                       receive)
+        body = chunks[0] if len(chunks) == 1 else b"".join(chunks)
+        return _replay([{"type": "http.request", "body": body, "more_body": False}],
+                       receive), body
 
     @staticmethod
     async def _problem(send: Send, problem: ServiceProblem, request_id: str) -> None:

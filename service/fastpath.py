@@ -1,0 +1,86 @@
+"""``POST /v1/plans`` without FastAPI's routing and dependency machinery, for valid requests.
+
+FastAPI's way to an endpoint (exception and exit-stack middlewares, route matching, the request
+object, body parsing, dependency solving, response serialisation) costs more of the event
+loop's CPU than everything else a plan request needs outside its worker, and the plan route is
+the one that must serve hundreds of requests per second. :class:`FastPlanRoute` answers it
+directly from the request middleware (:mod:`service.middleware`), after the API key and body
+size checks, when the request is a well-formed JSON plan request:
+
+* the ``Content-Type`` is ``application/json`` (or ``application/*+json``), the body parses
+  with :func:`json.loads` and validates against the same pydantic model as the route (the
+  model's own checks, so every bound is the same);
+* it then runs exactly what the route does (``to_library``, the library's validation, the job
+  on a worker) and answers the same 200 body or the same problem document.
+
+Anything else (no or another content type, malformed JSON, a schema violation) is *not*
+answered here: the request goes on to the FastAPI route with its body unchanged, so every error
+answer is produced, byte for byte, by the one code path that documents it. The OpenAPI
+document is the route's.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+from starlette.types import Send
+
+from .dispatch import check_plan, execute
+from .problems import SafeJSONResponse, ServiceProblem
+from .schemas import Schemas
+
+_JSON = "application/json"
+
+
+def is_json(content_type: str | None) -> bool:
+    """Whether a ``Content-Type`` value is JSON as FastAPI reads it (``application/json`` or
+    ``application/<something>+json``, parameters ignored)."""
+    if not content_type:
+        return False
+    media = content_type.split(";", 1)[0].strip().lower()
+    return media == _JSON or (media.startswith("application/") and media.endswith("+json"))
+
+
+class FastPlanRoute:
+    """The fast path of ``POST /v1/plans`` (see the module docstring).
+
+    Parameters
+    ----------
+    state : starlette State
+        The app's state (``pool``, ``settings``, ``metrics`` once the lifespan runs).
+    schemas : Schemas
+        The app's request models.
+    """
+
+    method = "POST"
+    path = "/v1/plans"
+
+    def __init__(self, state: Any, schemas: Schemas) -> None:
+        self.state = state
+        self.model: type[BaseModel] = schemas.PlanRequest
+
+    async def __call__(self, body: bytes, content_type: str | None, send: Send,
+                       request_id: str) -> bool:
+        """Answer the request and return True, or return False without side effects (the
+        request is then for the FastAPI route)."""
+        if not body or not is_json(content_type):
+            return False
+        try:
+            request = self.model.model_validate(json.loads(body))
+        except (ValueError, ValidationError, RecursionError):
+            return False  # the route answers it (400 or 422, as documented)
+        try:
+            payload = request.to_library()  # type: ignore[attr-defined]
+            check_plan(payload)
+            result = await execute(self.state, "plan", payload,
+                                   request.time_limit,  # type: ignore[attr-defined]
+                                   method=request.method)  # type: ignore[attr-defined]
+            response = SafeJSONResponse(result)
+        except ServiceProblem as problem:
+            response = problem.response(request_id)
+        await send({"type": "http.response.start", "status": response.status_code,
+                    "headers": response.raw_headers})
+        await send({"type": "http.response.body", "body": response.body})
+        return True
