@@ -4,8 +4,9 @@ Each job takes the JSON-shaped payload the router built and returns a JSON-safe 
 (:func:`optimizer.results.json_safe`), so nothing heavy crosses the process boundary. No
 mathematics happens here: every number comes from the planning library.
 
-Outcome of :func:`run_job` (``body`` is the result already encoded as JSON, so that the server
-never parses or re-encodes a large result in its event loop)::
+Outcome of :func:`run_job` (``body`` is the result already encoded as JSON with orjson, so that
+the server never parses or re-encodes a large result in its event loop; a figure's ``body`` is
+the image itself)::
 
     {"ok": True, "body": b"{...}", "seconds": ...}
     {"ok": False, "error": {"code", "message", "field", "diagnostics"}, "seconds": ...}
@@ -13,7 +14,6 @@ never parses or re-encodes a large result in its event loop)::
 
 from __future__ import annotations
 
-import base64
 import logging
 import time
 from typing import Any, Callable
@@ -103,7 +103,7 @@ def job_robustness(payload: Payload) -> dict[str, Any]:
     return out
 
 
-JOBS: dict[str, Callable[[Payload], dict[str, Any]]] = {
+JOBS: dict[str, Callable[[Payload], Any]] = {
     "plan": job_plan,
     "sweep": job_sweep,
     "transform": job_transform,
@@ -120,7 +120,8 @@ def run_job(kind: str, payload: Payload) -> dict[str, Any]:
     """
     t0 = time.perf_counter()
     try:
-        body = finite_json(JOBS[kind](payload))
+        result = JOBS[kind](payload)
+        body = result if isinstance(result, bytes) else finite_json(result)
         return {"ok": True, "body": body, "seconds": time.perf_counter() - t0}
     except PlannerError as exc:
         return {"ok": False, "seconds": time.perf_counter() - t0, "error": {
@@ -135,7 +136,7 @@ def run_job(kind: str, payload: Payload) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------- figures
-def job_figure(payload: Payload) -> dict[str, Any]:
+def job_figure(payload: Payload) -> bytes:
     """``POST /v1/figures/{kind}``: compute the data exactly as the JSON routes do, then draw it.
 
     Payload: ``figure`` (a kind of :data:`service.figures.KINDS`), ``format`` (``png`` or
@@ -149,8 +150,8 @@ def job_figure(payload: Payload) -> dict[str, Any]:
 
     Returns
     -------
-    dict
-        ``figure``, ``format``, ``media_type`` and ``data`` (the image, base64).
+    bytes
+        The image (PNG or SVG as asked), which :func:`run_job` passes on as the body unchanged.
     """
     from . import figures as _figures
     kind, fmt, inner = payload["figure"], payload["format"], payload["request"]
@@ -173,9 +174,8 @@ def job_figure(payload: Payload) -> dict[str, Any]:
         data = {"plan": nominal.to_dict(), "robustness": json_safe(runs)}
     else:
         raise ValueError(f"unknown figure kind {kind!r}")
-    image, media_type = _figures.render(kind, data, fmt)
-    return {"figure": kind, "format": fmt, "media_type": media_type,
-            "data": base64.b64encode(image).decode("ascii")}
+    image, _media_type = _figures.render(kind, data, fmt)
+    return image
 
 
 JOBS["figure"] = job_figure

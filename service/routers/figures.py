@@ -18,8 +18,6 @@ header (``image/svg+xml`` or ``image/png``), else PNG. Failures are the same pro
 as the JSON routes (``infeasible`` 422, ``timeout`` 504, ...).
 """
 
-import base64
-import json
 from typing import Any, Literal, Optional
 
 from fastapi import APIRouter, Query, Request
@@ -86,10 +84,9 @@ async def _figure(request: Request, kind: str, job_payload: dict[str, Any], time
     """Run the ``figure`` job and answer with the image."""
     chosen = negotiate(fmt, request.headers.get("accept"))
     limit = time_limit + RENDER_SECONDS
-    body = await run_job(request, "figure", {"figure": kind, "format": chosen,
-                                             "request": job_payload}, limit, method=kind)
-    out = json.loads(body)
-    return Response(base64.b64decode(out["data"]), media_type=FORMATS[chosen],
+    image = await run_job(request, "figure", {"figure": kind, "format": chosen,
+                                              "request": job_payload}, limit, method=kind)
+    return Response(image, media_type=FORMATS[chosen],
                     headers={"Content-Disposition": f'inline; filename="{kind}.{chosen}"',
                              "Vary": "Accept"})
 
