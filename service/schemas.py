@@ -138,7 +138,13 @@ class Validation(BaseModel):
                                                              "planned path (rad).")
     singular: bool = Field(..., description="True when the re-integration met a singularity.")
     final: list[Optional[float]] = Field(..., description="Final state [phi, th1..thn] (rad).")
-    integrator: str
+    integrator: str = Field(..., description="'cascade-chebyshev on the original model' (the "
+                                             "model's triangular structure integrated joint by "
+                                             "joint by adaptive Chebyshev quadrature) or 'DOP853 "
+                                             "on the original model' (scipy, the fallback).")
+    error_estimate: Optional[float] = Field(None, description="Estimated error of the "
+                                                              "re-integration (rad); null for "
+                                                              "DOP853.")
     rtol: Optional[float] = None
     atol: Optional[float] = None
 
@@ -372,8 +378,12 @@ def build_schemas(limits: Limits) -> Schemas:
         duration: Optional[num(MIN_DURATION, L.max_duration)] = Field(  # type: ignore[valid-type]
             None, description="T (s); default 1 s, or the shortest T that respects max_u1/"
                               "max_u2 when those are given.")
-        method: Literal["auto", "polynomial", "constraint_points", "penalty"] = Field(
-            "auto", description="auto tries polynomial, constraint points, then penalty.")
+        method: Literal["auto", "polynomial", "retimed", "constraint_points", "penalty"] = Field(
+            "auto", description="polynomial: the paper's family; retimed: its geometric path "
+                                "under a d_a-optimal time law (no constraint points); "
+                                "constraint_points: QP; penalty: NLP, phi may reverse; auto "
+                                "tries polynomial, constraint points, then (objective "
+                                "tp_then_da) retimed and penalty, and returns the best.")
         objective: Literal["tp_then_da", "tp_then_sensitivity", "weighted"] = Field(
             "tp_then_da", description="How the best dphi / plan is chosen.")
         weights: Optional[Weights] = Field(None, description="For objective = weighted.")
