@@ -700,27 +700,22 @@ class Region:
             lo, hi = np.maximum(arg - step, lo), np.minimum(arg + step, hi)
         assert t is not None and v is not None and j is not None
         # (each round re-samples its best node: best never increases)
-        # parabolic vertex through the best node of the last round and its neighbours
+        # parabolic vertices through the best node of the last round and its neighbours: of the
+        # margin h (smooth minima) and of h |h| (near a boundary h behaves like the square root
+        # of a smooth function, sharp at its minimum; h |h| is that function)
         jm = np.clip(j, 1, points - 2)
         x0, x1, x2 = t[ar, jm - 1], t[ar, jm], t[ar, jm + 1]
         f0, f1, f2 = v[ar, jm - 1], v[ar, jm], v[ar, jm + 1]
-        with np.errstate(all="ignore"):
-            d10, d12 = x1 - x0, x1 - x2
-            g12, g10 = f1 - f2, f1 - f0
-            den = d10 * g12 - d12 * g10
-            xv = x1 - 0.5 * (d10 * d10 * g12 - d12 * d12 * g10) / den
-        xv = np.clip(np.where(np.isfinite(xv), xv, x1), x0, x2)
-        pts = np.concatenate([xv, arg]) if detail else xv
-        Cp = np.concatenate([C, C]) if detail else C
-        res = self.values(polyval_each(Cp, pts[:, None]), detail=detail)
+        xa = _vertex(x0, x1, x2, f0, f1, f2)
+        xb = _vertex(x0, x1, x2, f0 * np.abs(f0), f1 * np.abs(f1), f2 * np.abs(f2))
+        pts = np.concatenate([xa, xb, arg])
+        res = self.values(polyval_each(np.concatenate([C, C, C]), pts[:, None]), detail=detail)
+        fv = (np.asarray(res[0]) if detail else np.asarray(res))[:, 0].reshape(3, K)
+        sel = np.argmin(fv, axis=0) * K + ar
         if not detail:
-            fv = np.asarray(res)[:, 0]
-            better = fv < best
-            return np.where(better, fv, best), np.where(better, xv, arg), None
-        fv2, jt, sd, ou = (np.asarray(r)[:, 0] for r in res)
-        better = fv2[:K] < fv2[K:]
-        sel = np.where(better, ar, ar + K)
-        return fv2[sel], pts[sel], (jt[sel], sd[sel], ou[sel])
+            return fv.ravel()[sel], pts[sel], None
+        jt, sd, ou = (np.asarray(r)[:, 0] for r in res[1:])
+        return fv.ravel()[sel], pts[sel], (jt[sel], sd[sel], ou[sel])
 
     def linearised(self, margin: np.ndarray, joint: np.ndarray, side: np.ndarray,
                    outside: np.ndarray) -> np.ndarray:
@@ -823,6 +818,16 @@ def _unit_grid(points: int) -> np.ndarray:
     g = np.linspace(0.0, 1.0, points)
     g.flags.writeable = False
     return g
+
+
+def _vertex(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray, f0: np.ndarray, f1: np.ndarray,
+            f2: np.ndarray) -> np.ndarray:
+    """Vertex of the parabola through three points per row, kept inside [x0, x2]."""
+    with np.errstate(all="ignore"):
+        d10, d12 = x1 - x0, x1 - x2
+        g12, g10 = f1 - f2, f1 - f0
+        xv = x1 - 0.5 * (d10 * d10 * g12 - d12 * d12 * g10) / (d10 * g12 - d12 * g10)
+    return np.clip(np.where(np.isfinite(xv), xv, x1), x0, x2)
 
 
 def _is_zero(x: Any) -> bool:
