@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -52,6 +54,12 @@ HALF_PI = 0.5 * math.pi
 #: puts the minimum of a smooth margin to ~1e-9 in time, its value exact to rounding.
 ZOOM_POINTS = 17
 ZOOM_ROUNDS = 2
+
+
+#: Recent check_path results (see :meth:`Region.check_path`), oldest first.
+_CHECKS: "OrderedDict[tuple[Any, ...], PathCheck]" = OrderedDict()
+_CHECKS_SIZE = 16
+_CHECKS_LOCK = threading.Lock()
 
 
 @dataclass(frozen=True)
@@ -421,9 +429,9 @@ class Region:
     def _values3(self, z2: np.ndarray, z3: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray | None]:
         """:meth:`values` for n = 3 with the default joint ranges at the points inside:
-        ``min(th, pi/2 - th) = pi/4 - |th - pi/4|`` for th1, th2. Returns the values and a
-        mask of the points where the inverse fails (their values are meaningless), or None
-        when there are none."""
+        ``min(th, pi/2 - th) = arcsin(min(cos th, sin th))`` for th1, th2. Returns the values
+        and a mask of the points where the inverse fails (their values are meaningless), or
+        None when there are none."""
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             w3 = z3 * self._inv_k3
             c2 = _root_m(w3, self._m[1])
@@ -431,15 +439,15 @@ class Region:
             s2 = np.sqrt(1.0 - c2sq)
             cp = c2sq if self._m[1] == 3 else c2 ** (self._m[1] - 1)
             w2 = z2 / ((cp * s2) * self._neg_a)
-            lo = np.minimum(w3, w2)
-            hi = np.maximum(w3, w2)
-            q = 0.25 * math.pi
-            t2 = np.abs(np.arccos(c2) - q)
-            t1 = np.abs(np.arccos(_root_m(w2, self._m[0])) - q)
-            h = q - np.maximum(t1, t2)
-            if lo.min() > W_TOL and hi.max() < 1.0 - W_TOL:
+            c1 = _root_m(w2, self._m[0])
+            s1 = np.sqrt(1.0 - c1 * c1) if self._m[0] != 2 else np.sqrt(1.0 - w2)
+            m = np.minimum(np.minimum(c1, s1), np.minimum(c2, s2))
+            h = np.arcsin(m)
+            # all cosines and sines >= 1e-3 puts every w well inside (W_TOL, 1 - W_TOL)
+            if m.min() >= 1e-3:
                 return h, None
-            return h, ~((lo > W_TOL) & (hi < 1.0 - W_TOL))
+            bad = ~((w3 > W_TOL) & (w3 < 1.0 - W_TOL) & (w2 > W_TOL) & (w2 < 1.0 - W_TOL))
+            return h, (bad if bad.any() else None)
 
     def _level_value(self, wmin: np.ndarray, wmax: np.ndarray, j: int, nan: float = np.nan
                      ) -> np.ndarray:
@@ -757,7 +765,32 @@ class Region:
             Number of uniform samples (per input piece) before refinement.
         locate : bool
             Locate the first crossing (skip it when only the margin is needed).
+
+        The last results are remembered per region and path (the same inputs from the same
+        start): the planner checks its chosen member before returning it, and the plan is
+        checked once more when it is finished.
         """
+        key = self._check_key(path, grid, locate)
+        with _CHECKS_LOCK:
+            hit = _CHECKS.get(key)
+        if hit is not None:
+            return hit
+        chk = self._check_path(path, grid, locate)
+        with _CHECKS_LOCK:
+            _CHECKS[key] = chk
+            while len(_CHECKS) > _CHECKS_SIZE:
+                _CHECKS.popitem(last=False)
+        return chk
+
+    def _check_key(self, path: ChainedPath, grid: int, locate: bool) -> tuple[Any, ...]:
+        inp = path.inputs
+        return (self.robot, self.criterion, self.lower.tobytes(), self.upper.tobytes(),
+                np.asarray(path.z0, float).tobytes(), np.asarray(inp.breaks, float).tobytes(),
+                tuple(np.asarray(c, float).tobytes() for c in inp.v1),
+                tuple(np.asarray(c, float).tobytes() for c in inp.v2),
+                tuple(p.tobytes() for p in path.polys), grid, locate)
+
+    def _check_path(self, path: ChainedPath, grid: int, locate: bool) -> PathCheck:
         breaks = np.asarray(path.inputs.breaks, float)
         S = len(path.polys)
         L = max(p.shape[1] for p in path.polys)

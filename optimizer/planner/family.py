@@ -127,6 +127,20 @@ class PolynomialFamily:
         except SingularSystemError:
             return PathCheck(False, -np.inf, 0.0, 0.0)
 
+    def confirm(self, dphi: float) -> tuple[bool, float]:
+        """Whether the member's continuous path is inside the request's region and the full
+        one (:meth:`Region.check_path` on :meth:`path`, as the finished plan is checked), and
+        its margin under the request's criterion."""
+        try:
+            path = self.path(dphi)
+        except SingularSystemError:
+            return False, -np.pi
+        chk = self.region.check_path(path)
+        ok = chk.ok
+        if ok and self.full is not self.region:
+            ok = self.full.check_path(path).ok
+        return ok, float(chk.margin)
+
     def margin(self, dphi: float) -> float:
         """Region margin of a member's continuous path (request's criterion); -pi if singular."""
         self.deadline_check("the interval search")

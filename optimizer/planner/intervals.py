@@ -7,11 +7,11 @@ the feasible set is ``{F > 0}``. It is found in three steps, each vectorised ove
    brackets; the exact (continuous-path) margin of every candidate node in one batch;
 2. every sign change of ``F`` between grid nodes is refined, all brackets together, to
    ``xtol`` = 1e-10 rad: each round evaluates the exact margin at a root estimate, at
-   points around it spaced 10^-1, 10^-2, 10^-3, ... of the bracket, and at the midpoint, and
-   keeps the sign change nearest the feasible side. The secant uses the margin linearised
+   points around it spaced 10^-1, 10^-2, 10^-3, ... of the bracket, and at three points spread
+   over it, and keeps the sign change nearest the feasible side. The secant uses the margin linearised
    (:meth:`Region.linearised`: the distance from the boundary in ``cos(th)^m``, where the angle
    margin behaves like a square or cube root), so two or three rounds usually suffice; the
-   midpoint guarantees at least halving;
+   spread points guarantee a 4-fold shrink;
 3. every grid local maximum of ``F`` that is not positive, and that could reach 0 between
    the nodes (node value + 3 x the steeper neighbouring rise > 0), is searched for a hidden
    window: the vectorised coarse margin is zoomed onto its maximum between the neighbouring
@@ -44,8 +44,11 @@ from .family import PolynomialFamily
 GRID_STEP = math.radians(0.25)
 XTOL = 1e-10
 LIPSCHITZ_SAFETY = 3.0
-#: Rounds of the bracket refinement (the midpoint alone would need ~26 from 0.25 deg).
+#: Rounds of the bracket refinement (at worst ~13 from 0.25 deg).
 MAX_ROUNDS = 60
+#: Points spread evenly over every bracket in each round: it shrinks at least 4-fold even when
+#: the root estimate is poor (the margin's active joint differs between the bracket's ends).
+_SPREAD = np.array([0.25, 0.5, 0.75])
 
 
 def _grid(lo: float, hi: float) -> np.ndarray:
@@ -183,9 +186,9 @@ def _refine(family: PolynomialFamily, brackets: list[tuple[float, float, float, 
     (``E_out <= 0 < E_in``, linearised margins), to :data:`XTOL`, all brackets at once.
 
     Each round puts points at the root estimate (inverse quadratic interpolation through the
-    bracket's ends and the evaluated point nearest the root, else the secant of the bracket),
-    around it at 10^-1, 10^-2, ... of the bracket, and at the midpoint; the new bracket is the
-    sign change nearest the feasible side. Returns the end on the feasible side of each final bracket.
+    bracket's ends and the evaluated point nearest to it, else the secant of the bracket),
+    around it at 10^-1, 10^-2, ... of the bracket, and evenly over the bracket; the new bracket
+    is the sign change nearest the feasible side. Returns the end on the feasible side of each final bracket.
     """
     xo = np.array([b[0] for b in brackets], float)
     xi = np.array([b[1] for b in brackets], float)
@@ -210,7 +213,7 @@ def _refine(family: PolynomialFamily, brackets: list[tuple[float, float, float, 
                 o *= 0.1
             offs.append(0.25 * XTOL / abs(w))
             o_ = np.array(offs)
-            ts = np.concatenate([t + o_, t - o_[1:], [0.5]])
+            ts = np.concatenate([t + o_, t - o_[1:], _SPREAD])
             ts = np.unique(ts[(ts > 0.0) & (ts < 1.0)])
             pts.append(xo[b] + ts * w)
             owner.append(np.full(ts.size, b))
@@ -239,11 +242,11 @@ def _estimate(hist: list[tuple[float, float]], xo: float, xi: float, eo: float, 
     lo, hi = min(xo, xi), max(xo, xi)
     den = ei - eo
     xs = xi - ei * (xi - xo) / den if den > 0.0 and math.isfinite(den) else 0.5 * (xo + xi)
-    # the bracket ends and the evaluated point nearest the root besides them
-    others = sorted((p for p in hist if math.isfinite(p[1]) and p[0] != xo and p[0] != xi),
-                    key=lambda p: abs(p[1]))
+    # the bracket's ends and the evaluated point nearest to the bracket
+    others = [p for p in hist if math.isfinite(p[1]) and not lo <= p[0] <= hi]
     if others:
-        (x0, f0), (x1, f1), (x2, f2) = (xo, eo), (xi, ei), others[0]
+        x2, f2 = min(others, key=lambda p: min(abs(p[0] - lo), abs(p[0] - hi)))
+        (x0, f0), (x1, f1) = (xo, eo), (xi, ei)
         if f0 != f1 and f1 != f2 and f0 != f2:
             xq = (x0 * f1 * f2 / ((f0 - f1) * (f0 - f2)) + x1 * f0 * f2 / ((f1 - f0) * (f1 - f2))
                   + x2 * f0 * f1 / ((f2 - f0) * (f2 - f1)))

@@ -141,11 +141,7 @@ def _uses_bounds(objective: str, w: Weights) -> bool:
 def _confirm(family: PolynomialFamily, dphi: float) -> tuple[bool, float]:
     """The member's continuous path is inside the request's region (and the full one)."""
     family.deadline_check("the objective search")
-    m = float(family.margins(np.array([dphi])).margin[0])
-    ok = m > 0.0
-    if ok and family.full is not family.region:
-        ok = float(family.full_margins(np.array([dphi]))[0]) > 0.0
-    return ok, m
+    return family.confirm(float(dphi))
 
 
 def _member(family: PolynomialFamily, s: SampledMembers, i: int, margin: float) -> MemberEval:
