@@ -196,10 +196,15 @@ class PolynomialFamily:
         """Region margin on a coarse time grid for many ``dphi`` at once (an upper bound of the
         continuous margin; used only to find brackets, never as the answer)."""
         taus = np.linspace(0.0, 1.0, grid)
-        coef, ok = self.polys(dphis)
-        Z = self._components(coef, taus, only_z2=self.region.criterion == "z2")
-        h = self.region.grid_margins(Z)
-        return np.where(ok, h, -np.pi)
+        dphis = np.atleast_1d(np.asarray(dphis, float))
+        # n >= 4: blocks of members (their work arrays stay in cache; measured ~1.5x faster)
+        block = dphis.size if self.n == 3 else max(64, 24000 // grid)
+        out = []
+        for s in range(0, dphis.size, block):
+            coef, ok = self.polys(dphis[s:s + block])
+            Z = self._components(coef, taus, only_z2=self.region.criterion == "z2")
+            out.append(np.where(ok, self.region.grid_margins(Z), -np.pi))
+        return np.concatenate(out) if len(out) > 1 else out[0]
 
     def sample(self, dphis: np.ndarray, taus: np.ndarray | None = None, tp: bool = True,
                energy: bool = False, keep_dev: bool = False) -> SampledMembers:
