@@ -16,17 +16,21 @@ margin of that joint extended outside by its local shape (see :meth:`Region.sign
 inside the region this is the joints' distance from their bounds; outside it is negative.
 
 A path is checked on the continuous path, not only on samples: the signed margin is evaluated on
-a dense grid that also contains the exact roots and critical points of the polynomial boundary
-conditions (``z2 = 0`` and ``z_n in {0, K_n}``), every sampled local minimum is refined by
-zooming in (all of them, for all paths of a batch, at once), and the first crossing is located
-by Brent's method. The work is vectorised over many paths (:meth:`Region.poly_minimum`), so
-that the planner checks whole sets of candidate members in one call.
+a dense grid (257 samples per polynomial piece) that also contains the critical points of the
+polynomial boundary conditions (``z2`` and ``z_n``: their extremes, so that every excursion
+across ``z2 = 0`` or ``z_n in {0, K_n}`` has a sample inside it) and, when a crossing is to be
+located, their roots; every sampled local minimum is refined by zooming in (two rounds of 17
+nodes, then the vertices of the parabolas through the best node and its neighbours, of the
+margin and of ``margin |margin|``, which is smooth where the margin behaves like a square root
+at the boundary), all minima of all paths of a batch at once; the first crossing is located by
+Brent's method. The work is vectorised over many paths (:meth:`Region.poly_minimum`), so that
+the planner checks whole sets of candidate members in one call.
 
-Speed: the inverse map is evaluated with numpy in closed form for n = 3 and, for n >= 4, by
-numpy code generated once per robot from the CasADi expressions of the chained form
-(:func:`_compile_sx`); a grid of members is reduced per member in ``w = cos(th)^m`` space
-(:meth:`Region.grid_margins`), where every joint's margin is monotone, so that no angle is
-computed per sample.
+Speed: the inverse map is evaluated with numpy: levels n, n - 1 and n - 2 in closed form, lower
+levels (n >= 5) by numpy code generated once per robot from the CasADi expressions of the
+chained form (:func:`_compile_sx`); a grid of members is reduced per member in
+``w = cos(th)^m`` space (:meth:`Region.grid_margins`), where every joint's margin is unimodal,
+so that only two values per member and joint are turned into angles.
 """
 
 from __future__ import annotations

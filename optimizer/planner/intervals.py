@@ -3,15 +3,16 @@
 ``F(dphi)`` = the region margin of the member's continuous path (see :mod:`optimizer.region`);
 the feasible set is ``{F > 0}``. It is found in three steps, each vectorised over members:
 
-1. a scan of ``F`` on a grid of ``dphi`` (coarse time grid, all members at once), giving
-   brackets; the exact (continuous-path) margin of every candidate node in one batch;
+1. a scan of ``F`` on a grid of ``dphi`` (coarse time grid, all members at once) gives an
+   upper bound of ``F`` at every node; the exact (continuous-path) margin of the nodes where it
+   is positive and of their neighbours in one batch (elsewhere ``F <= 0`` already);
 2. every sign change of ``F`` between grid nodes is refined, all brackets together, to
-   ``xtol`` = 1e-10 rad: each round evaluates the exact margin at a root estimate, at
-   points around it spaced 10^-1, 10^-2, 10^-3, ... of the bracket, and at three points spread
-   over it, and keeps the sign change nearest the feasible side. The secant uses the margin linearised
-   (:meth:`Region.linearised`: the distance from the boundary in ``cos(th)^m``, where the angle
-   margin behaves like a square or cube root), so two or three rounds usually suffice; the
-   spread points guarantee a 4-fold shrink;
+   ``xtol`` = 1e-10 rad: each round evaluates the exact margin at a root estimate, at points
+   around it spaced 10^-1, 10^-2, 10^-3, ... of the bracket, and at three points spread over
+   it, and keeps the sign change nearest the feasible side. The estimate (inverse quadratic or
+   secant interpolation) uses the margin linearised (:meth:`Region.linearised`: the distance
+   from the boundary in ``cos(th)^m``, where the angle margin behaves like a square or cube
+   root), so two rounds usually suffice; the spread points guarantee a 4-fold shrink;
 3. every grid local maximum of ``F`` that is not positive, and that could reach 0 between
    the nodes (node value + 3 x the steeper neighbouring rise > 0), is searched for a hidden
    window: the vectorised coarse margin is zoomed onto its maximum between the neighbouring

@@ -7,21 +7,25 @@
 
 Each objective is optimised continuously, all candidate members of a step evaluated at once:
 
-1. a screen of nodes inside every interval (at most 0.05 deg apart) on the search samples finds
-   the best node; the nodes are first scored on every fifth sample, which bounds ``t_p`` and
-   ``d_a`` from below (a subset of the samples), and only the nodes whose bound can beat the best
-   score found are scored on all samples; the winner is confirmed on the continuous path (else
-   the next best);
-2. the optimum between the winner's neighbouring nodes is refined to 1e-9 rad: ``d_a`` (and the
-   weighted score without energy and ``t_p`` terms) by zooming (81 members a round, the bracket
-   shrinking 40-fold) with ``th1`` evaluated only around the samples where the deviation can be
-   largest; ``tp_then_sensitivity`` by multisection toward the end with the smaller ``|dphi|``;
-   other weighted scores by zooming on all samples;
-3. the refined member is evaluated on all samples and checked on the continuous path; it is
-   returned only when it is feasible, keeps the fewest ``t_p`` and scores at least as well as
-   the node. When a shortcut of step 2 does not hold up (the largest deviation moved away from
-   the samples followed, ``t_p`` grew), the refinement is redone with bounded Brent
-   minimisation (bisection for ``tp_then_sensitivity``) on fully evaluated members.
+1. a screen of nodes inside every interval (at most 0.05 deg apart) on the search samples ranks
+   the nodes; they are first scored on every fifth sample, which bounds ``t_p`` and ``d_a`` from
+   below (a subset of the samples), and only the nodes whose bound can beat the best score found
+   are scored on all samples;
+2. the optimum between the best node's neighbours is refined to 1e-9 rad: ``d_a`` (and the
+   weighted score without energy and ``t_p`` terms) by zooming (up to 81 members a round, the
+   bracket shrinking up to 40-fold) with ``th1`` evaluated only where the deviation can be
+   largest (the range swept by the largest deviation of the members around the bracket, and
+   the other large local maxima), narrowed round by round; ``tp_then_sensitivity`` by
+   multisection toward the end with the smaller ``|dphi|``; other weighted scores by zooming on
+   all samples;
+3. the refined member is evaluated on all samples and checked on the continuous path
+   (:meth:`PolynomialFamily.confirm`, the check the finished plan gets); it is returned when it
+   is feasible, keeps the fewest ``t_p`` and scores at least as well as the node. When the
+   largest deviation of the result lies away from the samples followed, the zoom is redone
+   following them too; when a shortcut does not hold up (``t_p`` grew, a member failed), the
+   refinement is redone with bounded Brent minimisation (bisection for
+   ``tp_then_sensitivity``) on fully evaluated members. Otherwise the node itself is returned
+   if it passes the continuous check, else the next best node is refined.
 """
 
 from __future__ import annotations
