@@ -150,10 +150,13 @@ class RequestContextMiddleware:
             seconds = time.perf_counter() - started
             self.metrics.observe_request(template, method, code, seconds)
             if access_log.isEnabledFor(logging.INFO):
-                access_log.info("%s %s %s", method, template, code, extra={
-                    "request_id": request_id, "method": method, "path": str(path)[:200],
-                    "route": template, "status": code,
-                    "duration_ms": round(seconds * 1000.0, 3)})
+                # the record made directly: Logger.info would walk the stack for the caller
+                access_log.handle(access_log.makeRecord(
+                    access_log.name, logging.INFO, __file__, 0, "%s %s %s",
+                    (method, template, code), None, extra={
+                        "request_id": request_id, "method": method, "path": str(path)[:200],
+                        "route": template, "status": code,
+                        "duration_ms": round(seconds * 1000.0, 3)}))
 
     def _new_id(self) -> str:
         """A new request id: 32 hex digits, a random per-process prefix and a counter (as
