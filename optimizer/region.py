@@ -339,8 +339,8 @@ class Region:
     def values(self, Zr: Sequence[np.ndarray] | np.ndarray, detail: bool = False,
                _general: bool = False) -> Any:
         """Signed margins of points given by their chained components ``Zr = [z2, ..., z_{n+1}]``
-        (arrays of one shape). With ``detail``: ``(margin, joint, side, outside)`` (see
-        :class:`PolyMinimum`)."""
+        (arrays of one shape; ``z_{n+1}`` may be left out unless ``th_n`` is bounded). With
+        ``detail``: ``(margin, joint, side, outside)`` (see :class:`PolyMinimum`)."""
         n = self._n
         z2 = np.asarray(Zr[0], float)
         if self.criterion == "z2":
@@ -356,8 +356,7 @@ class Region:
             # the points the short path cannot take, through the general one
             idx = np.flatnonzero(bad)
             if idx.size < 0.5 * bad.size:
-                sub = self.values([z2.ravel()[idx], z3.ravel()[idx],
-                                   np.asarray(Zr[2], float).ravel()[idx]], _general=True)
+                sub = self.values([z2.ravel()[idx], z3.ravel()[idx]], _general=True)
                 hf = h.ravel()
                 hf[idx] = sub
                 return hf.reshape(h.shape)
@@ -371,7 +370,8 @@ class Region:
             joint = np.zeros(shape, int)
             side = np.zeros(shape, int)
             outside = np.zeros(shape, bool)
-        thn = np.asarray(Zr[n - 1], float)
+        # z_{n+1} = th_n matters only for its bounds (the levels below do not depend on it)
+        thn: Any = np.asarray(Zr[n - 1], float) if len(Zr) > n - 1 else 0.0
         if self._thn_bounded:
             lo_n, hi_n = self.lower[n - 1], self.upper[n - 1]
             a_, b_ = thn - lo_n, hi_n - thn
@@ -479,7 +479,8 @@ class Region:
     def grid_margins(self, Zr: Sequence[np.ndarray] | np.ndarray, angles: Sequence[int] = ()
                      ) -> Any:
         """Per member, the smallest signed margin of its sampled points: ``Zr = [z2, ...,
-        z_{n+1}]``, each of shape (G, D) (samples first, one column per member); returns (D,),
+        z_{n+1}]``, each of shape (G, D) (samples first, one column per member; ``z_{n+1}`` may
+        be left out unless ``th_n`` is bounded or asked for); returns (D,),
         and with ``angles`` also ``{j: th_j}`` (G, D) for those joints (NaN or meaningless
         where the inverse fails; under ``full`` only).
 
@@ -498,13 +499,13 @@ class Region:
         lv = self._level_maps
         G, D = z2.shape
         res = np.full(D, np.inf)
+        thn: Any = np.asarray(Zr[n - 1]) if len(Zr) > n - 1 else 0.0
         if self._thn_bounded:
-            thn = np.asarray(Zr[n - 1])
             res = np.minimum(np.min(thn, axis=0) - self.lower[n - 1],
                              self.upper[n - 1] - np.max(thn, axis=0))
         kept: dict[int, np.ndarray] = {}
         if n in angles:
-            kept[n] = np.asarray(Zr[n - 1])
+            kept[n] = thn
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             # level n: w_n = z_n / K_n, every point
             j = n - 1
@@ -514,7 +515,7 @@ class Region:
             alive = (w > W_TOL) & (w < 1.0 - W_TOL)
             c = _root_m(w, self._m[n - 2])
             cs: dict[int, Any] = {j: c}
-            th: dict[int, Any] = {n: Zr[n - 1]}
+            th: dict[int, Any] = {n: thn}
             if n > 4 or j in angles:
                 th[j] = np.arccos(c)
                 if j in angles:
@@ -524,7 +525,8 @@ class Region:
                 j = k - 1
                 if flat is None and n > 3 and k > 2 and np.count_nonzero(alive) < 0.75 * G * D:
                     flat = np.flatnonzero(alive)
-                    th = {i: np.asarray(v).ravel()[flat] for i, v in th.items()}
+                    th = {i: (np.asarray(v).ravel()[flat] if np.ndim(v) else v)
+                          for i, v in th.items()}
                     cs = {i: np.asarray(v).ravel()[flat] for i, v in cs.items()}
                 if flat is None:
                     a, b = lv.ab(k, th, cs)
@@ -564,7 +566,7 @@ class Region:
                             th[j] = t
                     else:
                         flat = flat[good]
-                        th = {i: v[good] for i, v in th.items()}
+                        th = {i: (v[good] if np.ndim(v) else v) for i, v in th.items()}
                         cs = {i: v[good] for i, v in cs.items()}
                         cs[j] = c[good]
                         if t is not None:
@@ -630,7 +632,8 @@ class Region:
         R = coef.shape[0]
         sp = np.ones(R) if span is None else np.asarray(span, float)
         z2only = self.criterion == "z2"
-        comps = coef[:, 1:2, :] if z2only else coef[:, 1:, :]
+        comps = coef[:, 1:2, :] if z2only else coef[:, 1:, :] if self._thn_bounded \
+            else coef[:, 1:-1, :]
         X = sp[:, None] * _unit_grid(grid)[None, :]
         E = self._exact_points(coef, sp, roots=roots)
         if E is not None:

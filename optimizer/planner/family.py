@@ -168,11 +168,12 @@ class PolynomialFamily:
         res = self.full.poly_minimum(coef)
         return np.where(ok & np.isfinite(res.margin), res.margin, -np.pi)
 
-    def _components(self, coef: np.ndarray, taus: np.ndarray, only_z2: bool = False
-                    ) -> np.ndarray:
-        """``z2..z_{n+1}`` (or ``z2`` only) of members at shared times, component first and
-        samples before members: (C, G, D)."""
-        comps = coef[:, 1:2, :] if only_z2 else coef[:, 1:, :]
+    def _components(self, coef: np.ndarray, taus: np.ndarray, only_z2: bool = False,
+                    with_last: bool = True) -> np.ndarray:
+        """``z2..z_{n+1}`` (or ``z2`` only, or without ``z_{n+1}``) of members at shared times,
+        component first and samples before members: (C, G, D)."""
+        comps = coef[:, 1:2, :] if only_z2 else coef[:, 1:, :] if with_last \
+            else coef[:, 1:-1, :]
         C, L = comps.shape[1], comps.shape[2]
         taus = np.asarray(taus, float)
         V = np.ones((taus.size, L))
@@ -202,7 +203,8 @@ class PolynomialFamily:
         out = []
         for s in range(0, dphis.size, block):
             coef, ok = self.polys(dphis[s:s + block])
-            Z = self._components(coef, taus, only_z2=self.region.criterion == "z2")
+            Z = self._components(coef, taus, only_z2=self.region.criterion == "z2",
+                                 with_last=self.region._thn_bounded)
             out.append(np.where(ok, self.region.grid_margins(Z), -np.pi))
         return np.concatenate(out) if len(out) > 1 else out[0]
 
@@ -213,7 +215,7 @@ class PolynomialFamily:
         d = np.atleast_1d(np.asarray(dphis, float))
         tau = self.tau if taus is None else np.asarray(taus, float)
         coef, regular = self.polys(d)
-        Z = self._components(coef, tau)                              # (n, G, D)
+        Z = self._components(coef, tau, with_last=energy or self.full._thn_bounded)
         n = self.n
         angles = tuple(range(1, n + 1)) if energy else (1,)
         marg, th = self.full.grid_margins(Z, angles=angles)
