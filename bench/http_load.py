@@ -9,7 +9,8 @@ on, default settings; ``PLANNER_*`` environment variables are passed through and
 
 * **cold start**: from just before the process is spawned to ``GET /readyz`` answering 200,
   and to the first successful ``POST /v1/plans``;
-* **load**: for each job and each number of concurrent clients, that many clients (one asyncio
+* **load**: for each job (the trivial ones first, then the plan methods ``polynomial``,
+  ``retimed`` and ``auto``) and each number of concurrent clients, that many clients (one asyncio
   loop in this process, uvloop when installed, one keep-alive HTTP/1.1 connection each, a
   minimal client written on asyncio streams: httpx spends about 1 ms of CPU per request, which
   on two cores would be taken from the server) send requests in a closed loop for a bounded
@@ -520,6 +521,18 @@ async def _run(seconds: float, levels: tuple[int, ...], methods: tuple[str, ...]
             "workers": colds[-1]["readyz"].get("workers"),
         }
         out["memory_idle"] = server.memory()
+        # the trivial jobs first: a slow method's requests left unfinished keep the workers
+        # busy for a while after its last level
+        overhead: dict[str, list[dict[str, Any]]] = {}
+        for name in overhead_jobs:
+            overhead[name] = []
+            for c in levels:
+                idle = await wait_idle(server.url, 120.0)
+                res = await load(server.url, name, c, seconds, drain, server)
+                res["waited_for_idle_s"] = idle
+                overhead[name].append(res)
+                log(f"  {name} x{c}: {_describe(res)}")
+        out["overhead"] = overhead
         loads: dict[str, list[dict[str, Any]]] = {}
         for method in methods:
             loads[method] = []
@@ -531,16 +544,6 @@ async def _run(seconds: float, levels: tuple[int, ...], methods: tuple[str, ...]
                 log(f"  plan:{method} x{c}: {_describe(res)}")
             out["memory_after_" + method] = server.memory()
         out["load"] = loads
-        overhead: dict[str, list[dict[str, Any]]] = {}
-        for name in overhead_jobs:
-            overhead[name] = []
-            for c in levels:
-                idle = await wait_idle(server.url, 120.0)
-                res = await load(server.url, name, c, seconds, drain, server)
-                res["waited_for_idle_s"] = idle
-                overhead[name].append(res)
-                log(f"  {name} x{c}: {_describe(res)}")
-        out["overhead"] = overhead
         mems = [m for key in out if key.startswith("memory") for m in out[key]
                 if m["role"] == "worker"]
         out["worker_rss_mb_max"] = max((m["rss_mb"] for m in mems), default=math.nan)
@@ -568,7 +571,7 @@ def _asyncio_run(coro: Any) -> Any:
 
 
 def run(seconds: float = 10.0, levels: tuple[int, ...] = (1, 8, 32),
-        methods: tuple[str, ...] = ("polynomial", "auto"), cold_starts: int = 3,
+        methods: tuple[str, ...] = ("polynomial", "retimed", "auto"), cold_starts: int = 3,
         drain: float = 10.0, log: Any = print,
         overhead_jobs: tuple[str, ...] = ("transform", "robot")) -> dict[str, Any]:
     """All HTTP measurements, or ``{"available": False, "reason": ...}``.
@@ -611,7 +614,8 @@ def main(argv: list[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seconds", type=float, default=10.0, help="seconds per level")
     p.add_argument("--clients", default="1,8,32", help="comma-separated client counts")
-    p.add_argument("--methods", default="polynomial,auto", help="plan methods ('' for none)")
+    p.add_argument("--methods", default="polynomial,retimed,auto",
+                   help="plan methods ('' for none)")
     p.add_argument("--overhead", default="transform,robot",
                    help="trivial jobs measured too ('' for none): transform, robot")
     p.add_argument("--cold-starts", type=int, default=3)
