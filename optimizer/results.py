@@ -115,11 +115,11 @@ class Plan:
                 "margin": self.margin,
             },
             "path": {
-                "t": self.path.t.tolist(),
-                "q": self.path.q.tolist(),
-                "z": self.path.z.tolist(),
-                "u": self.path.u.tolist(),
-                "v": self.path.v.tolist(),
+                "t": self.path.t,
+                "q": self.path.q,
+                "z": self.path.z,
+                "u": self.path.u,
+                "v": self.path.v,
             },
             "validation": {
                 "terminal_error": ver.terminal_error,
@@ -145,6 +145,12 @@ def json_safe(obj: Any) -> Any:
     if isinstance(obj, (list, tuple)):
         return [json_safe(v) for v in obj]
     if isinstance(obj, np.ndarray):
+        # the path arrays are large: one vectorised finiteness test, then tolist() (Python
+        # floats) without walking every number, unless some entry must become None
+        if obj.dtype.kind == "f" and bool(np.isfinite(obj).all()):
+            return obj.tolist()
+        if obj.dtype.kind in "iub":
+            return obj.tolist()
         return json_safe(obj.tolist())
     if isinstance(obj, (bool, np.bool_)):
         return bool(obj)
