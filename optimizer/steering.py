@@ -120,8 +120,11 @@ class InputSchedule:
         """Total change of phi, ``dphi = integral of V1``."""
         tot = 0.0
         for s in range(self.pieces):
-            h = self.breaks[s + 1] - self.breaks[s]
-            tot += float(P.polyval(h, P.polyint(self.v1[s])))
+            h = float(self.breaks[s + 1] - self.breaks[s])
+            c = self.v1[s]
+            # integral over the piece of sum c_k x^k = sum c_k h^(k+1) / (k+1)
+            k = np.arange(1, c.size + 1)
+            tot += float(np.dot(c, h ** k / k))
         return tot
 
 

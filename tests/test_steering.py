@@ -104,3 +104,14 @@ def test_affine_basis_high_degrees():
         for i in range(p):
             expected = dphi**kk * math.factorial(i) / math.factorial(i + kk + 1) * tau ** (i + kk + 1)
             assert basis[0, kk, i] == pytest.approx(expected, rel=1e-13)
+
+
+def test_phi_change_of_a_piecewise_schedule_matches_quadrature():
+    from scipy.integrate import quad
+    from optimizer.steering import InputSchedule
+    sched = InputSchedule(np.array([0.0, 0.3, 1.0]),
+                          (np.array([0.5, -2.0, 1.5]), np.array([-0.7])),
+                          (np.array([0.0]), np.array([0.0])), 2.0)
+    expected = sum(quad(lambda x: sched.V(np.array([x]))[0, 0], a, b)[0]
+                   for a, b in ((0.0, 0.3), (0.3, 1.0)))
+    assert sched.phi_change == pytest.approx(expected, abs=1e-13)
