@@ -211,15 +211,20 @@ def _duration(req: PlanRequest, cf: Any, chained: ChainedPath) -> float:
 
 
 # ---------------------------------------------------------------------- methods
-def plan_polynomial(req: PlanRequest, deadline: Deadline) -> Plan:
-    """The paper's method: intervals of dphi, then the objective."""
-    timing: dict[str, float] = {}
+def family_for(req: PlanRequest, deadline: Deadline) -> PolynomialFamily:
+    """The paper's family for ``req``; :class:`InfeasibleError` when no member can reach the
+    goal (joints that must move in opposite directions, or not at all)."""
     conflict = direction_conflict(req)
     if conflict:
         raise InfeasibleError(conflict, diagnostics={"blocking": "opposite_joint_motion"})
-    region = make_region(req)
-    fam = PolynomialFamily(req.robot, req.q_start(), req.q_goal(0.0), req.duration_or_default,
-                           req.constraint_points, region, deadline.check)
+    return PolynomialFamily(req.robot, req.q_start(), req.q_goal(0.0), req.duration_or_default,
+                            req.constraint_points, make_region(req), deadline.check)
+
+
+def plan_polynomial(req: PlanRequest, deadline: Deadline) -> Plan:
+    """The paper's method: intervals of dphi, then the objective."""
+    timing: dict[str, float] = {}
+    fam = family_for(req, deadline)
     t0 = time.perf_counter()
     if req.phi_change is not None:
         fam.inputs(float(req.phi_change))  # raises SingularSystemError for dphi = 0 (Remark 2)
@@ -282,12 +287,7 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
             "constraint points (use 'polynomial' or 'constraint_points')",
             field="constraint_points")
     timing: dict[str, float] = {}
-    conflict = direction_conflict(req)
-    if conflict:
-        raise InfeasibleError(conflict, diagnostics={"blocking": "opposite_joint_motion"})
-    region = make_region(req)
-    fam = PolynomialFamily(req.robot, req.q_start(), req.q_goal(0.0), req.duration_or_default,
-                           req.constraint_points, region, deadline.check)
+    fam = family_for(req, deadline)
     a, b = float(req.start[0]), float(req.goal[0])
     t0 = time.perf_counter()
     feasible: list[tuple[float, float]] = []
