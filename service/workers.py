@@ -467,9 +467,22 @@ class WorkerPool:
             self._idle.put_nowait(worker)
 
     def _idle_lost(self, worker: _Worker) -> None:
-        """A worker died while idle (OOM kill, an operator): replace it at once."""
+        """A worker died while idle (OOM kill, an operator): take it out of the idle queue (the
+        queue's size counts idle workers for admission and /readyz) and replace it at once."""
         if not self._closing:
+            self._drop_idle(worker)
             self._replace_worker(worker, "lost")
+
+    def _drop_idle(self, worker: _Worker) -> None:
+        # runs on the event loop, like every get and put of the queue: nothing interleaves
+        assert self._idle is not None
+        keep = []
+        while not self._idle.empty():
+            w = self._idle.get_nowait()
+            if w is not worker:
+                keep.append(w)
+        for w in keep:
+            self._idle.put_nowait(w)
 
     def _replace_worker(self, worker: _Worker, reason: str) -> None:
         log.warning("replacing worker %s (%s)", worker.ident, reason)
