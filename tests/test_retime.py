@@ -19,8 +19,7 @@ import pytest
 from optimizer.chained_form import chained_form
 from optimizer.errors import InfeasibleError, InvalidRequestError
 from optimizer.planner.plan import plan
-from optimizer.planner.retime import (frechet_bound, optimal_time_law, retimed_inputs,
-                                      retimed_path)
+from optimizer.planner.retime import frechet_bound, optimal_time_law, retimed_path
 from optimizer.problem import PlanRequest
 from optimizer.steering import ChainedPath
 from optimizer.verify import PlannedInputs
@@ -92,7 +91,7 @@ def test_retimed_inputs_run_the_same_geometric_path():
     law = optimal_time_law(lambda s: cf.from_chained(geo.z(s)).q[:, 1], D(10), D(30))
     assert np.all(np.diff(law.knots_tau) > 0) and np.all(np.diff(law.knots_sigma) > 0)
     assert law.deviation >= law.bound - 1e-9       # no time law beats the bound
-    retimed = ChainedPath.from_inputs(geo.z0, retimed_inputs(geo, law))
+    retimed = ChainedPath.from_inputs(geo.z0, retimed_path(geo, law).inputs)
     tau = np.linspace(0.0, 1.0, 3001)
     sigma = np.interp(tau, law.knots_tau, law.knots_sigma)
     assert np.max(np.abs(retimed.z(tau) - geo.z(sigma))) < 1e-11

@@ -162,12 +162,6 @@ class PolynomialFamily:
         m = np.where(ok & np.isfinite(res.margin), res.margin, -np.pi)
         return PolyMinimum(m, res.argmin, res.joint, res.side, res.outside)
 
-    def full_margins(self, dphis: np.ndarray) -> np.ndarray:
-        """Margins in the full region (with the request's joint bounds) of many members."""
-        coef, ok = self.polys(dphis)
-        res = self.full.poly_minimum(coef)
-        return np.where(ok & np.isfinite(res.margin), res.margin, -np.pi)
-
     def _components(self, coef: np.ndarray, taus: np.ndarray, only_z2: bool = False,
                     with_last: bool = True) -> np.ndarray:
         """``z2..z_{n+1}`` (or ``z2`` only, or without ``z_{n+1}``) of members at shared times,

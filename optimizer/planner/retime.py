@@ -127,27 +127,15 @@ def optimal_time_law(th1_of_sigma: Callable[[np.ndarray], np.ndarray], a: float,
     h_up = a + slope * const - th
     G_dn = np.hstack([slope * coef[:, :-1], -np.ones((S, 1))])
     h_dn = th - a - slope * const
-    # monotone with a minimum piece duration: tau_{j-1} - tau_j <= -h_min (speed bound)
-    h_min: np.ndarray = np.diff(knots) / max_speedup
-    D = np.zeros((K, nv))
-    for p in range(K):  # piece p+1 runs from tau_p to tau_{p+1}
-        if p >= 1:
-            D[p, p - 1] = 1.0
-        if p + 1 <= K - 1:
-            D[p, p] = -1.0
-    h_mono: np.ndarray = -h_min
-    h_mono[-1] += 1.0  # tau_{K-1} - 1 <= -h_min
-    G = np.vstack([G_up, G_dn, D])
-    h = np.concatenate([h_up, h_dn, h_mono])
-    # objective delta + rho * sum_j (tau_j - tau_{j-1} - dsigma_j)^2, as 1/2 x'Px + q'x
-    Dd = np.zeros((K, nv))
-    for p in range(K):
-        if p >= 1:
-            Dd[p, p - 1] = -1.0
-        if p + 1 <= K - 1:
-            Dd[p, p] = 1.0
+    # piece durations tau_j - tau_{j-1} = Dd x + off (tau_0 = 0 and tau_K = 1 are known)
+    Dd = np.hstack([np.eye(K, K - 1) - np.eye(K, K - 1, k=-1), np.zeros((K, 1))])
     off = np.zeros(K)
-    off[-1] = 1.0  # the last piece ends at the known tau_K = 1
+    off[-1] = 1.0
+    # monotone with a minimum piece duration (the speed bound): -(Dd x + off) <= -h_min
+    h_min: np.ndarray = np.diff(knots) / max_speedup
+    G = np.vstack([G_up, G_dn, -Dd])
+    h = np.concatenate([h_up, h_dn, off - h_min])
+    # objective delta + rho * sum_j (duration_j - dsigma_j)^2, as 1/2 x'Px + q'x
     r: np.ndarray = off - np.diff(knots)
     P = 2.0 * REGULARISATION * Dd.T @ Dd
     q = 2.0 * REGULARISATION * Dd.T @ r
@@ -215,8 +203,3 @@ def retimed_path(path: ChainedPath, law: TimeLaw) -> ChainedPath:
     inputs = InputSchedule(t.copy(), tuple(np.array([dphi * x]) for x in r),
                            tuple(v2s), inp.duration)
     return ChainedPath(path.z0, inputs, tuple(zpolys))
-
-
-def retimed_inputs(path: ChainedPath, law: TimeLaw) -> InputSchedule:
-    """The inputs of :func:`retimed_path`."""
-    return retimed_path(path, law).inputs
