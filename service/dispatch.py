@@ -101,6 +101,20 @@ async def run_job(request: Request, kind: str, payload: dict[str, Any], time_lim
                          admit=admit)
 
 
+async def answer_plan(state: Any, body: Any) -> bytes:
+    """``POST /v1/plans`` for a validated request model: the library's own checks, then the
+    plan on a worker. The one body of both entry points (the route and
+    :mod:`service.fastpath`), so that they cannot answer differently.
+
+    Raises
+    ------
+    ServiceProblem
+    """
+    payload = body.to_library()
+    check_plan(payload)
+    return await execute(state, "plan", payload, body.time_limit, method=body.method)
+
+
 async def execute(state: Any, kind: str, payload: dict[str, Any], time_limit: float, *,
                   method: str, admit: bool = True) -> bytes:
     """:func:`run_job` given the app's ``state`` (``pool``, ``settings``, ``metrics``)."""

@@ -10,7 +10,7 @@ size checks, when the request is a well-formed JSON plan request:
 * the ``Content-Type`` is ``application/json`` (or ``application/*+json``), the body parses
   with :func:`json.loads` and validates against the same pydantic model as the route (the
   model's own checks, so every bound is the same);
-* it then runs exactly what the route does (``to_library``, the library's validation, the job
+* it then runs what the route runs, :func:`service.dispatch.answer_plan` (``to_library``, the library's validation, the job
   on a worker) and answers the same 200 body or the same problem document.
 
 Anything else (no or another content type, malformed JSON, a schema violation) is *not*
@@ -27,7 +27,7 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 from starlette.types import Send
 
-from .dispatch import check_plan, execute
+from .dispatch import answer_plan
 from .problems import SafeJSONResponse, ServiceProblem
 from .schemas import Schemas
 
@@ -72,12 +72,7 @@ class FastPlanRoute:
         except (ValueError, ValidationError, RecursionError):
             return False  # the route answers it (400 or 422, as documented)
         try:
-            payload = request.to_library()  # type: ignore[attr-defined]
-            check_plan(payload)
-            result = await execute(self.state, "plan", payload,
-                                   request.time_limit,  # type: ignore[attr-defined]
-                                   method=request.method)  # type: ignore[attr-defined]
-            response = SafeJSONResponse(result)
+            response = SafeJSONResponse(await answer_plan(self.state, request))
         except ServiceProblem as problem:
             response = problem.response(request_id)
         await send({"type": "http.response.start", "status": response.status_code,

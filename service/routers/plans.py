@@ -6,7 +6,7 @@ from typing import Any
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from ..dispatch import check_plan, overloaded, request_id, run_job
+from ..dispatch import answer_plan, check_plan, overloaded, request_id, run_job
 from ..encoding import finite_json
 from ..problems import SafeJSONResponse, ServiceProblem
 from ..schemas import BatchResponse, PlanResponse, Schemas
@@ -24,10 +24,7 @@ def build_router(S: Schemas) -> APIRouter:
                              "by re-integrating the original model. A request that cannot be "
                              "planned is answered with a problem document, never a 200.")
     async def create_plan(body: S.PlanRequest, request: Request) -> Response:  # type: ignore[name-defined]
-        payload = body.to_library()
-        check_plan(payload)
-        result = await run_job(request, "plan", payload, body.time_limit, method=body.method)
-        return SafeJSONResponse(result)
+        return SafeJSONResponse(await answer_plan(request.app.state, body))
 
     @router.post("/plans/batch", response_model=BatchResponse, responses=ERROR_RESPONSES,
                  summary="Plan many motions in parallel",
