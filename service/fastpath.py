@@ -10,8 +10,9 @@ size checks, when the request is a well-formed JSON plan request:
 * the ``Content-Type`` is ``application/json`` (or ``application/*+json``), the body parses
   with :func:`json.loads` and validates against the same pydantic model as the route (the
   model's own checks, so every bound is the same);
-* it then runs what the route runs, :func:`service.dispatch.answer_plan` (``to_library``, the library's validation, the job
-  on a worker) and answers the same 200 body or the same problem document.
+* it then runs what the route runs, :func:`service.dispatch.answer_plan` (``to_library``, the
+  library's validation, the job on a worker), and answers the same 200 body or the same problem
+  document.
 
 Anything else (no or another content type, malformed JSON, a schema violation) is *not*
 answered here: the request goes on to the FastAPI route with its body unchanged, so every error
