@@ -38,8 +38,8 @@ def test_metrics_count_requests_and_solves(client):
     assert 'planner_workers{state="idle"}' in text
     assert "planner_queue_waiting" in text
     # unknown paths are lumped together, never one series per path
-    client.get("/no/such/path/12345")
-    assert "12345" not in client.get("/metrics").text
+    client.get("/no/such/path/scanner-probe-xyz")
+    assert "scanner-probe-xyz" not in client.get("/metrics").text
 
 
 def test_docs_pages_need_no_internet(client):
