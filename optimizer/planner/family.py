@@ -111,13 +111,16 @@ class PolynomialFamily:
         # SolverTimeoutError when the request's time is up
         self.deadline_check = deadline or (lambda stage: None)
         self.evaluate = functools.lru_cache(maxsize=4096)(self._evaluate)
+        # a member's chained path (memoised: the planner confirms its chosen member, then
+        # finishes the plan on the same path; the path object must not be modified)
+        self.path: Callable[[float], ChainedPath] = functools.lru_cache(maxsize=64)(self._path)
         # eq (10-11) for all members at once
         self.system = FamilySystem(self.n, self.z0, self.zT, self.duration, points)
 
     def inputs(self, dphi: float) -> InputSchedule:
         return solve_polynomial(dphi, self.n, self.z0, self.zT, self.duration, self.points)
 
-    def path(self, dphi: float) -> ChainedPath:
+    def _path(self, dphi: float) -> ChainedPath:
         return ChainedPath.from_inputs(self.z0, self.inputs(dphi))
 
     def check(self, dphi: float) -> PathCheck:

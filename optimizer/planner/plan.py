@@ -313,7 +313,10 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
             bound = frechet_bound(th1, a, b)
             tps = np.array([count_reversals(row) for row in th1])
             for i in np.lexsort((bound, tps)):
-                if valid[i] and fam.evaluate(float(cands[i])).ok:
+                # the continuous check of the path that is returned (Region.check_path on
+                # fam.path, request's criterion and the full region): finish_plan's check of
+                # the same path is then answered from check_path's memo, not run twice
+                if valid[i] and fam.confirm(float(cands[i]))[0]:
                     return float(cands[i])
             return None
 
