@@ -132,7 +132,7 @@ def sensitivity_frobenius(s: np.ndarray | float, n: int) -> np.ndarray:
     return np.sqrt(tot)
 
 
-def compute_indicators(t: np.ndarray, q: np.ndarray, u: np.ndarray) -> Indicators:
+def compute_indicators(t: np.ndarray, q: np.ndarray, u: np.ndarray | None) -> Indicators:
     """All indicators from samples of a path.
 
     Parameters
@@ -141,8 +141,9 @@ def compute_indicators(t: np.ndarray, q: np.ndarray, u: np.ndarray) -> Indicator
         Times (s), from 0 to T.
     q : ndarray, shape (N, n+1)
         ``[phi, th1..thn]`` at those times.
-    u : ndarray, shape (N, 2)
-        Actuator inputs at those times.
+    u : ndarray, shape (N, 2), or None
+        Actuator inputs at those times; None when the caller computes the energy otherwise
+        (``energy`` is then NaN).
     """
     n = q.shape[1] - 1
     T = t[-1] - t[0]
@@ -151,7 +152,7 @@ def compute_indicators(t: np.ndarray, q: np.ndarray, u: np.ndarray) -> Indicator
     per = approximation_distance(tau, th)
     s = q[:, 0] - q[0, 0]
     sens = sensitivity_frobenius(s, n)
-    energy = float(np.trapezoid(np.sum(u * u, axis=1), t))
+    energy = math.nan if u is None else float(np.trapezoid(np.sum(u * u, axis=1), t))
     return Indicators(
         d_a=float(per[0]),
         d_a_per_joint=tuple(float(x) for x in per),

@@ -12,6 +12,7 @@ Inputs are piecewise polynomials in ``tau`` (one piece for the paper's family; s
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -83,15 +84,21 @@ class InputSchedule:
     def V(self, tau: np.ndarray) -> np.ndarray:
         """``[V1, V2]`` at normalised times, shape (N, 2)."""
         tau = np.atleast_1d(np.asarray(tau, float))
-        out = np.empty((tau.size, 2))
+        if self.pieces == 1:
+            x = tau - self.breaks[0]
+            return np.stack([_horner(self.v1[0], x), _horner(self.v2[0], x)], axis=1)
         idx = self.piece_index(tau)
-        for s in range(self.pieces):
-            m = idx == s
-            if m.any():
-                x = tau[m] - self.breaks[s]
-                out[m, 0] = P.polyval(x, self.v1[s])
-                out[m, 1] = P.polyval(x, self.v2[s])
-        return out
+        x = tau - self.breaks[idx]
+        return np.stack([_horner_pieces(self._v1_stack, idx, x),
+                         _horner_pieces(self._v2_stack, idx, x)], axis=1)
+
+    @functools.cached_property
+    def _v1_stack(self) -> np.ndarray:
+        return _stack_pieces([c[None, :] for c in self.v1])[:, 0, :]
+
+    @functools.cached_property
+    def _v2_stack(self) -> np.ndarray:
+        return _stack_pieces([c[None, :] for c in self.v2])[:, 0, :]
 
     def v(self, t: np.ndarray) -> np.ndarray:
         """Physical chained inputs ``[v1, v2]`` (rad/s) at times ``t`` (s), shape (N, 2)."""
@@ -167,14 +174,17 @@ class ChainedPath:
     def z(self, tau: np.ndarray) -> np.ndarray:
         """Chained state at normalised times, shape (N, n+1)."""
         tau = np.atleast_1d(np.asarray(tau, float))
-        out = np.empty((tau.size, self.z0.size))
+        if len(self.polys) == 1:
+            x = tau - self.inputs.breaks[0]
+            return _horner(self.polys[0].T, x[:, None])
         idx = self.inputs.piece_index(tau)
-        for s, arr in enumerate(self.polys):
-            m = idx == s
-            if m.any():
-                x = tau[m] - self.inputs.breaks[s]
-                out[m] = P.polyval(x, arr.T).T
-        return out
+        x = tau - self.inputs.breaks[idx]
+        return _horner_pieces(self._z_stack, idx, x[:, None])
+
+    @functools.cached_property
+    def _z_stack(self) -> np.ndarray:
+        # (S, L, n+1): per piece, powers first (one gather per Horner step in z)
+        return _stack_pieces(list(self.polys)).transpose(0, 2, 1).copy()
 
     def z_end(self) -> np.ndarray:
         return self.z(np.array([1.0]))[0]
@@ -183,6 +193,37 @@ class ChainedPath:
         """``[(tau_start, tau_end, coefficients in (tau - tau_start))]`` of ``z_{k+1}`` (0-based k)."""
         b = self.inputs.breaks
         return [(float(b[s]), float(b[s + 1]), arr[k]) for s, arr in enumerate(self.polys)]
+
+
+def _horner(c: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``sum_k c[k] x^k`` by Horner's rule along the first axis of ``c`` (increasing powers),
+    with the operations of :func:`numpy.polynomial.polynomial.polyval` in the same order (so the
+    same values, bit for bit)."""
+    out = c[-1] + x * 0
+    for k in range(c.shape[0] - 2, -1, -1):
+        out = c[k] + out * x
+    return out
+
+
+def _stack_pieces(arrs: list[np.ndarray]) -> np.ndarray:
+    """Per-piece coefficient arrays (C, L_s) as one (S, C, L) array, zero-padded at the top
+    (leading zeros leave Horner's values unchanged)."""
+    L = max(a.shape[1] for a in arrs)
+    out = np.zeros((len(arrs), arrs[0].shape[0], L))
+    for s, a in enumerate(arrs):
+        out[s, :, :a.shape[1]] = a
+    return out
+
+
+def _horner_pieces(stack: np.ndarray, idx: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Piecewise polynomials at points: ``stack`` (S, L, ...) coefficients in increasing
+    powers (axis 1) per piece, ``idx`` (N,) the piece of each point, ``x`` (N,) or (N, 1) the
+    local times; returns (N, ...). All points at once instead of a loop over pieces."""
+    L = stack.shape[1]
+    out = stack[idx, L - 1] + x * 0
+    for k in range(L - 2, -1, -1):
+        out = stack[idx, k] + out * x
+    return out
 
 
 # ---------------------------------------------------------------------- the paper's family
