@@ -282,7 +282,7 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
     reach on it); for the other objectives the polynomial method's choice, which retiming does
     not change (``t_p``, ``||J_R(T)||_F`` and the region are geometric).
     """
-    from .retime import frechet_bound, optimal_time_law, retimed_path
+    from .retime import SCREEN_TIMES, frechet_bound, optimal_time_law, retimed_path
 
     if req.constraint_points:
         raise InvalidRequestError(
@@ -329,8 +329,14 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
             # grid are enough to rank by the bound (the winner is checked exactly), without
             # refining the interval ends. Windows narrower than the grid (n >= 4) leave none:
             # then the exact intervals, as for the other objectives.
+            # The candidates are screened on SCREEN_TIMES times only: a member's
+            # continuous margin is at most its margin at any sampled times, so a member with a
+            # margin <= 0 there (all but a few) cannot pass the exact check, and one that is
+            # kept but fails it is skipped by `by_bound` like any other. Equivalent to the
+            # 97-time coarse grid of the interval search, at a third of the cost.
             grid = dphi_grid(lo, hi)
-            coarse = grid[fam.coarse_margins(grid) > 0.0] if grid.size else grid
+            coarse = grid[fam.coarse_margins(grid, grid=SCREEN_TIMES) > 0.0] \
+                if grid.size else grid
             if coarse.size:
                 chosen = by_bound(coarse)
             timing["coarse_scan"] = time.perf_counter() - t0

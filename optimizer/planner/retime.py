@@ -46,6 +46,9 @@ SAMPLES_PER_PIECE = 8
 MAX_SPEEDUP = 8.0
 #: Weight of the regulariser sum (h_j - 1/K)^2 (K h_j is the relative duration of piece j).
 REGULARISATION = 1e-4
+#: Normalised times at which the planner screens the family's members before ranking them
+#: (a member's continuous margin is at most its margin at any sampled times).
+SCREEN_TIMES = 13
 
 
 @dataclass(frozen=True)
