@@ -27,6 +27,7 @@ phi runs at most ``max_speedup`` times faster than with the paper's constant ``v
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -107,46 +108,38 @@ def optimal_time_law(th1_of_sigma: Callable[[np.ndarray], np.ndarray], a: float,
     """
     K, M = int(pieces), int(samples_per_piece)
     knots = _knots(th1_of_sigma, K)
-    w = np.arange(M) / M                                   # weights inside a piece
-    j = np.repeat(np.arange(1, K + 1), M)                  # piece of each sample (1-based)
-    ww = np.tile(w, K)
+    lp = _lp_structure(K, M)
+    j, ww = lp.j, lp.ww
     sig = knots[j - 1] + ww * (knots[j] - knots[j - 1])
     th = np.asarray(th1_of_sigma(np.append(sig, 1.0)), float)
     bound = float(frechet_bound(th, a, b))
     th = th[:-1]
     slope = b - a
-    nv = K  # unknowns tau_1..tau_{K-1}, then delta
     S = sig.size
-    # tau(sigma_i) = (1 - w) tau_{j-1} + w tau_j, with tau_0 = 0 and tau_K = 1 known
-    coef = np.zeros((S, nv))
-    const = np.zeros(S)
-    left, right = j - 1, j
-    for idx, wt in ((left, 1.0 - ww), (right, ww)):
-        inner = (idx >= 1) & (idx <= K - 1)
-        coef[np.nonzero(inner)[0], idx[inner] - 1] += wt[inner]
-        const += np.where(idx == K, wt, 0.0)
-    # +-(th - a - slope tau) <= delta  ->  rows of G x <= h
-    G_up = np.hstack([-slope * coef[:, :-1], -np.ones((S, 1))])
-    h_up = a + slope * const - th
-    G_dn = np.hstack([slope * coef[:, :-1], -np.ones((S, 1))])
-    h_dn = th - a - slope * const
-    # piece durations tau_j - tau_{j-1} = Dd x + off (tau_0 = 0 and tau_K = 1 are known)
-    Dd = np.hstack([np.eye(K, K - 1) - np.eye(K, K - 1, k=-1), np.zeros((K, 1))])
-    off = np.zeros(K)
-    off[-1] = 1.0
+    # +-(th - a - slope tau) <= delta  ->  rows of G x <= h (x = tau_1..tau_{K-1}, delta);
+    # tau(sigma_i) = coef_i . x + const_i (see _lp_structure), then the piece durations
+    G = np.empty((2 * S + K, K))
+    G[:S, :-1] = -slope * lp.coef
+    G[S:2 * S, :-1] = slope * lp.coef
+    G[:2 * S, -1] = -1.0
+    G[2 * S:] = lp.neg_Dd
+    h_up = a + slope * lp.const - th
+    h_dn = th - a - slope * lp.const
     # monotone with a minimum piece duration (the speed bound): -(Dd x + off) <= -h_min
     h_min: np.ndarray = np.diff(knots) / max_speedup
-    G = np.vstack([G_up, G_dn, -Dd])
-    h = np.concatenate([h_up, h_dn, off - h_min])
+    h = np.concatenate([h_up, h_dn, lp.off - h_min])
     # objective delta + rho * sum_j (duration_j - dsigma_j)^2, as 1/2 x'Px + q'x
-    r: np.ndarray = off - np.diff(knots)
-    P = 2.0 * REGULARISATION * Dd.T @ Dd
-    q = 2.0 * REGULARISATION * Dd.T @ r
+    r: np.ndarray = lp.off - np.diff(knots)
+    q = lp.reg_DdT @ r
     q[-1] += 1.0
     settings = clarabel.DefaultSettings()
     settings.verbose = False
-    solver = clarabel.DefaultSolver(sparse.csc_matrix(np.triu(P)), q, sparse.csc_matrix(G), h,
-                                    [clarabel.NonnegativeConeT(G.shape[0])], settings)
+    try:
+        solver = clarabel.DefaultSolver(lp.P, q, _Csc.from_dense(G), h,
+                                        [clarabel.NonnegativeConeT(G.shape[0])], settings)
+    except (AttributeError, TypeError):  # a Clarabel that wants scipy's own class
+        solver = clarabel.DefaultSolver(lp.P.to_scipy(), q, sparse.csc_matrix(G), h,
+                                        [clarabel.NonnegativeConeT(G.shape[0])], settings)
     sol = solver.solve()
     if str(sol.status) not in ("Solved", "AlmostSolved"):
         raise NumericalError(f"the time-law LP did not solve ({sol.status})",
@@ -156,6 +149,76 @@ def optimal_time_law(th1_of_sigma: Callable[[np.ndarray], np.ndarray], a: float,
     # guard against round-off: strictly increasing by construction of the constraints
     tau = np.maximum.accumulate(tau)
     return TimeLaw(knots_tau=tau, knots_sigma=knots, deviation=float(x[-1]), bound=bound)
+
+
+class _Csc:
+    """A CSC matrix with the attributes Clarabel reads (``data``, ``indices``, ``indptr``,
+    ``nnz``, ``shape``, ``has_canonical_format``): built from a small dense matrix in a few
+    microseconds, where scipy's constructors (format checks, COO round trip) take ~40 us.
+    Canonical: row indices sorted within each column, no duplicates, explicit zeros dropped
+    (the same arrays as ``scipy.sparse.csc_matrix(dense)``)."""
+
+    has_canonical_format = True
+
+    def __init__(self, data: np.ndarray, indices: np.ndarray, indptr: np.ndarray,
+                 shape: tuple[int, int]) -> None:
+        self.data = data
+        self.indices = indices
+        self.indptr = indptr
+        self.nnz = int(indptr[-1])
+        self.shape = shape
+
+    @classmethod
+    def from_dense(cls, A: np.ndarray) -> "_Csc":
+        mask = A.T != 0.0                                   # (columns, rows): column-major
+        indptr = np.zeros(A.shape[1] + 1, np.int64)
+        np.cumsum(np.count_nonzero(mask, axis=1), out=indptr[1:])
+        return cls(A.T[mask], np.nonzero(mask)[1], indptr, (A.shape[0], A.shape[1]))
+
+    def to_scipy(self) -> sparse.csc_matrix:
+        return sparse.csc_matrix((self.data, self.indices, self.indptr), shape=self.shape)
+
+
+@dataclass(frozen=True)
+class _LpStructure:
+    """The parts of the time-law LP that depend on the numbers of pieces and samples only."""
+
+    j: np.ndarray          # piece of each sample (1-based)
+    ww: np.ndarray         # its weight inside the piece
+    coef: np.ndarray       # (S, K-1): tau(sigma_i) = coef_i . (tau_1..tau_{K-1}) + const_i
+    const: np.ndarray
+    neg_Dd: np.ndarray     # (K, K): minus the piece durations' matrix (tau_j - tau_{j-1})
+    off: np.ndarray        # the durations' constant part (tau_K = 1)
+    reg_DdT: np.ndarray    # 2 rho Dd^T (the regulariser's linear term is reg_DdT @ r)
+    P: _Csc                # upper triangle of 2 rho Dd^T Dd
+
+
+@functools.lru_cache(maxsize=8)
+def _lp_structure(K: int, M: int) -> _LpStructure:
+    w = np.arange(M) / M                                   # weights inside a piece
+    j = np.repeat(np.arange(1, K + 1), M)                  # piece of each sample (1-based)
+    ww = np.tile(w, K)
+    S = j.size
+    nv = K  # unknowns tau_1..tau_{K-1}, then delta
+    # tau(sigma_i) = (1 - w) tau_{j-1} + w tau_j, with tau_0 = 0 and tau_K = 1 known
+    coef = np.zeros((S, nv))
+    const = np.zeros(S)
+    left, right = j - 1, j
+    for idx, wt in ((left, 1.0 - ww), (right, ww)):
+        inner = (idx >= 1) & (idx <= K - 1)
+        coef[np.nonzero(inner)[0], idx[inner] - 1] += wt[inner]
+        const += np.where(idx == K, wt, 0.0)
+    # piece durations tau_j - tau_{j-1} = Dd x + off (tau_0 = 0 and tau_K = 1 are known)
+    Dd = np.hstack([np.eye(K, K - 1) - np.eye(K, K - 1, k=-1), np.zeros((K, 1))])
+    off = np.zeros(K)
+    off[-1] = 1.0
+    reg_DdT = 2.0 * REGULARISATION * Dd.T
+    out = _LpStructure(j, ww, np.ascontiguousarray(coef[:, :-1]), const, -Dd, off, reg_DdT,
+                       _Csc.from_dense(np.triu(reg_DdT @ Dd)))
+    for arr in (j, ww, out.coef, const, out.neg_Dd, off, reg_DdT, out.P.data, out.P.indices,
+                out.P.indptr):
+        arr.flags.writeable = False                     # shared between calls
+    return out
 
 
 def _knots(th1_of_sigma: Callable[[np.ndarray], np.ndarray], K: int, grid: int = 513
