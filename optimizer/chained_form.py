@@ -209,6 +209,10 @@ class ChainedForm:
         """
         zz = np.atleast_2d(np.asarray(z, dtype=float))
         N, n = zz.shape[0], self.n
+        if self.backend == "closed" and N and np.isfinite(zz).all():
+            fast = self._from_chained3(zz)
+            if fast is not None:
+                return fast
         q = np.zeros((N, n + 1))
         w = np.zeros((N, n - 1))
         valid = np.isfinite(zz).all(axis=1)
@@ -236,6 +240,30 @@ class ChainedForm:
             q[gi, k - 1] = np.arccos(wk[good] ** (1.0 / self.robot.exponents[k - 2]))
         q[~valid] = 0.0
         return InverseResult(q=q, w=w, valid=valid, failed_level=failed)
+
+    def _from_chained3(self, zz: np.ndarray) -> InverseResult | None:
+        """:meth:`from_chained` (closed form, n = 3) for finite points that are all valid, with
+        the same operations on whole columns instead of index arrays; None when some point is
+        not valid (the general path then says where and why)."""
+        robot = self.robot
+        m2, m3 = robot.exponents
+        N = zz.shape[0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w3 = zz[:, 2] / robot.gains[1]              # (z3 - b3) / a3 with b3 = 0, a3 = K3
+            if not ((w3 > W_TOL) & (w3 < 1.0 - W_TOL)).all():
+                return None
+            th2 = np.arccos(w3 ** (1.0 / m3))
+            a, b = _closed_ab(robot, 2, np.column_stack([zz[:, 0], zz[:, 1], th2, zz[:, 3]]))
+            w2 = (zz[:, 1] - b) / a
+            if not (np.isfinite(w2) & (w2 > W_TOL) & (w2 < 1.0 - W_TOL)).all():
+                return None
+        q = np.empty((N, 4))
+        q[:, 0] = zz[:, 0]
+        q[:, 1] = np.arccos(w2 ** (1.0 / m2))
+        q[:, 2] = th2
+        q[:, 3] = zz[:, 3]
+        return InverseResult(q=q, w=np.column_stack([w2, w3]), valid=np.ones(N, bool),
+                             failed_level=np.zeros(N, dtype=int))
 
     # ------------------------------------------------------------------ symbolic
     @property

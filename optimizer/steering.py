@@ -158,17 +158,28 @@ class ChainedPath:
         pieces = []
         zs = z0.copy()
         for s in range(inputs.pieces):
-            h = inputs.breaks[s + 1] - inputs.breaks[s]
             v1, v2 = inputs.v1[s], inputs.v2[s]
-            cs: list[np.ndarray] = [P.polyint(v1, k=zs[0]), P.polyint(v2, k=zs[1])]
-            for k in range(2, nz):
-                cs.append(P.polyint(P.polymul(cs[k - 1], v1), k=zs[k]))
+            cs: list[np.ndarray]
+            if v1.size == 1 and v1[0] != 0.0 and np.isfinite(v1[0]) \
+                    and np.isfinite(v2).all() and np.isfinite(zs).all():
+                # constant V1 (the paper's family): the same coefficients as below without
+                # numpy.polynomial's per-call overhead (a product by a constant is exact)
+                c1 = float(v1[0])
+                cs = [np.array([zs[0], c1]), _polyint(v2, zs[1])]
+                for k in range(2, nz):
+                    cs.append(_polyint(_trim(_trim(cs[k - 1]) * c1), zs[k]))
+            else:
+                cs = [P.polyint(v1, k=zs[0]), P.polyint(v2, k=zs[1])]
+                for k in range(2, nz):
+                    cs.append(P.polyint(P.polymul(cs[k - 1], v1), k=zs[k]))
             deg = max(c.size for c in cs)
             arr = np.zeros((nz, deg))
             for k, c in enumerate(cs):
                 arr[k, :c.size] = c
             pieces.append(arr)
-            zs = np.array([P.polyval(h, c) for c in arr])
+            if s + 1 < inputs.pieces:  # the next piece starts where this one ends
+                h = inputs.breaks[s + 1] - inputs.breaks[s]
+                zs = np.array([P.polyval(h, c) for c in arr])
         return cls(z0, inputs, tuple(pieces))
 
     def z(self, tau: np.ndarray) -> np.ndarray:
@@ -193,6 +204,26 @@ class ChainedPath:
         """``[(tau_start, tau_end, coefficients in (tau - tau_start))]`` of ``z_{k+1}`` (0-based k)."""
         b = self.inputs.breaks
         return [(float(b[s]), float(b[s + 1]), arr[k]) for s, arr in enumerate(self.polys)]
+
+
+def _polyint(c: np.ndarray, k: float) -> np.ndarray:
+    """``numpy.polynomial.polynomial.polyint(c, k=k)`` for finite 1-D ``c`` (same values)."""
+    n = c.size
+    if n == 1 and c[0] == 0.0:
+        return np.array([c[0] + k])
+    out = np.empty(n + 1)
+    out[0] = k                       # polyint: 0 + (k - p(0)), and p(0) = 0 there
+    out[1] = c[0]
+    out[2:] = c[1:] / np.arange(2, n + 1)
+    return out
+
+
+def _trim(c: np.ndarray) -> np.ndarray:
+    """Without trailing zeros (at least one entry), as ``numpy.polynomial`` trims."""
+    if c[-1] != 0.0:
+        return c
+    nz = np.flatnonzero(c)
+    return c[:nz[-1] + 1] if nz.size else c[:1]
 
 
 def _horner(c: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -405,6 +436,35 @@ def polyval_each(coef: np.ndarray, x: np.ndarray) -> np.ndarray:
     return out
 
 
+@functools.lru_cache(maxsize=256)
+def _family_matrix(k_rows: tuple[int, ...], t_rows: tuple[float, ...], p: int
+                   ) -> tuple[np.ndarray, bool, float]:
+    """``C`` of :class:`FamilySystem` (read-only), whether it is regular, and ``rho``."""
+    # i! / (i + k + 1)! t^(i + k + 1), as exact integer ratios first
+    C = np.array([[math.factorial(i) / math.factorial(i + k + 1) * t ** (i + k + 1)
+                   for i in range(p)] for k, t in zip(k_rows, t_rows)])
+    kmax = int(max(k_rows))
+    with np.errstate(all="ignore"):
+        try:
+            inv_norm = float(np.linalg.norm(np.linalg.inv(C), 2))
+        except np.linalg.LinAlgError:
+            inv_norm = math.inf
+    regular = math.isfinite(inv_norm)
+    # The singularity test of solve_polynomial (condition number of the column-scaled
+    # matrix M(dphi) = diag(dphi^k_r) C) depends on |dphi| only and is bounded by
+    # sqrt(p) ||C||_F ||C^-1|| (max(1, |dphi|) / min(1, |dphi|))^kmax: inside
+    # 1/rho < |dphi| < rho it passes for sure; outside it is computed exactly.
+    K0 = math.sqrt(p) * float(np.linalg.norm(C)) * inv_norm
+    if not regular or K0 >= MAX_CONDITION:
+        rho = 1.0
+    elif kmax == 0:
+        rho = math.inf
+    else:
+        rho = (MAX_CONDITION / K0) ** (1.0 / kmax)
+    C.flags.writeable = False
+    return C, regular, rho
+
+
 class FamilySystem:
     """The paper's family for fixed ``z0``, ``zT``, duration and constraint points, solved for
     many ``dphi`` at once (eq 10-11).
@@ -436,9 +496,9 @@ class FamilySystem:
         self.t_rows = np.array(t_rows)
         self.k_rows = np.array(k_rows)
         self.targets = np.array(targets, float)
-        # i! / (i + k + 1)! t^(i + k + 1), as exact integer ratios first
-        self.C = np.array([[math.factorial(i) / math.factorial(i + k + 1) * t ** (i + k + 1)
-                            for i in range(p)] for k, t in zip(k_rows, t_rows)])
+        # the matrix C and its conditioning depend on the rows' times and states only (not on
+        # the start or goal): shared by every request with the same n and constraint points
+        self.C, self.regular, self.rho = _family_matrix(tuple(k_rows), tuple(t_rows), p)
         self.kmax = kmax = int(max(k_rows))
         # free part of row r (V2 = 0) as a polynomial in dphi:
         # sum_j dphi^j t_r^j / j! z0[k_r - j + 1]   (j = 0..k_r)
@@ -446,23 +506,6 @@ class FamilySystem:
         for r, (k, t) in enumerate(zip(k_rows, t_rows)):
             for j in range(k + 1):
                 self.F[j, r] = t ** j / math.factorial(j) * self.z0[k - j + 1]
-        with np.errstate(all="ignore"):
-            try:
-                inv_norm = float(np.linalg.norm(np.linalg.inv(self.C), 2))
-            except np.linalg.LinAlgError:
-                inv_norm = math.inf
-        self.regular = math.isfinite(inv_norm)
-        # The singularity test of solve_polynomial (condition number of the column-scaled
-        # matrix M(dphi) = diag(dphi^k_r) C) depends on |dphi| only and is bounded by
-        # sqrt(p) ||C||_F ||C^-1|| (max(1, |dphi|) / min(1, |dphi|))^kmax: inside
-        # 1/rho < |dphi| < rho it passes for sure; outside it is computed exactly.
-        K0 = math.sqrt(p) * float(np.linalg.norm(self.C)) * inv_norm
-        if not self.regular or K0 >= MAX_CONDITION:
-            self.rho = 1.0
-        elif kmax == 0:
-            self.rho = math.inf
-        else:
-            self.rho = (MAX_CONDITION / K0) ** (1.0 / kmax)
         self.inv_j = 1.0 / np.arange(1, self.L)
 
     def coefficients(self, dphis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -55,3 +55,59 @@ def test_indicators_without_inputs() -> None:
     for f in full.__dataclass_fields__:
         if f != "energy":
             assert getattr(none, f) == getattr(full, f)
+
+
+def _from_inputs_reference(z0: np.ndarray, inputs: InputSchedule) -> list[np.ndarray]:
+    """The chained path's coefficients with numpy.polynomial throughout (the former code)."""
+    zs = np.asarray(z0, float).copy()
+    out = []
+    for s in range(inputs.pieces):
+        v1, v2 = inputs.v1[s], inputs.v2[s]
+        cs = [P.polyint(v1, k=zs[0]), P.polyint(v2, k=zs[1])]
+        for k in range(2, zs.size):
+            cs.append(P.polyint(P.polymul(cs[k - 1], v1), k=zs[k]))
+        arr = np.zeros((zs.size, max(c.size for c in cs)))
+        for k, c in enumerate(cs):
+            arr[k, :c.size] = c
+        out.append(arr)
+        h = inputs.breaks[s + 1] - inputs.breaks[s]
+        zs = np.array([P.polyval(h, c) for c in arr])
+    return out
+
+
+def test_from_inputs_matches_numpy_polynomial() -> None:
+    rng = np.random.default_rng(11)
+    cases = [InputSchedule.single([0.6], rng.normal(size=3), 1.0),
+             InputSchedule.single([-0.4], [0.2, -0.1, 0.0], 1.0),          # trailing zero
+             InputSchedule.single([0.3], [0.0], 1.0),                     # V2 = 0
+             InputSchedule(np.array([0.0, 0.4, 1.0]), (np.array([0.5]), np.array([0.2, 0.1])),
+                           (rng.normal(size=4), rng.normal(size=2)), 2.0)]
+    for inp in cases:
+        for nz in (4, 6):
+            z0 = rng.normal(size=nz)
+            got = ChainedPath.from_inputs(z0, inp).polys
+            ref = _from_inputs_reference(z0, inp)
+            assert len(got) == len(ref)
+            for g, r in zip(got, ref):
+                assert g.shape == r.shape
+                assert np.array_equal(g, r)
+
+
+def test_from_chained_closed_form_all_valid() -> None:
+    """n = 3: a batch of valid points (whole-column path) against the same points inverted
+    together with an invalid one (the general, per-level indexed path) and the forward map."""
+    from optimizer.chained_form import chained_form
+    from optimizer.model import Robot
+
+    cf = chained_form(Robot())
+    rng = np.random.default_rng(5)
+    q = np.column_stack([rng.uniform(-1, 1, 300), rng.uniform(0.01, 1.56, (300, 3))])
+    z = cf.to_chained(q)
+    fast = cf.from_chained(z)
+    bad = np.vstack([z, [[0.0, 0.5, 0.3, 0.1]]])             # z2 > 0: outside the region
+    slow = cf.from_chained(bad)
+    assert fast.valid.all() and not slow.valid[-1] and slow.valid[:-1].all()
+    assert np.array_equal(fast.q, slow.q[:-1])
+    assert np.array_equal(fast.w, slow.w[:-1])
+    assert np.array_equal(fast.failed_level, slow.failed_level[:-1])
+    np.testing.assert_allclose(fast.q, q, atol=1e-9)
