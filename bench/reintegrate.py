@@ -310,9 +310,13 @@ def planner_segments(plan: Any) -> list[Segment]:
     from optimizer.chained_form import chained_form
     from optimizer.verify import PlannedInputs
 
-    planned = PlannedInputs(chained_form(plan.robot), plan.chained)
-    T = float(plan.chained.inputs.duration)
-    breaks = np.asarray(plan.chained.inputs.breaks, float) * T
+    if plan.chained is None:  # actuator rates (method shooting): constant on each interval
+        planned: Any = plan.inputs
+        breaks = np.asarray(plan.inputs.breaks, float)
+    else:
+        planned = PlannedInputs(chained_form(plan.robot), plan.chained)
+        T = float(plan.chained.inputs.duration)
+        breaks = np.asarray(plan.chained.inputs.breaks, float) * T
 
     def u(t: float) -> np.ndarray:
         return planned.u_scalar(t)

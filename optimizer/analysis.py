@@ -152,7 +152,14 @@ def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float],
     if mode not in ("u", "v"):
         raise InvalidRequestError("replay must be 'u' or 'v'", field="replay")
     cf = chained_form(plan.robot)
-    inputs = PlannedInputs(cf, plan.chained)
+    if plan.chained is None:  # actuator-rate plan (shooting): the rates are the plan itself
+        if mode == "v":
+            raise InvalidRequestError(
+                f"replay 'v' needs chained inputs; method {plan.method!r} plans actuator rates "
+                "(use replay 'u')", field="replay")
+        inputs: Any = plan.inputs
+    else:
+        inputs = PlannedInputs(cf, plan.chained)
     t = plan.path.t
     phi0 = float(plan.path.q[0, 0])
     goal_arr = np.asarray(goal, float)

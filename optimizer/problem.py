@@ -15,7 +15,7 @@ from .errors import InvalidRequestError
 from .model import Robot
 from .steering import ConstraintPoint, validate_constraint_points
 
-METHODS = ("auto", "polynomial", "retimed", "constraint_points", "penalty")
+METHODS = ("auto", "polynomial", "retimed", "constraint_points", "penalty", "shooting")
 OBJECTIVES = ("tp_then_da", "tp_then_sensitivity", "weighted")
 CRITERIA = ("full", "z2")
 

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from .actuation import ActuatorSchedule
 from .indicators import Indicators
 from .model import Robot
 from .steering import ChainedPath, InputSchedule
@@ -52,9 +53,12 @@ class Plan:
         ``dphi`` (rad).
     duration : float
         ``T`` (s).
-    inputs : InputSchedule
+    inputs : InputSchedule or ActuatorSchedule
+        Chained inputs (the paper's methods and the penalty method) or piecewise-constant
+        actuator rates (``shooting``, planned on the original model).
         The chained inputs (coefficients), enough to regenerate everything.
-    chained : ChainedPath
+    chained : ChainedPath or None
+        The chained path of chained inputs (None for actuator-rate plans).
     feasible_phi_changes : list of (float, float)
         Singularity-free ``dphi`` intervals of the paper's family (empty when not computed).
     indicators : Indicators
@@ -72,8 +76,8 @@ class Plan:
     method: str
     phi_change: float
     duration: float
-    inputs: InputSchedule
-    chained: ChainedPath
+    inputs: InputSchedule | ActuatorSchedule
+    chained: ChainedPath | None
     feasible_phi_changes: list[tuple[float, float]]
     indicators: Indicators
     margin: float
@@ -100,7 +104,10 @@ class Plan:
             "duration": self.duration,
             "feasible_phi_changes": [[a, b] for a, b in self.feasible_phi_changes],
             "coefficients": {
-                "basis": "v1(t), v2(t) as power series in (t - t_start), t in s",
+                "basis": ("v1(t), v2(t) as power series in (t - t_start), t in s"
+                          if self.chained is not None else
+                          "actuator rates u = (u1, u2) (rad/s) constant on each segment; v1 = u1, "
+                          "v2 is not a polynomial (empty)"),
                 "segments": self.inputs.physical_coefficients(),
             },
             "indicators": {

@@ -94,7 +94,11 @@ class Segment(BaseModel):
     t_start: float
     t_end: float
     v1: list[float] = Field(..., description="Coefficients of v1, lowest power first.")
-    v2: list[float] = Field(..., description="Coefficients of v2, lowest power first.")
+    v2: list[float] = Field(..., description="Coefficients of v2, lowest power first (empty "
+                                             "for actuator-rate plans: v2 is not polynomial).")
+    u: Optional[list[float]] = Field(None, description="Actuator rates [u1, u2] (rad/s), "
+                                                       "constant on the segment (method "
+                                                       "shooting only).")
 
 
 class Coefficients(BaseModel):
@@ -378,12 +382,17 @@ def build_schemas(limits: Limits) -> Schemas:
         duration: Optional[num(MIN_DURATION, L.max_duration)] = Field(  # type: ignore[valid-type]
             None, description="T (s); default 1 s, or the shortest T that respects max_u1/"
                               "max_u2 when those are given.")
-        method: Literal["auto", "polynomial", "retimed", "constraint_points", "penalty"] = Field(
+        method: Literal["auto", "polynomial", "retimed", "constraint_points", "penalty",
+                        "shooting"] = Field(
             "auto", description="polynomial: the paper's family; retimed: its geometric path "
                                 "under a d_a-optimal time law (no constraint points); "
-                                "constraint_points: QP; penalty: NLP, phi may reverse; auto "
-                                "tries polynomial, constraint points, then (objective "
-                                "tp_then_da) retimed and penalty, and returns the best.")
+                                "constraint_points: QP; penalty: NLP, phi may reverse; "
+                                "shooting: multiple-shooting NLP on the original model, "
+                                "piecewise-constant actuator rates, minimum energy plus "
+                                "joint-space deviation, phi may reverse (no constraint points); "
+                                "auto tries polynomial, constraint points, then (objective "
+                                "tp_then_da) retimed, shooting (goals the family cannot "
+                                "reach) and penalty, and returns the best.")
         objective: Literal["tp_then_da", "tp_then_sensitivity", "weighted"] = Field(
             "tp_then_da", description="How the best dphi / plan is chosen.")
         weights: Optional[Weights] = Field(None, description="For objective = weighted.")

@@ -51,6 +51,9 @@ def test_suite(name, method, outcome, raw):
         return
     p = plan(req)
     robot = p.robot
+    if p.chained is None:  # actuator-rate plan (shooting)
+        check_actuator_plan(p, req)
+        return
     cf = chained_form(robot)
     inputs = PlannedInputs(cf, p.chained)
     sol = integrate_model(lambda t: inputs.u(np.array([t]))[0], req.q_start(), p.duration,
@@ -66,3 +69,24 @@ def test_suite(name, method, outcome, raw):
     assert p.verification.terminal_error < 1e-6 and not p.verification.singular
     if method != "auto":
         assert p.method == method
+
+
+def check_actuator_plan(p, req) -> None:
+    """A piecewise-constant-rate plan: scipy, interval by interval (the rates jump at the
+    breaks), must reach the goal, and th_1..th_{n-1} must stay in (0, pi/2) on a dense grid."""
+    robot = p.robot
+    q = req.q_start()
+    brk = p.inputs.breaks
+    th = []
+    for k in range(brk.size - 1):
+        uk = p.inputs.rates[k]
+        tt = np.linspace(brk[k], brk[k + 1], 51)
+        sol = integrate_model(lambda t, uk=uk: uk, q, brk[k + 1] - brk[k], robot.gains,
+                              robot.exponents, t_eval=tt - brk[k])
+        th.append(sol.y[1:robot.n].T)
+        q = sol.y[:, -1]
+    assert np.max(np.abs(q[1:] - np.array(req.goal))) < 1e-6
+    th = np.concatenate(th)
+    assert np.all((th > 0) & (th < np.pi / 2))
+    assert p.verification.terminal_error < 1e-6 and not p.verification.singular
+    assert p.method == "shooting"

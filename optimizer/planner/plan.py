@@ -12,10 +12,13 @@ Methods
 ``retimed``
     The polynomial method's geometric path run along a ``d_a``-optimal time law
     (:mod:`.retime`): same region, ``t_p`` and ``||J_R(T)||_F``, far smaller ``d_a``.
+``shooting``
+    Direct multiple shooting on the original model (:mod:`.shooting`): piecewise-constant
+    actuator rates, minimum energy plus joint-space deviation; phi may reverse.
 ``auto``
     polynomial, then constraint points, then penalty; with ``tp_then_da`` the retimed plan and
-    the penalty method (from the polynomial optimum) are also tried and the best plan by
-    (t_p, d_a) is returned.
+    the penalty method (from the polynomial optimum) are also tried, and when the family cannot
+    reach the goal the shooting plan too; the best plan by (t_p, d_a) is returned.
 
 Every plan, whatever the method, goes through :func:`finish_plan`: continuous region check,
 sampling, indicators and re-integration of the original model. A plan that fails there is never
@@ -424,6 +427,9 @@ def _method(name: str) -> Callable[[PlanRequest, Deadline], Plan]:
     if name == "penalty":
         from .penalty import plan_penalty
         return plan_penalty
+    if name == "shooting":
+        from .shooting import plan_shooting
+        return plan_shooting
     raise ValueError(name)
 
 
@@ -485,38 +491,46 @@ def _plan_auto(req: PlanRequest, deadline: Deadline) -> Plan:
             retimed = plan_retimed(req, deadline)
         except (InfeasibleError, NumericalError) as exc:
             failures["retimed"] = exc.message
+    # beyond the family: one multiple-shooting NLP on the original model (milliseconds)
+    shot: Plan | None = None
+    if poly is None and not req.constraint_points:
+        try:
+            shot = _method("shooting")(req, deadline)
+        except (InfeasibleError, NumericalError, SolverTimeoutError) as exc:
+            failures["shooting"] = exc.message
     deadline.check("auto")
+    fallback = poly if poly is not None else shot  # a verified plan already in hand
     try:
         penalty: Callable[..., Plan] = _method("penalty")
         # the penalty NLP also starts from the polynomial optimum (and never returns worse)
         pen = penalty(req, deadline, warm_start=poly.inputs if poly is not None else None)
     except SolverTimeoutError:
-        if poly is None:
+        if fallback is None:
             raise
         failures["penalty"] = "stopped by the time limit"
         pen = None
     except PlannerError as exc:
-        if poly is None and not isinstance(exc, (InfeasibleError, NumericalError)):
+        if fallback is None and not isinstance(exc, (InfeasibleError, NumericalError)):
             raise
         failures["penalty"] = exc.message
         pen = None
     except Exception as exc:  # a bug in one method must not hide a verified plan of another
-        if poly is None:
+        if fallback is None:
             raise
         failures["penalty"] = f"internal error: {type(exc).__name__}"
         pen = None
-    if poly is None and pen is None:
+    if fallback is None and pen is None:
         raise InfeasibleError("no method found a singularity-free path: "
                               + "; ".join(f"{k}: {v}" for k, v in failures.items()),
                               diagnostics={"failures": failures})
     chosen: Plan | None = None
-    for cand in (poly, retimed, pen):  # ties keep the earlier, simpler plan
+    for cand in (poly, retimed, shot, pen):  # ties keep the earlier, simpler plan
         if cand is not None:
             chosen = cand if chosen is None else better(chosen, cand, req.objective)
     assert chosen is not None
-    found = {"polynomial": poly, "retimed": retimed, "penalty": pen}
+    found = {"polynomial": poly, "retimed": retimed, "shooting": shot, "penalty": pen}
     chosen.diagnostics["auto"] = {
-        "tried": [k for k in ("polynomial", "constraint_points", "retimed", "penalty")
+        "tried": [k for k in ("polynomial", "constraint_points", "retimed", "shooting", "penalty")
                   if k in failures or found.get(k) is not None],
         "failures": failures,
         "chosen": chosen.method,

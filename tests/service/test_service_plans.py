@@ -169,3 +169,17 @@ def test_objectives_and_criteria_pass_through(client, extra):
     assert lo <= body["phi_change"] <= hi
     assert body["diagnostics"]["objective"] == extra.get("objective", "tp_then_da")
     assert body["validation"]["terminal_error"] < 1e-6
+
+
+def test_shooting_plan_over_http_carries_its_rates(client):
+    """Method shooting through the API: a goal beyond the family, rates in the segments."""
+    body = {"start": [10 * DEG, 20 * DEG, 30 * DEG], "goal": [40 * DEG, 25 * DEG, 15 * DEG],
+            "method": "shooting", "samples": 51}
+    r = client.post("/v1/plans", json=body)
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["method"] == "shooting" and out["b0"] is None
+    segs = out["coefficients"]["segments"]
+    assert segs and all(len(s["u"]) == 2 and s["v2"] == [] for s in segs)
+    assert out["validation"]["terminal_error"] < 1e-6
+    assert max(abs(x - g) for x, g in zip(out["path"]["q"][-1][1:], body["goal"])) < 1e-6
