@@ -117,6 +117,14 @@ def test_no_larger_deviation_and_no_more_reversals_than_the_user_baseline():
         qb.extend(sol.y.T[1:])
     qb = np.array(qb)
     assert line_distance(q[:, 1:], a, b) <= line_distance(qb[:, 1:], a, b)
+    # d_a of joint 1: distance from its straight line in time (dense samples of both paths)
+    t, _ = scipy_path(p, req)
+    tb = np.concatenate([[0.0]] + [base.t_grid[k] + np.linspace(0.0, base.t_grid[k + 1]
+                                                                - base.t_grid[k], 41)[1:]
+                                   for k in range(base.u.shape[0])])
+    d_a = np.max(np.abs(q[:, 1] - (a[0] + (b[0] - a[0]) * t / p.duration)))
+    d_a_base = np.max(np.abs(qb[:, 1] - (a[0] + (b[0] - a[0]) * tb / base.duration)))
+    assert d_a <= d_a_base
     for j in (0, 1):  # phi and th1: the actuators' reversals
         assert count_reversals(q[:, j]) <= count_reversals(qb[:, j])
 
