@@ -78,8 +78,9 @@ class InputSchedule:
 
     def piece_index(self, tau: np.ndarray) -> np.ndarray:
         """Index of the piece holding each ``tau`` (right-continuous, last piece closed)."""
-        idx = np.searchsorted(self.breaks, tau, side="right") - 1
-        return np.clip(idx, 0, self.pieces - 1)
+        # (the inner breaks only: the same index as searching all breaks and clipping to
+        # [0, pieces - 1], without the clip)
+        return np.searchsorted(self.breaks[1:-1], tau, side="right")
 
     def V(self, tau: np.ndarray) -> np.ndarray:
         """``[V1, V2]`` at normalised times, shape (N, 2)."""

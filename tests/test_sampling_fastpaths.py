@@ -111,3 +111,20 @@ def test_from_chained_closed_form_all_valid() -> None:
     assert np.array_equal(fast.w, slow.w[:-1])
     assert np.array_equal(fast.failed_level, slow.failed_level[:-1])
     np.testing.assert_allclose(fast.q, q, atol=1e-9)
+
+
+def test_piece_index_and_indicator_d_a() -> None:
+    rng = np.random.default_rng(9)
+    for pieces in (1, 3, 8):
+        br = np.concatenate([[0.0], np.sort(rng.uniform(0, 1, pieces - 1)), [1.0]])
+        inp = InputSchedule(br, tuple(np.ones(1) for _ in range(pieces)),
+                            tuple(np.ones(1) for _ in range(pieces)), 1.0)
+        tau = np.concatenate([br, rng.uniform(-0.5, 1.5, 200), [np.nan]])
+        ref = np.clip(np.searchsorted(br, tau, side="right") - 1, 0, pieces - 1)
+        assert np.array_equal(inp.piece_index(tau), ref)
+    from optimizer.indicators import approximation_distance
+    t = np.linspace(0.0, 3.0, 1001)
+    q = np.cumsum(rng.normal(size=(1001, 4)), axis=0) * 0.01
+    ind = compute_indicators(t, q, None)
+    per = approximation_distance(t / 3.0, q[:, 1:])
+    assert ind.d_a == per[0] and ind.d_a_per_joint == tuple(float(x) for x in per)

@@ -285,6 +285,7 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
     reach on it); for the other objectives the polynomial method's choice, which retiming does
     not change (``t_p``, ``||J_R(T)||_F`` and the region are geometric).
     """
+    from .family import _reversals_cols
     from .retime import SCREEN_TIMES, frechet_bound, optimal_time_law, retimed_path
 
     if req.constraint_points:
@@ -317,7 +318,7 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
             th1 = inv.q[:, 1].reshape(cands.size, sig.size)
             valid = regular & inv.valid.reshape(cands.size, sig.size).all(axis=1)
             bound = frechet_bound(th1, a, b)
-            tps = np.array([count_reversals(row) for row in th1])
+            tps = _reversals_cols(th1.T)          # count_reversals of every row, vectorised
             for i in np.lexsort((bound, tps)):
                 # the continuous check of the path that is returned (Region.check_path on
                 # fam.path, request's criterion and the full region): finish_plan's check of
