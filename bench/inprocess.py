@@ -24,7 +24,8 @@ from .cases import DURATION, Case
 from .reintegrate import reintegrate_baseline, reintegrate_plan
 from .stats import Timed, summarise, time_repeats
 
-METHODS: tuple[str, ...] = ("polynomial", "retimed", "constraint_points", "penalty", "auto")
+METHODS: tuple[str, ...] = ("polynomial", "retimed", "constraint_points", "penalty", "shooting",
+                          "auto")
 
 
 @dataclass

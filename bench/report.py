@@ -159,7 +159,7 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
                                  f" vs {_f(rb.get('d_a_deg'), '.2f')} deg"),
                     "met": met})
         else:
-            for m in ("penalty", "auto"):
+            for m in ("penalty", "shooting", "auto"):
                 r = c["methods"].get(m)
                 if r is None:
                     continue
