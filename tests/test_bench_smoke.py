@@ -53,7 +53,8 @@ def test_json_layout(results: dict) -> None:
     assert len(results["cases"]) == 1
     case = results["cases"][0]
     assert {"case", "kind", "n", "start_deg", "goal_deg", "baseline", "methods"} <= set(case)
-    assert set(case["methods"]) == {"polynomial", "retimed", "constraint_points", "penalty", "auto"}
+    assert set(case["methods"]) == {"polynomial", "retimed", "constraint_points", "penalty", "shooting",
+                                    "auto"}
     for m, r in case["methods"].items():
         assert {"status", "time", "first_call", "speedup_vs_baseline_solve"} <= set(r), m
         if r["status"] == "error":  # a method being worked on: recorded, not hidden
