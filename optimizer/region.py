@@ -718,7 +718,7 @@ class Region:
         # parabolic vertices through the best node of the last round and its neighbours: of the
         # margin h (smooth minima) and of h |h| (near a boundary h behaves like the square root
         # of a smooth function, sharp at its minimum; h |h| is that function)
-        jm = np.clip(j, 1, points - 2)
+        jm = np.minimum(np.maximum(j, 1), points - 2)
         x0, x1, x2 = t[ar, jm - 1], t[ar, jm], t[ar, jm + 1]
         f0, f1, f2 = v[ar, jm - 1], v[ar, jm], v[ar, jm + 1]
         xa = _vertex(x0, x1, x2, f0, f1, f2)
@@ -867,7 +867,8 @@ def _vertex(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray, f0: np.ndarray, f1: 
         d10, d12 = x1 - x0, x1 - x2
         g12, g10 = f1 - f2, f1 - f0
         xv = x1 - 0.5 * (d10 * d10 * g12 - d12 * d12 * g10) / (d10 * g12 - d12 * g10)
-    return np.clip(np.where(np.isfinite(xv), xv, x1), x0, x2)
+    # (np.minimum/np.maximum: np.clip's Python wrapper costs more than the work here)
+    return np.minimum(np.maximum(np.where(np.isfinite(xv), xv, x1), x0), x2)
 
 
 def _is_zero(x: Any) -> bool:

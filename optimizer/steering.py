@@ -429,8 +429,9 @@ def polyval_each(coef: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Evaluate row-wise polynomials at row-wise points (Horner): ``coef`` (R, C, L),
     ``x`` (R, T); returns (C, R, T) (component first, so that each component is contiguous)."""
     L = coef.shape[-1]
-    cT = np.moveaxis(coef, 1, 0)                                   # (C, R, L)
-    out = np.repeat(cT[:, :, L - 1:L], x.shape[1], axis=2)
+    cT = coef.transpose(1, 0, 2)                                   # (C, R, L)
+    out = np.empty((cT.shape[0], cT.shape[1], x.shape[1]))
+    out[...] = cT[:, :, L - 1:L]
     for j in range(L - 2, -1, -1):
         out *= x
         out += cT[:, :, j:j + 1]

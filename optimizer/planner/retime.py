@@ -236,12 +236,22 @@ def _knots(th1_of_sigma: Callable[[np.ndarray], np.ndarray], K: int, grid: int =
 def _shift_matrices(s0: np.ndarray, r: np.ndarray, size: int) -> np.ndarray:
     """``T[j]`` maps the coefficients of ``p(sigma)`` to those of ``p(s0_j + r_j x)`` in ``x``:
     ``T[j, k, i] = C(i, k) s0_j^(i-k) r_j^k`` (a Taylor shift and a scaling, exact)."""
+    binom, power, k = _shift_tables(size)
+    return (binom[None] * s0[:, None, None] ** power[None]
+            * r[:, None, None] ** k[None])
+
+
+@functools.lru_cache(maxsize=16)
+def _shift_tables(size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``C(i, k)`` (0 for i < k), the powers ``max(i - k, 0)`` and ``k`` (a column) of
+    :func:`_shift_matrices`, read-only."""
     i = np.arange(size)
     k = i[:, None]
     binom = comb(i[None, :], k)                                     # (size, size), 0 for i < k
     power = np.clip(i[None, :] - k, 0, None)
-    return (binom[None] * s0[:, None, None] ** power[None]
-            * r[:, None, None] ** k[None])
+    for a in (binom, power, k):
+        a.flags.writeable = False
+    return binom, power, k
 
 
 def retimed_path(path: ChainedPath, law: TimeLaw) -> ChainedPath:
