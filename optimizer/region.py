@@ -575,6 +575,30 @@ class Region:
             return res, kept
         return res
 
+    def grid_inside(self, Zr: Sequence[np.ndarray] | np.ndarray) -> np.ndarray:
+        """``grid_margins(Zr) > 0`` for n = 3, the full criterion and the default joint ranges: per
+        member (columns of ``Zr = [z2, z3]``, each (G, D)), whether every sampled point is
+        inside.
+
+        There a point's margin is positive exactly when ``w3 = z3 / K3`` and
+        ``w2 = z2 / a2(th2)`` both lie in ``(W_TOL, 1 - W_TOL)``: the joints' angles are then
+        strictly inside (0, pi/2) (at least ~1e-6 rad), and outside the extended margin is
+        <= 0. So only the ``w`` are computed, no angle.
+        """
+        if not (self._fast3 and self.criterion == "full"):
+            raise ValueError("grid_inside needs n = 3, the full criterion and the default "
+                             "joint ranges")
+        z2, z3 = np.asarray(Zr[0], float), np.asarray(Zr[1], float)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            # the operations of grid_margins (levels 3 and 2 of _Levels.ab), so the same w
+            w3 = z3 * (1.0 / self.robot.gains[-1])
+            c2 = _root_m(w3, self._m[1])
+            s2 = np.sqrt(1.0 - c2 * c2)
+            cm1 = c2 * c2 if self._m[1] == 3 else c2 ** (self._m[1] - 1)
+            w2 = z2 / (self._neg_a * cm1 * s2)
+            inside = (w3 > W_TOL) & (w3 < 1.0 - W_TOL) & (w2 > W_TOL) & (w2 < 1.0 - W_TOL)
+        return np.asarray(inside.all(axis=0))
+
     # --------------------------------------------------------------- polynomial paths
     def _exact_points(self, coef: np.ndarray, span: np.ndarray, roots: bool = True
                       ) -> np.ndarray | None:

@@ -112,3 +112,22 @@ def test_exact_check_runs_once_on_the_returned_path(monkeypatch: pytest.MonkeyPa
     z = p.chained.z(np.linspace(0.0, 1.0, 11))
     sig = (z[:, 0] - z[0, 0]) / p.diagnostics["geometric_phi_change"]
     np.testing.assert_allclose(z, geo.z(sig), atol=1e-12)
+
+
+@pytest.mark.parametrize("kw", [{}, {"singularity": "z2"},
+                                {"joint_bounds": ((0.05, 1.2), None, None)}])
+def test_coarse_inside_is_the_sign_of_coarse_margins(kw: dict[str, object]) -> None:
+    """The angle-free test of the screen against the sampled margins, on members inside,
+    near and far outside the region (every dphi of a dense grid over [-pi, pi])."""
+    rng = np.random.default_rng(12)
+    grid = np.linspace(-np.pi, np.pi, 4001)
+    found = 0
+    for _ in range(4):
+        start = list(10.0 + rng.uniform(-8.0, 8.0, 3))
+        req = _req(start, [30.0, 30.0, 30.0], **kw)
+        fam = family_for(req, Deadline(10.0))
+        for times in (retime.SCREEN_TIMES, 97):
+            inside = fam.coarse_inside(grid, times)
+            found += int(inside.sum())
+            assert np.array_equal(inside, fam.coarse_margins(grid, times) > 0.0)
+    assert found > 0

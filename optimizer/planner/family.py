@@ -205,6 +205,20 @@ class PolynomialFamily:
             out.append(np.where(ok, self.region.grid_margins(Z), -np.pi))
         return np.concatenate(out) if len(out) > 1 else out[0]
 
+    def coarse_inside(self, dphis: np.ndarray, grid: int = 97) -> np.ndarray:
+        """``coarse_margins(dphis, grid) > 0``: the members whose sampled margin is positive.
+
+        n = 3 with the default joint ranges (full criterion): a positive margin at a point is
+        the same as both ``w = cos(th)^m`` of the inverse map strictly inside
+        ``(W_TOL, 1 - W_TOL)`` (:meth:`Region.grid_inside`), which needs no angles.
+        """
+        if not (self.region._fast3 and self.region.criterion == "full"):
+            return self.coarse_margins(dphis, grid) > 0.0
+        dphis = np.atleast_1d(np.asarray(dphis, float))
+        coef, ok = self.polys(dphis)
+        Z = self._components(coef, np.linspace(0.0, 1.0, grid), with_last=False)
+        return ok & self.region.grid_inside(Z)
+
     def sample(self, dphis: np.ndarray, taus: np.ndarray | None = None, tp: bool = True,
                energy: bool = False, keep_dev: bool = False) -> SampledMembers:
         """Indicators of many members on sampled times (default: the search samples); ``ok``

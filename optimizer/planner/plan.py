@@ -339,8 +339,7 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
             # kept but fails it is skipped by `by_bound` like any other. Equivalent to the
             # 97-time coarse grid of the interval search, at a third of the cost.
             grid = dphi_grid(lo, hi)
-            coarse = grid[fam.coarse_margins(grid, grid=SCREEN_TIMES) > 0.0] \
-                if grid.size else grid
+            coarse = grid[fam.coarse_inside(grid, grid=SCREEN_TIMES)] if grid.size else grid
             if coarse.size:
                 chosen = by_bound(coarse)
             timing["coarse_scan"] = time.perf_counter() - t0
