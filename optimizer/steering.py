@@ -127,6 +127,11 @@ class InputSchedule:
     def phi_change(self) -> float:
         """Total change of phi, ``dphi = integral of V1``."""
         tot = 0.0
+        if all(c.size == 1 for c in self.v1):
+            # constant V1 on every piece (the retimed plans): c_0 h per piece, summed in order
+            for x in (self._v1_stack[:, 0] * np.diff(self.breaks)).tolist():
+                tot += x
+            return tot
         for s in range(self.pieces):
             h = float(self.breaks[s + 1] - self.breaks[s])
             c = self.v1[s]
@@ -252,9 +257,10 @@ def _horner_pieces(stack: np.ndarray, idx: np.ndarray, x: np.ndarray) -> np.ndar
     powers (axis 1) per piece, ``idx`` (N,) the piece of each point, ``x`` (N,) or (N, 1) the
     local times; returns (N, ...). All points at once instead of a loop over pieces."""
     L = stack.shape[1]
-    out = stack[idx, L - 1] + x * 0
+    c = stack[idx]                      # one gather; the Horner steps then take views
+    out = c[:, L - 1] + x * 0
     for k in range(L - 2, -1, -1):
-        out = stack[idx, k] + out * x
+        out = c[:, k] + out * x
     return out
 
 
