@@ -241,6 +241,32 @@ class ChainedForm:
         q[~valid] = 0.0
         return InverseResult(q=q, w=w, valid=valid, failed_level=failed)
 
+    def th1_from_chained(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``th1`` and ``valid`` of :meth:`from_chained` (``th1`` is 0 where not valid), for
+        the planner's scans of ``th1`` along paths.
+
+        n = 3 (closed form): the operations of :meth:`from_chained` on the columns ``z2``,
+        ``z3`` only (the same values), without assembling the other joints.
+        """
+        zz = np.atleast_2d(np.asarray(z, dtype=float))
+        if self.backend != "closed":
+            inv = self.from_chained(zz)
+            return inv.q[:, 1], inv.valid
+        robot = self.robot
+        m2, m3 = robot.exponents
+        K2, K3 = robot.gains
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w3 = zz[:, 2] / K3
+            ok = (w3 > W_TOL) & (w3 < 1.0 - W_TOL)        # False for NaN too
+            th2 = np.arccos(w3 ** (1.0 / m3))
+            c2, s2 = np.cos(th2), np.sin(th2)
+            a = -m3 * K2 * K3 * c2 ** (m3 - 1) * s2       # _closed_ab(robot, 2, q)
+            w2 = (zz[:, 1] - 0.0) / a
+            ok &= np.isfinite(w2) & (w2 > W_TOL) & (w2 < 1.0 - W_TOL)
+            th1 = np.arccos(w2 ** (1.0 / m2))
+        ok &= np.isfinite(zz[:, 0]) & np.isfinite(zz[:, 3])
+        return np.where(ok, th1, 0.0), ok
+
     def _from_chained3(self, zz: np.ndarray) -> InverseResult | None:
         """:meth:`from_chained` (closed form, n = 3) for finite points that are all valid, with
         the same operations on whole columns instead of index arrays; None when some point is

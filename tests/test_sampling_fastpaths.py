@@ -128,3 +128,25 @@ def test_piece_index_and_indicator_d_a() -> None:
     ind = compute_indicators(t, q, None)
     per = approximation_distance(t / 3.0, q[:, 1:])
     assert ind.d_a == per[0] and ind.d_a_per_joint == tuple(float(x) for x in per)
+
+
+def test_th1_from_chained_matches_from_chained() -> None:
+    """th1 and validity of the planner's scans against the full inverse map, with points
+    outside the region, non-finite ones, and n = 4 (CasADi backend)."""
+    from optimizer.chained_form import chained_form
+    from optimizer.model import Robot
+
+    rng = np.random.default_rng(21)
+    for n in (3, 4):
+        cf = chained_form(Robot.default(n))
+        q = np.column_stack([rng.uniform(-1, 1, 500), rng.uniform(-0.3, 1.8, (500, n))])
+        z = cf.to_chained(q)
+        z[::7, 1] *= -1.0
+        z[::11, 2] = 0.95
+        z[5, 0] = np.nan
+        z[9, n] = np.inf
+        inv = cf.from_chained(z)
+        th1, ok = cf.th1_from_chained(z)
+        assert 0 < ok.sum() < ok.size
+        assert np.array_equal(ok, inv.valid)
+        assert np.array_equal(th1, inv.q[:, 1])

@@ -314,9 +314,9 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
             that passes the continuous check."""
             sig = np.linspace(0.0, 1.0, RETIME_SIGMA_SAMPLES)
             z, regular, _ = fam.batch_z(cands, sig)
-            inv = fam.cf.from_chained(z.reshape(-1, req.robot.n + 1))
-            th1 = inv.q[:, 1].reshape(cands.size, sig.size)
-            valid = regular & inv.valid.reshape(cands.size, sig.size).all(axis=1)
+            th1f, okf = fam.cf.th1_from_chained(z.reshape(-1, req.robot.n + 1))
+            th1 = th1f.reshape(cands.size, sig.size)
+            valid = regular & okf.reshape(cands.size, sig.size).all(axis=1)
             bound = frechet_bound(th1, a, b)
             tps = _reversals_cols(th1.T)          # count_reversals of every row, vectorised
             for i in np.lexsort((bound, tps)):
@@ -367,7 +367,7 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
     path = fam.path(dphi)
     t2 = time.perf_counter()
     cf = fam.cf
-    law = optimal_time_law(lambda s: cf.from_chained(path.z(s)).q[:, 1], a, b)
+    law = optimal_time_law(lambda s: cf.th1_from_chained(path.z(s))[0], a, b)
     retimed = retimed_path(path, law)
     timing["time_law"] = time.perf_counter() - t2
     deadline.check("the time law")
