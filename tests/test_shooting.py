@@ -176,3 +176,18 @@ def test_json_carries_the_rates():
     segs = d["coefficients"]["segments"]
     assert len(segs) == 20 and all(len(s["u"]) == 2 and s["v2"] == [] for s in segs)
     assert d["b0"] is None and d["method"] == "shooting"
+
+
+def test_fatrop_and_ipopt_find_the_same_solution(monkeypatch):
+    """The two solvers of the one NLP, from the same guess, agree (fatrop is the fast path)."""
+    import optimizer.planner.shooting as shooting
+
+    req = request(*OPP_B)
+    out = {}
+    for name in ("fatrop", "ipopt"):
+        monkeypatch.setattr(shooting, "ATTEMPTS", ((name, 1.0),))
+        sol = solve_shooting(req, Deadline(30.0))
+        assert sol.status.startswith(name)
+        out[name] = sol
+    assert np.max(np.abs(out["fatrop"].nodes - out["ipopt"].nodes)) < 1e-5
+    assert np.max(np.abs(out["fatrop"].rates - out["ipopt"].rates)) < 1e-4
