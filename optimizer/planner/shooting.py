@@ -99,6 +99,16 @@ INDICATOR_SAMPLES = 1001
 _TIMEOUT = ("User_Requested_Stop", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded")
 
 
+def _power(c: Any, m: int) -> Any:
+    """``c ** m`` for a small integer ``m >= 1`` as a product (a pow node otherwise)."""
+    if isinstance(m, (int, np.integer)) and 1 <= m <= 8:
+        out = c
+        for _ in range(int(m) - 1):
+            out = out * c
+        return out
+    return c ** m
+
+
 # ---------------------------------------------------------------------- the cached NLP
 class ShootingNLP:
     """The transcription above for one robot, with its solvers (built once, cached).
@@ -129,7 +139,9 @@ class ShootingNLP:
         def rhs(q: Any) -> Any:
             dq = [u[0], u[1]]
             for i in range(2, n + 1):
-                dq.append(gains[i - 2] * ca.cos(q[i - 1]) ** exponents[i - 2] * u[0])
+                c = ca.cos(q[i - 1])
+                # integer powers as products: smaller derivative graphs than pow nodes
+                dq.append(gains[i - 2] * _power(c, exponents[i - 2]) * u[0])
             return ca.vertcat(*dq, 0, 0)
 
         dt, y = h / substeps, x
