@@ -352,7 +352,8 @@ def validate_constraint_points(points: Sequence[ConstraintPoint], n: int, durati
 
 
 def solve_polynomial(dphi: float, n: int, z0: np.ndarray, zT: np.ndarray, duration: float = 1.0,
-                     points: Sequence[ConstraintPoint] = ()) -> InputSchedule:
+                     points: Sequence[ConstraintPoint] = (), known_regular: bool = False
+                     ) -> InputSchedule:
     """The paper's inputs (eq 8-9): ``v1 = b0``, ``v2`` of degree ``n - 1 + m``; solve eq (11).
 
     Parameters
@@ -387,7 +388,8 @@ def solve_polynomial(dphi: float, n: int, z0: np.ndarray, zT: np.ndarray, durati
     scale = np.linalg.norm(M, axis=0)
     scale[scale == 0.0] = 1.0
     Ms = M / scale
-    cond = np.linalg.cond(Ms)
+    # (known_regular: the caller has shown the test passes, e.g. FamilySystem.surely_regular)
+    cond = 1.0 if known_regular else np.linalg.cond(Ms)
     if not np.isfinite(cond) or cond > MAX_CONDITION:
         raise SingularSystemError(
             f"the steering matrix M(T) is singular (condition number {cond:.3g}): check that the "
@@ -515,6 +517,12 @@ class FamilySystem:
             for j in range(k + 1):
                 self.F[j, r] = t ** j / math.factorial(j) * self.z0[k - j + 1]
         self.inv_j = 1.0 / np.arange(1, self.L)
+
+    def surely_regular(self, dphi: float) -> bool:
+        """Whether the singularity test of :func:`solve_polynomial` passes for ``dphi`` by the
+        bound behind ``rho`` (with a factor 2 to spare), so that it need not be computed."""
+        ad = abs(float(dphi))
+        return self.regular and 2.0 / self.rho < ad < 0.5 * self.rho
 
     def coefficients(self, dphis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``V2`` coefficients (D, p) of the members and a mask of the regular ones (the others'

@@ -131,3 +131,33 @@ def test_coarse_inside_is_the_sign_of_coarse_margins(kw: dict[str, object]) -> N
             found += int(inside.sum())
             assert np.array_equal(inside, fam.coarse_margins(grid, times) > 0.0)
     assert found > 0
+
+
+def test_surely_regular_means_the_condition_test_passes() -> None:
+    """Where FamilySystem.surely_regular skips solve_polynomial's condition test, the test
+    (computed here) passes, and the inputs are the same with and without it."""
+    from optimizer.model import Robot
+    from optimizer.steering import (MAX_CONDITION, ConstraintPoint, FamilySystem,
+                                    solve_polynomial, steering_system)
+    from optimizer.chained_form import chained_form
+
+    rng = np.random.default_rng(3)
+    for n, pts in ((3, ()), (4, ()), (6, ()), (3, (ConstraintPoint(0.5, 2, -0.1),)),
+                   (3, (ConstraintPoint(0.3, 3, 0.5), ConstraintPoint(0.7, 2, -0.2)))):
+        robot = Robot.default(n)
+        cf = chained_form(robot)
+        z0 = cf.to_chained(np.concatenate([[0.0], rng.uniform(0.1, 0.5, n)]))
+        zT = cf.to_chained(np.concatenate([[0.0], rng.uniform(0.5, 1.0, n)]))
+        fs = FamilySystem(n, z0, zT, 1.0, pts)
+        skipped = 0
+        for d in np.concatenate([np.geomspace(1e-6, 1e6, 60), -np.geomspace(1e-6, 1e6, 60)]):
+            if not fs.surely_regular(d):
+                continue
+            skipped += 1
+            M, _ = steering_system(float(d), n, z0, zT, n + len(pts), pts, 1.0)
+            scale = np.linalg.norm(M, axis=0)
+            assert np.linalg.cond(M / scale) <= MAX_CONDITION
+            a = solve_polynomial(float(d), n, z0, zT, 1.0, pts, known_regular=True)
+            b = solve_polynomial(float(d), n, z0, zT, 1.0, pts)
+            assert np.array_equal(a.v2[0], b.v2[0])
+        assert skipped > 0

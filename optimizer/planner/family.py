@@ -118,7 +118,8 @@ class PolynomialFamily:
         self.system = FamilySystem(self.n, self.z0, self.zT, self.duration, points)
 
     def inputs(self, dphi: float) -> InputSchedule:
-        return solve_polynomial(dphi, self.n, self.z0, self.zT, self.duration, self.points)
+        return solve_polynomial(dphi, self.n, self.z0, self.zT, self.duration, self.points,
+                                known_regular=self.system.surely_regular(dphi))
 
     def _path(self, dphi: float) -> ChainedPath:
         return ChainedPath.from_inputs(self.z0, self.inputs(dphi))

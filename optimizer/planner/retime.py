@@ -135,7 +135,7 @@ def optimal_time_law(th1_of_sigma: Callable[[np.ndarray], np.ndarray], a: float,
     settings = clarabel.DefaultSettings()
     settings.verbose = False
     try:
-        solver = clarabel.DefaultSolver(lp.P, q, _Csc.from_dense(G), h,
+        solver = clarabel.DefaultSolver(lp.P, q.tolist(), _Csc.from_dense(G), h.tolist(),
                                         [clarabel.NonnegativeConeT(G.shape[0])], settings)
     except (AttributeError, TypeError):  # a Clarabel that wants scipy's own class
         solver = clarabel.DefaultSolver(lp.P.to_scipy(), q, sparse.csc_matrix(G), h,
@@ -162,10 +162,12 @@ class _Csc:
 
     def __init__(self, data: np.ndarray, indices: np.ndarray, indptr: np.ndarray,
                  shape: tuple[int, int]) -> None:
-        self.data = data
-        self.indices = indices
-        self.indptr = indptr
-        self.nnz = int(indptr[-1])
+        # Python lists: Clarabel copies the entries out one by one, and from a list of Python
+        # numbers that is several times cheaper than from a numpy array (a scalar object each)
+        self.data: list[float] = np.asarray(data, float).tolist()
+        self.indices: list[int] = np.asarray(indices).tolist()
+        self.indptr: list[int] = np.asarray(indptr).tolist()
+        self.nnz = int(self.indptr[-1])
         self.shape = shape
 
     @classmethod
@@ -215,8 +217,7 @@ def _lp_structure(K: int, M: int) -> _LpStructure:
     reg_DdT = 2.0 * REGULARISATION * Dd.T
     out = _LpStructure(j, ww, np.ascontiguousarray(coef[:, :-1]), const, -Dd, off, reg_DdT,
                        _Csc.from_dense(np.triu(reg_DdT @ Dd)))
-    for arr in (j, ww, out.coef, const, out.neg_Dd, off, reg_DdT, out.P.data, out.P.indices,
-                out.P.indptr):
+    for arr in (j, ww, out.coef, const, out.neg_Dd, off, reg_DdT):
         arr.flags.writeable = False                     # shared between calls
     return out
 
