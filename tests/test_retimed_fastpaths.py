@@ -74,6 +74,11 @@ def test_screen_keeps_the_choice(start: list[float], goal: list[float]) -> None:
     assert np.all(screen[fine])                     # the screen keeps every member of the grid
     for d in grid[screen & ~fine]:                  # the extra ones fail the exact check
         assert not fam.confirm(float(d))[0]
+    # members too short to move th_n far enough (K_n |dphi| <= |dth_n|) fail it too
+    short = np.abs(grid) * req.robot.gains[-1] <= abs(req.goal[-1] - req.start[-1])
+    assert short.any()
+    for d in grid[short & fine]:
+        assert not fam.confirm(float(d))[0]
     # brute force: among all members passing the exact check, fewest t_p then smallest bound
     best = None
     a, b = req.start[0], req.goal[0]

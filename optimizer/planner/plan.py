@@ -338,7 +338,11 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
             # margin <= 0 there (all but a few) cannot pass the exact check, and one that is
             # kept but fails it is skipped by `by_bound` like any other. Equivalent to the
             # 97-time coarse grid of the interval search, at a third of the cost.
+            # Nor can a member with K_n |dphi| <= |th_n(T) - th_n(0)|: inside the region
+            # 0 < z_n < K_n, and th_n' = z_n phi' (a hair of slack for the solve's rounding).
             grid = dphi_grid(lo, hi)
+            reach = abs(req.goal[-1] - req.start[-1]) * (1.0 - 1e-9)
+            grid = grid[np.abs(grid) * req.robot.gains[-1] > reach]
             coarse = grid[fam.coarse_inside(grid, grid=SCREEN_TIMES)] if grid.size else grid
             if coarse.size:
                 chosen = by_bound(coarse)
