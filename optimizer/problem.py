@@ -11,7 +11,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .errors import InvalidRequestError
+from .errors import InfeasibleError, InvalidRequestError
 from .model import Robot
 from .steering import ConstraintPoint, validate_constraint_points
 
@@ -172,6 +172,40 @@ class PlanRequest:
     @property
     def duration_or_default(self) -> float:
         return 1.0 if self.duration is None else float(self.duration)
+
+    def duration_for_rates(self, peaks: Sequence[float]) -> float:
+        """``T`` for a path whose actuator rates per unit normalised time peak at ``peaks =
+        (max |U1|, max |U2|)``: the request's duration, or, with actuator limits and no
+        duration, the shortest one that respects them.
+
+        Raises
+        ------
+        InfeasibleError
+            The given duration is too short for the limits, or the limits need a duration
+            above :data:`MAX_DURATION` (tiny limits: the shortest duration may not even be
+            finite).
+        """
+        limits = (self.max_u1, self.max_u2)
+        if all(x is None for x in limits):
+            return self.duration_or_default
+        need = 0.0
+        for peak, lim in zip(peaks, limits):
+            if lim is not None:
+                need = max(need, float(peak) / float(lim))
+        if not need <= MAX_DURATION:  # also inf and nan
+            raise InfeasibleError(
+                f"the actuator limits max_u1 = {self.max_u1}, max_u2 = {self.max_u2} rad/s need "
+                f"a duration of {need:.6g} s for this path, above the largest allowed "
+                f"{MAX_DURATION:g} s", field="max_u2" if self.max_u2 is not None else "max_u1",
+                diagnostics={"shortest_duration": need if math.isfinite(need) else None})
+        if self.duration is None:
+            return max(need, MIN_DURATION)
+        if self.duration < need * (1 - 1e-12):
+            raise InfeasibleError(
+                f"duration {self.duration:g} s is too short for the actuator limits: the "
+                f"shortest duration that respects them is {need:.6g} s",
+                diagnostics={"shortest_duration": need})
+        return float(self.duration)
 
     def q_start(self) -> np.ndarray:
         return np.array((self.phi_start,) + self.start)

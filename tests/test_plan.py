@@ -153,6 +153,21 @@ def test_actuator_limits_give_shortest_duration():
     assert exc.value.diagnostics["shortest_duration"] == pytest.approx(p.duration, rel=1e-2)
 
 
+@pytest.mark.parametrize("method", ["polynomial", "retimed", "shooting"])
+@pytest.mark.parametrize("limit", [5e-324, 1e-300, 1e-6])
+def test_tiny_actuator_limits_are_infeasible_not_infinite(method, limit):
+    """A limit so small that the shortest duration exceeds the largest allowed (even inf:
+    5e-324, found by the API fuzzer, made T infinite and the verification never end) is an
+    infeasible answer naming the field, in milliseconds."""
+    base = dict(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])), method=method)
+    if method == "shooting":
+        base.update(start=tuple(D([10, 20, 30])), goal=tuple(D([40, 25, 15])))
+    with pytest.raises(InfeasibleError) as exc:
+        plan(PlanRequest(**base, max_u2=limit, time_limit=5.0))
+    assert exc.value.field == "max_u2"
+    assert "above the largest allowed" in exc.value.message
+
+
 def test_joint_bounds_are_respected():
     base = dict(start=tuple(D([10, 10, 10])), goal=tuple(D([30, 30, 30])), method="polynomial")
     free = plan(PlanRequest(**base))

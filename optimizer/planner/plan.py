@@ -199,21 +199,10 @@ def _duration(req: PlanRequest, cf: Any, chained: ChainedPath) -> float:
     tau = np.linspace(0.0, 1.0, RATE_SAMPLES)
     q = cf.from_chained(chained.z(tau)).q
     U = cf.u_from_v(q, chained.inputs.V(tau))  # rates per unit normalised time
-    need = 0.0
-    for j, lim in enumerate(limits):
-        if lim is not None:
-            need = max(need, float(np.max(np.abs(U[:, j]))) / lim)
-    if req.duration is None:
-        if req.constraint_points:
-            raise InfeasibleError("constraint point times are in seconds: give a duration when "
-                                  "actuator limits are set", diagnostics={})
-        return max(need, 1e-3)
-    if req.duration < need * (1 - 1e-12):
-        raise InfeasibleError(
-            f"duration {req.duration:g} s is too short for the actuator limits: the shortest "
-            f"duration that respects them is {need:.6g} s",
-            diagnostics={"shortest_duration": need})
-    return float(req.duration)
+    if req.duration is None and req.constraint_points:
+        raise InfeasibleError("constraint point times are in seconds: give a duration when "
+                              "actuator limits are set", diagnostics={})
+    return req.duration_for_rates(np.max(np.abs(U), axis=0))
 
 
 # ---------------------------------------------------------------------- methods

@@ -349,23 +349,6 @@ def solve_shooting(req: PlanRequest, deadline: Any) -> ShootingSolution:
                           diagnostics={"blocking": "nlp_failed", "tried": tried})
 
 
-def _duration(req: PlanRequest, rates: np.ndarray) -> float:
-    """``T``: the request's, or the shortest that respects the actuator limits."""
-    limits = (req.max_u1, req.max_u2)
-    if all(x is None for x in limits):
-        return req.duration_or_default
-    need = max(float(np.max(np.abs(rates[:, j]))) / lim
-               for j, lim in enumerate(limits) if lim is not None)
-    if req.duration is None:
-        return max(need, 1e-3)
-    if req.duration < need * (1 - 1e-12):
-        raise InfeasibleError(
-            f"duration {req.duration:g} s is too short for the actuator limits: the shortest "
-            f"duration that respects them is {need:.6g} s",
-            diagnostics={"shortest_duration": need})
-    return float(req.duration)
-
-
 def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: str,
                          planned_nodes: np.ndarray, timing: dict[str, float],
                          diagnostics: dict[str, Any]) -> Plan:
@@ -449,7 +432,7 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     sol = solve_shooting(req, deadline)
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
-    T = _duration(req, sol.rates)
+    T = req.duration_for_rates(np.max(np.abs(sol.rates), axis=0))
     N = sol.rates.shape[0]
     schedule = ActuatorSchedule(breaks=np.linspace(0.0, T, N + 1), rates=sol.rates / T)
     diagnostics = {"objective": req.objective, "singularity": "full",
