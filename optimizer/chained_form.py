@@ -252,20 +252,29 @@ class ChainedForm:
         if self.backend != "closed":
             inv = self.from_chained(zz)
             return inv.q[:, 1], inv.valid
+        th1, ok = self.th1_from_z23(zz[:, 1], zz[:, 2])
+        ok &= np.isfinite(zz[:, 0]) & np.isfinite(zz[:, 3])
+        return np.where(ok, th1, 0.0), ok
+
+    def th1_from_z23(self, z2: np.ndarray, z3: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """n = 3: :meth:`th1_from_chained` from ``z2`` and ``z3`` alone (any shapes that
+        broadcast), for points whose ``z1`` and ``z4`` are finite: ``th1`` (meaningless where
+        not valid) and ``valid``."""
+        if self.backend != "closed":
+            raise ValueError("th1_from_z23 needs the n = 3 closed form")
         robot = self.robot
         m2, m3 = robot.exponents
         K2, K3 = robot.gains
         with np.errstate(divide="ignore", invalid="ignore"):
-            w3 = zz[:, 2] / K3
+            w3 = z3 / K3
             ok = (w3 > W_TOL) & (w3 < 1.0 - W_TOL)        # False for NaN too
             th2 = np.arccos(w3 ** (1.0 / m3))
             c2, s2 = np.cos(th2), np.sin(th2)
             a = -m3 * K2 * K3 * c2 ** (m3 - 1) * s2       # _closed_ab(robot, 2, q)
-            w2 = (zz[:, 1] - 0.0) / a
+            w2 = (z2 - 0.0) / a
             ok &= np.isfinite(w2) & (w2 > W_TOL) & (w2 < 1.0 - W_TOL)
             th1 = np.arccos(w2 ** (1.0 / m2))
-        ok &= np.isfinite(zz[:, 0]) & np.isfinite(zz[:, 3])
-        return np.where(ok, th1, 0.0), ok
+        return th1, ok
 
     def _from_chained3(self, zz: np.ndarray) -> InverseResult | None:
         """:meth:`from_chained` (closed form, n = 3) for finite points that are all valid, with

@@ -198,6 +198,17 @@ class ChainedPath:
         x = tau - self.inputs.breaks[idx]
         return _horner_pieces(self._z_stack, idx, x[:, None])
 
+    def z_components(self, tau: np.ndarray, first: int, stop: int) -> np.ndarray:
+        """``z[:, first:stop]`` of :meth:`z` (the same values), computing only those
+        components; shape (N, stop - first)."""
+        tau = np.atleast_1d(np.asarray(tau, float))
+        if len(self.polys) == 1:
+            x = tau - self.inputs.breaks[0]
+            return _horner(self.polys[0][first:stop].T, x[:, None])
+        idx = self.inputs.piece_index(tau)
+        x = tau - self.inputs.breaks[idx]
+        return _horner_pieces(self._z_stack[:, :, first:stop], idx, x[:, None])
+
     @functools.cached_property
     def _z_stack(self) -> np.ndarray:
         # (S, L, n+1): per piece, powers first (one gather per Horner step in z)

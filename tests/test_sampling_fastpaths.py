@@ -40,6 +40,7 @@ def test_piecewise_evaluation_matches_polyval() -> None:
         tau = np.concatenate([np.linspace(0.0, 1.0, 301), br, rng.uniform(0, 1, 40)])
         z_ref, V_ref = _piecewise_reference(path, tau)
         assert np.array_equal(path.z(tau), z_ref)
+        assert np.array_equal(path.z_components(tau, 1, 3), z_ref[:, 1:3])
         assert np.array_equal(inp.V(tau), V_ref)
         np.testing.assert_allclose(inp.v(2.5 * tau), V_ref / 2.5, rtol=1e-14, atol=1e-15)
 
@@ -150,3 +151,8 @@ def test_th1_from_chained_matches_from_chained() -> None:
         assert 0 < ok.sum() < ok.size
         assert np.array_equal(ok, inv.valid)
         assert np.array_equal(th1, inv.q[:, 1])
+        if n == 3:
+            fin = np.isfinite(z).all(axis=1)
+            th, ok23 = cf.th1_from_z23(z[:, 1], z[:, 2])
+            assert np.array_equal(ok23[fin], inv.valid[fin])
+            assert np.array_equal(th[inv.valid], inv.q[inv.valid, 1])

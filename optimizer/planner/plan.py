@@ -138,9 +138,8 @@ def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
     robot = req.robot
     cf = chained_form(robot)
     q0 = req.q_start()
-    z0 = cf.to_chained(q0)
     if chained is None:
-        chained = ChainedPath.from_inputs(z0, inputs)
+        chained = ChainedPath.from_inputs(cf.to_chained(q0), inputs)
     full = make_region(req, "full")
     chk = full.check_path(geometry if geometry is not None else chained)
     if not chk.ok:
@@ -274,6 +273,7 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
     reach on it); for the other objectives the polynomial method's choice, which retiming does
     not change (``t_p``, ``||J_R(T)||_F`` and the region are geometric).
     """
+    from ..steering import polyval_rows
     from .family import _reversals_cols
     from .retime import SCREEN_TIMES, frechet_bound, optimal_time_law, retimed_path
 
@@ -302,10 +302,19 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
             """The member with the fewest t_p, then the smallest Fréchet bound (sampled),
             that passes the continuous check."""
             sig = np.linspace(0.0, 1.0, RETIME_SIGMA_SAMPLES)
-            z, regular, _ = fam.batch_z(cands, sig)
-            th1f, okf = fam.cf.th1_from_chained(z.reshape(-1, req.robot.n + 1))
-            th1 = th1f.reshape(cands.size, sig.size)
-            valid = regular & okf.reshape(cands.size, sig.size).all(axis=1)
+            if fam.cf.backend == "closed":
+                # n = 3: only z2 and z3 at the samples (the members' coefficients are finite
+                # where regular, so z1 and z4 are too)
+                coef, regular = fam.polys(cands)
+                z23 = polyval_rows(coef[:, 1:3, :], sig)                # (D, 2, G)
+                th1, okf = fam.cf.th1_from_z23(z23[:, 0], z23[:, 1])
+                th1 = np.where(okf, th1, 0.0)
+                valid = regular & okf.all(axis=1)
+            else:
+                z, regular, _ = fam.batch_z(cands, sig)
+                th1f, okf = fam.cf.th1_from_chained(z.reshape(-1, req.robot.n + 1))
+                th1 = th1f.reshape(cands.size, sig.size)
+                valid = regular & okf.reshape(cands.size, sig.size).all(axis=1)
             bound = frechet_bound(th1, a, b)
             tps = _reversals_cols(th1.T)          # count_reversals of every row, vectorised
             for i in np.lexsort((bound, tps)):
@@ -360,7 +369,15 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
     path = fam.path(dphi)
     t2 = time.perf_counter()
     cf = fam.cf
-    law = optimal_time_law(lambda s: cf.th1_from_chained(path.z(s))[0], a, b)
+    if cf.backend == "closed":  # n = 3: th1 from z2, z3 (z1, z4 of a member are finite)
+        def th1_of(s: np.ndarray) -> np.ndarray:
+            z23 = path.z_components(s, 1, 3)
+            th, ok = cf.th1_from_z23(z23[:, 0], z23[:, 1])
+            return np.where(ok, th, 0.0)
+    else:
+        def th1_of(s: np.ndarray) -> np.ndarray:
+            return cf.th1_from_chained(path.z(s))[0]
+    law = optimal_time_law(th1_of, a, b)
     retimed = retimed_path(path, law)
     timing["time_law"] = time.perf_counter() - t2
     deadline.check("the time law")
