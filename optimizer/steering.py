@@ -95,7 +95,7 @@ class InputSchedule:
 
     @functools.cached_property
     def _v1_stack(self) -> np.ndarray:
-        return _stack_pieces([c[None, :] for c in self.v1])[:, 0, :]
+        return _stack_pieces([c[None, :] for c in self.v1])[:, 0, :]  # (S, L)
 
     @functools.cached_property
     def _v2_stack(self) -> np.ndarray:
@@ -257,6 +257,8 @@ def _stack_pieces(arrs: list[np.ndarray]) -> np.ndarray:
     """Per-piece coefficient arrays (C, L_s) as one (S, C, L) array, zero-padded at the top
     (leading zeros leave Horner's values unchanged)."""
     L = max(a.shape[1] for a in arrs)
+    if all(a.shape[1] == L for a in arrs):
+        return np.stack(arrs).astype(float, copy=False)     # one call (the usual case)
     out = np.zeros((len(arrs), arrs[0].shape[0], L))
     for s, a in enumerate(arrs):
         out[s, :, :a.shape[1]] = a
