@@ -64,7 +64,8 @@ def test_plans_reach_the_goal_inside_the_region(start, goal, robot):
     req = request(start, goal, robot=robot)
     p = plan(req)
     t, q = scipy_path(p, req)
-    assert np.max(np.abs(q[-1, 1:] - np.array(goal))) < 1e-6
+    # the Newton correction puts the exact model on the goal (RK4 alone: 1e-8 to 1e-5 rad)
+    assert np.max(np.abs(q[-1, 1:] - np.array(goal))) < 1e-8
     th = q[:, 1:robot.n]
     assert np.all((th > 0.0) & (th < np.pi / 2))
     # the returned samples are the model's path (the library's own quadrature), and its
@@ -191,3 +192,41 @@ def test_fatrop_and_ipopt_find_the_same_solution(monkeypatch):
         out[name] = sol
     assert np.max(np.abs(out["fatrop"].nodes - out["ipopt"].nodes)) < 1e-5
     assert np.max(np.abs(out["fatrop"].rates - out["ipopt"].rates)) < 1e-4
+
+
+def test_random_goals_beyond_the_family_are_planned_and_verified():
+    """Seeded random 3- and 4-joint goals (joints moving either way, up to 15 deg): every one
+    planned, and the tests' own scipy integration lands on the goal inside the region."""
+    rng = np.random.default_rng(7)
+    for i in range(12):
+        n = 3 if i % 2 == 0 else 4
+        a = rng.uniform(8, 70, n)
+        b = np.clip(a + rng.uniform(-15, 15, n), 5, 80)
+        req = request(tuple(np.radians(a)), tuple(np.radians(b)),
+                      robot=Robot() if n == 3 else Robot.default(4))
+        p = plan(req)
+        _, q = scipy_path(p, req, per_interval=11)
+        assert np.max(np.abs(q[-1, 1:] - np.radians(b))) < 1e-8, (a, b)
+        assert np.all((q[:, 1:n] > 0) & (q[:, 1:n] < np.pi / 2)), (a, b)
+
+
+def test_correction_reaches_the_exact_goal_from_the_rk4_rates():
+    """The NLP's rates alone miss the goal of the exact model (RK4); the correction's errors,
+    measured by its own quadrature, fall below its target, and scipy agrees."""
+    import optimizer.planner.shooting as shooting
+
+    req = request((0.5236, 0.6981, 0.6981, 0.6981), (0.6109, 0.7854, 0.6632, 0.7854),
+                  robot=Robot.default(4))
+    sol = solve_shooting(req, Deadline(30.0))
+    nlp = shooting.shooting_nlp(tuple(req.robot.gains), tuple(req.robot.exponents), False)
+    rates, errors = shooting.correct_rates(req, nlp, sol.rates, float(sol.nodes[-1, 0]))
+    assert errors[0] > 1e-9 and errors[-1] <= shooting.CORRECTION_TARGET
+    for U, tol_lo, tol_hi in ((sol.rates, 1e-9, 1e-3), (rates, 0.0, 1e-8)):
+        q = req.q_start()
+        for k in range(U.shape[0]):
+            sol_k = integrate_model(lambda t, uk=U[k]: uk, q, 1.0 / U.shape[0],
+                                    req.robot.gains, req.robot.exponents)
+            q = sol_k.y[:, -1]
+        err = np.max(np.abs(q[1:] - np.array(req.goal)))
+        assert tol_lo < err < tol_hi
+    assert abs(np.sum(rates[:, 0]) - np.sum(sol.rates[:, 0])) < 1e-12  # phi's end is held
