@@ -219,7 +219,7 @@ def test_correction_reaches_the_exact_goal_from_the_rk4_rates():
                   robot=Robot.default(4))
     sol = solve_shooting(req, Deadline(30.0))
     nlp = shooting.shooting_nlp(tuple(req.robot.gains), tuple(req.robot.exponents), False)
-    rates, errors = shooting.correct_rates(req, nlp, sol.rates, float(sol.nodes[-1, 0]))
+    rates, errors, _ = shooting.correct_rates(req, nlp, sol.rates, float(sol.nodes[-1, 0]))
     assert errors[0] > 1e-9 and errors[-1] <= shooting.CORRECTION_TARGET
     for U, tol_lo, tol_hi in ((sol.rates, 1e-9, 1e-3), (rates, 0.0, 1e-8)):
         q = req.q_start()

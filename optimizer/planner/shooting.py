@@ -382,15 +382,25 @@ def solve_shooting(req: PlanRequest, deadline: Any) -> ShootingSolution:
                           diagnostics={"blocking": "nlp_failed", "tried": tried})
 
 
+def output_grid(samples: int, breaks: np.ndarray) -> np.ndarray:
+    """Where the path is wanted, in units of ``breaks``: the returned samples, the indicators'
+    dense grid and the interval ends (the region check)."""
+    T = float(breaks[-1])
+    return np.concatenate([np.linspace(0.0, T, int(samples)),
+                           np.linspace(0.0, T, INDICATOR_SAMPLES), breaks])
+
+
 def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: str,
                          planned_nodes: np.ndarray, timing: dict[str, float],
-                         diagnostics: dict[str, Any]) -> Plan:
+                         diagnostics: dict[str, Any], replay: Any = None) -> Plan:
     """Re-integrate, check, sample and measure a piecewise-constant-rate plan.
 
     The path is the original model integrated under ``schedule`` (cascade quadrature, error
     estimate <= 1e-11 rad, DOP853 as fallback): samples, indicators, the region check at the
     interval ends (enough, see the module docstring) and the terminal error all come from it.
     ``planned_nodes`` (the NLP's own node states) give the verification's ``max_deviation``.
+    ``replay``: that integration already done, on :func:`output_grid` of the schedule's breaks
+    in normalised time (``t / T``: the model is driftless, the path is the same).
 
     Raises
     ------
@@ -406,10 +416,13 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
     q0 = req.q_start()
     t = np.linspace(0.0, T, int(req.samples))
     td = np.linspace(0.0, T, INDICATOR_SAMPLES)
-    t_all = np.concatenate([t, td, schedule.breaks])
-    rep = integrate_cascade(robot, schedule.u, q0, T, t_all, schedule.breaks,
-                            fallback=schedule.u_scalar)
-    timing["verification"] = time.perf_counter() - t0
+    if replay is None:
+        rep = integrate_cascade(robot, schedule.u, q0, T, output_grid(req.samples,
+                                                                       schedule.breaks),
+                                schedule.breaks, fallback=schedule.u_scalar)
+        timing["verification"] = time.perf_counter() - t0
+    else:
+        rep = replay
     if not rep.success:
         raise NumericalError(f"the re-integration failed: {rep.message}",
                              diagnostics={"method": method})
@@ -454,7 +467,7 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
 
 
 def correct_rates(req: PlanRequest, nlp: ShootingNLP, rates: np.ndarray,
-                  phi_end: float) -> tuple[np.ndarray, list[float]]:
+                  phi_end: float) -> tuple[np.ndarray, list[float], Any]:
     """Newton steps on the EXACT model that move the NLP's rates onto the goal.
 
     The NLP integrates with RK4, so the original model under its rates ends 1e-8 to 1e-5 rad
@@ -469,6 +482,9 @@ def correct_rates(req: PlanRequest, nlp: ShootingNLP, rates: np.ndarray,
     rates : ndarray (N, 2)
     errors : list of float
         ``max |th(T) - goal|`` of the exact model before each step and after the last.
+    replay : Replay
+        The exact model under the returned rates, on :func:`output_grid` (normalised time):
+        the plan's verification.
     """
     N = rates.shape[0]
     breaks = np.linspace(0.0, 1.0, N + 1)
@@ -476,20 +492,26 @@ def correct_rates(req: PlanRequest, nlp: ShootingNLP, rates: np.ndarray,
     target = np.concatenate([[phi_end], req.goal])
     U = rates.copy()
     errors: list[float] = []
+    grid = output_grid(req.samples, breaks)
+    best: tuple[float, np.ndarray, Any] | None = None
     for k in range(MAX_CORRECTIONS + 1):
         sched = ActuatorSchedule(breaks=breaks, rates=U)
-        rep = integrate_cascade(req.robot, sched.u, q0, 1.0, np.array([1.0]), breaks,
+        rep = integrate_cascade(req.robot, sched.u, q0, 1.0, grid, breaks,
                                 fallback=sched.u_scalar)
         if not rep.success:
             break
         r = rep.final - target
         errors.append(float(np.max(np.abs(r[1:]))))
+        if best is None or errors[-1] < best[0]:
+            best = (errors[-1], U, rep)
         if errors[-1] <= CORRECTION_TARGET or k == MAX_CORRECTIONS:
             break
         J = np.asarray(nlp.end_jacobian(q0, U.ravel()))
         step = J.T @ np.linalg.solve(J @ J.T, r)
         U = U - step.reshape(N, 2)
-    return U, errors
+    if best is None:  # the first integration failed: finish_actuator_plan reports it
+        return U, errors, rep
+    return best[1], errors, best[2]  # a step that made things worse is not kept
 
 
 def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
@@ -509,8 +531,8 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     robot = req.robot
     nlp = shooting_nlp(tuple(robot.gains), tuple(int(m) for m in robot.exponents),
                        req.phi_change is not None)
-    rates, errors = correct_rates(req, nlp, sol.rates, float(sol.nodes[-1, 0]))
-    timing["correction"] = time.perf_counter() - t1
+    rates, errors, replay = correct_rates(req, nlp, sol.rates, float(sol.nodes[-1, 0]))
+    timing["correction_and_verification"] = time.perf_counter() - t1
     T = req.duration_for_rates(np.max(np.abs(rates), axis=0))
     N = rates.shape[0]
     schedule = ActuatorSchedule(breaks=np.linspace(0.0, T, N + 1), rates=rates / T)
@@ -519,7 +541,8 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
                                 "status": sol.status, "iterations": sol.iterations,
                                 "start": sol.start, "tried": list(sol.tried),
                                 "terminal_error_per_correction": errors}}
-    return finish_actuator_plan(req, schedule, "shooting", sol.nodes, timing, diagnostics)
+    return finish_actuator_plan(req, schedule, "shooting", sol.nodes, timing, diagnostics,
+                                replay=replay)
 
 
 __all__ = ["ActuatorSchedule", "ShootingNLP", "plan_shooting", "finish_actuator_plan",
