@@ -151,3 +151,19 @@ def test_default_robot_bounds(client):
     body = assert_problem(client.get("/v1/robots/default", params={"n": 9}), 422,
                           "invalid_request")
     assert body["field"] == "n" and "8" in body["detail"]
+
+
+def test_robustness_of_a_shooting_plan(client):
+    """A shooting plan (actuator rates) replays its rates ('u'); the chained 'v' replay needs
+    chained inputs and is refused, naming the field."""
+    plan = {"start": [10 * DEG, 20 * DEG, 30 * DEG], "goal": [40 * DEG, 25 * DEG, 15 * DEG],
+            "method": "shooting", "samples": 51}
+    r = client.post("/v1/robustness", json={"plan": plan, "starts": [plan["start"]],
+                                             "replay": "u"})
+    assert r.status_code == 200, r.text
+    (run,) = r.json()["runs"]
+    assert run["terminal_error"] < 1e-6
+    r = client.post("/v1/robustness", json={"plan": plan, "starts": [plan["start"]],
+                                             "replay": "v"})
+    assert_problem(r, 422, "invalid_request")
+    assert "replay" in r.text
