@@ -218,7 +218,7 @@ def test_correction_reaches_the_exact_goal_from_the_rk4_rates():
     req = request((0.5236, 0.6981, 0.6981, 0.6981), (0.6109, 0.7854, 0.6632, 0.7854),
                   robot=Robot.default(4))
     sol = solve_shooting(req, Deadline(30.0))
-    nlp = shooting.shooting_nlp(tuple(req.robot.gains), tuple(req.robot.exponents), False)
+    nlp = shooting.nlp_for(req, shooting.LADDER[0])
     rates, errors, _ = shooting.correct_rates(req, nlp, sol.rates, float(sol.nodes[-1, 0]))
     assert errors[0] > 1e-9 and errors[-1] <= shooting.CORRECTION_TARGET
     for U, tol_lo, tol_hi in ((sol.rates, 1e-9, 1e-3), (rates, 0.0, 1e-8)):
@@ -230,3 +230,22 @@ def test_correction_reaches_the_exact_goal_from_the_rk4_rates():
         err = np.max(np.abs(q[1:] - np.array(req.goal)))
         assert tol_lo < err < tol_hi
     assert abs(np.sum(rates[:, 0]) - np.sum(sol.rates[:, 0])) < 1e-12  # phi's end is held
+
+
+def test_a_six_joint_goal_needs_the_finer_transcription():
+    """The 20-interval NLP cannot reach this 6-joint goal (it needs faster rates than that
+    rung allows); the ladder's 50-interval rung does, and scipy confirms the plan."""
+    import optimizer.planner.shooting as shooting
+
+    rng = np.random.default_rng(3)
+    for n in (5, 5, 5, 6):  # the draw sequence of the goal that the first rung missed
+        a = rng.uniform(20, 60, n)
+        b = np.clip(a + rng.uniform(-8, 8, n), 5, 80)
+    req = request(tuple(np.radians(a)), tuple(np.radians(b)), robot=Robot.default(6))
+    with pytest.raises(InfeasibleError):
+        solve_shooting(req, Deadline(60.0), shooting.LADDER[0])
+    p = plan(req)
+    assert p.diagnostics["shooting"]["intervals"] == shooting.LADDER[1].intervals
+    _, q = scipy_path(p, req, per_interval=11)
+    assert np.max(np.abs(q[-1, 1:] - np.radians(b))) < 1e-8
+    assert np.all((q[:, 1:6] > 0) & (q[:, 1:6] < np.pi / 2))

@@ -10,9 +10,10 @@ below, paths closer to the straight line than the minimum-energy plan a user wou
 
 Transcription (normalised time ``tau = t / T`` in [0, 1]; ``T`` only rescales the rates)
 ----------------------------------------------------------------------------------------
-* :data:`INTERVALS` equal intervals with piecewise-constant actuator rates ``U = (U1, U2)``
-  (``u = U / T``), node states ``q_k = (phi, th_1..th_n)``, continuity by :data:`RK4_SUBSTEPS`
-  classical RK4 steps per interval;
+* equal intervals with piecewise-constant actuator rates ``U = (U1, U2)`` (``u = U / T``),
+  node states ``q_k = (phi, th_1..th_n)``, continuity by classical RK4 steps; the number of
+  intervals, of steps and the rate bound are a rung of :data:`LADDER` (20 intervals of one
+  step first; 50 of two when that NLP does not converge);
 * ``q_0`` = the start, ``th(1)`` = the goal; ``phi(1) - phi(0)`` within the request's
   ``phi_change_bounds`` (or equal to ``phi_change``);
 * ``th_1..th_n`` inside the region (:class:`~optimizer.region.Region`: ``(0, pi/2)`` for
@@ -28,7 +29,7 @@ Transcription (normalised time ``tau = t / T`` in [0, 1]; ``T`` only rescales th
 
 Correction onto the exact goal
 ------------------------------
-The NLP's RK4 (one step per interval, rates bounded by :data:`RATE_BOUND`) is cheap but not
+The NLP's RK4 (one step per interval, rates bounded: :data:`LADDER`) is cheap but not
 exact: the original model under its rates ends 1e-8 to 1e-5 rad from the goal. Newton steps on
 the exact model (:func:`correct_rates`: cascade quadrature for the residual, the RK4 model's
 Jacobian for the minimum-norm step) bring that to ~1e-11 rad in one or two steps.
@@ -79,17 +80,25 @@ from ..region import Region
 from ..results import Plan, SampledPath
 from ..verify import CASCADE_TOL, Verification, integrate_cascade
 
-#: Shooting intervals (piecewise-constant inputs).
-INTERVALS = 20
-#: RK4 steps per interval inside the NLP (the returned path is re-integrated accurately and
-#: the rates corrected to hit the goal of the exact model, see :func:`correct_rates`).
-RK4_SUBSTEPS = 1
-#: Bound of |U1|, |U2| (rad per unit of normalised time, i.e. per T): at most 0.5 rad per
-#: interval, where one RK4 step stays close to the exact model (the correction below removes
-#: what is left). Without it the NLP found a spurious optimum with phi moving 2 rad in one
-#: interval, where RK4 and the exact model part by 0.1 rad. A bound of 6 left 3 of 80 random
-#: 4-joint goals unsolved; 10 solved all 80.
-RATE_BOUND = 10.0
+@dataclass(frozen=True)
+class Transcription:
+    """One rung of the ladder of transcriptions: intervals, RK4 steps per interval inside the
+    NLP (the returned path is re-integrated accurately and the rates corrected onto the goal of
+    the exact model, see :func:`correct_rates`) and the bound of ``|U1|, |U2|`` (rad per unit
+    of normalised time, i.e. per ``T``) that keeps those steps close to the exact model."""
+
+    intervals: int
+    substeps: int
+    rate_bound: float
+
+
+#: Tried in order until one NLP converges. The first: 20 intervals, one RK4 step each, at most
+#: 0.5 rad per interval (without a bound the NLP found a spurious optimum with phi moving 2 rad
+#: in one interval, where RK4 and the exact model part by 0.1 rad; a bound of 6 left 3 of 80
+#: random 3- and 4-joint goals unsolved, 10 solved all 80). The second, for goals that need
+#: more switching and faster rates (6 joints: the minimum-energy baseline's rates reach 14-21
+#: rad/s), has the baseline's 50 intervals, 2 RK4 steps each.
+LADDER: tuple[Transcription, ...] = (Transcription(20, 1, 10.0), Transcription(50, 2, 40.0))
 #: The Newton correction stops once the exact model ends this close to the goal (rad)...
 CORRECTION_TARGET = 1e-10
 #: ... or after this many steps.
@@ -146,7 +155,7 @@ class ShootingNLP:
     """
 
     def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
-                 intervals: int = INTERVALS, substeps: int = RK4_SUBSTEPS) -> None:
+                 intervals: int, substeps: int) -> None:
         from .penalty import MAX_TIME_LIMIT, _DeadlineCallback
 
         t0 = time.perf_counter()
@@ -274,10 +283,10 @@ class ShootingNLP:
 
 
 @functools.lru_cache(maxsize=16)
-def shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...],
-                 fixed_phi: bool) -> ShootingNLP:
-    """The cached NLP of one robot (per process)."""
-    return ShootingNLP(gains, exponents, fixed_phi)
+def shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
+                 intervals: int, substeps: int) -> ShootingNLP:
+    """The cached NLP of one robot and transcription (per process)."""
+    return ShootingNLP(gains, exponents, fixed_phi, intervals, substeps)
 
 
 @dataclass(frozen=True)
@@ -303,16 +312,23 @@ def _node_bounds(req: PlanRequest, region: Region) -> tuple[np.ndarray, np.ndarr
     return lo_m, hi_m
 
 
-def solve_shooting(req: PlanRequest, deadline: Any) -> ShootingSolution:
-    """Solve the NLP for ``req`` (normalised time); raise a typed error when it fails.
+def nlp_for(req: PlanRequest, tr: Transcription) -> ShootingNLP:
+    """The cached NLP of ``req``'s robot under transcription ``tr``."""
+    return shooting_nlp(tuple(req.robot.gains), tuple(int(m) for m in req.robot.exponents),
+                        req.phi_change is not None, tr.intervals, tr.substeps)
 
-    From each initial guess (``phi`` travelling the way the joints ask, then the other way),
-    fatrop first, IPOPT when fatrop does not converge; the first converged solution is
-    returned.
+
+def solve_shooting(req: PlanRequest, deadline: Any,
+                   tr: Transcription = LADDER[0]) -> ShootingSolution:
+    """Solve the NLP of transcription ``tr`` for ``req`` (normalised time); raise a typed error
+    when it fails.
+
+    Attempts in the order of :data:`ATTEMPTS` (fatrop, then IPOPT; ``phi`` travelling +0.6
+    rad, then -0.6 rad in the initial guess); the first converged solution is returned.
     """
     robot = req.robot
     fixed_phi = req.phi_change is not None
-    nlp = shooting_nlp(tuple(robot.gains), tuple(int(m) for m in robot.exponents), fixed_phi)
+    nlp = nlp_for(req, tr)
     n, N = nlp.n, nlp.N
     a, b = np.array(req.start), np.array(req.goal)
     region = Region(robot, "full", req.joint_bounds)
@@ -321,8 +337,8 @@ def solve_shooting(req: PlanRequest, deadline: Any) -> ShootingSolution:
     ubW = np.full((N + 1, nlp.stride), np.inf)
     lbW[:, 1:n + 1], ubW[:, 1:n + 1] = lo, hi
     lbW[:, n + 1:n + 3] = 0.0  # the squared deviations' epigraphs
-    # rates bounded so that one RK4 step per interval stays accurate (see RATE_BOUND)
-    lbW[:N, nlp.nx:nlp.nx + 2], ubW[:N, nlp.nx:nlp.nx + 2] = -RATE_BOUND, RATE_BOUND
+    # rates bounded so that the NLP's RK4 steps stay accurate (see LADDER)
+    lbW[:N, nlp.nx:nlp.nx + 2], ubW[:N, nlp.nx:nlp.nx + 2] = -tr.rate_bound, tr.rate_bound
     if fixed_phi:
         lo_phi = hi_phi = float(req.phi_change)  # type: ignore[arg-type]
     else:
@@ -524,22 +540,32 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
             field="constraint_points")
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
-    sol = solve_shooting(req, deadline)
+    failures: list[str] = []
+    tried: list[dict[str, Any]] = []
+    for tr in LADDER:
+        try:
+            sol = solve_shooting(req, deadline, tr)
+            break
+        except InfeasibleError as exc:  # a finer transcription may still converge
+            failures.append(f"{tr.intervals} intervals: {exc.message}")
+            tried.extend(exc.diagnostics.get("tried", []))
+    else:
+        raise InfeasibleError("; ".join(failures),
+                              diagnostics={"blocking": "nlp_failed", "tried": tried})
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
     t1 = time.perf_counter()
-    robot = req.robot
-    nlp = shooting_nlp(tuple(robot.gains), tuple(int(m) for m in robot.exponents),
-                       req.phi_change is not None)
+    nlp = nlp_for(req, tr)
     rates, errors, replay = correct_rates(req, nlp, sol.rates, float(sol.nodes[-1, 0]))
     timing["correction_and_verification"] = time.perf_counter() - t1
     T = req.duration_for_rates(np.max(np.abs(rates), axis=0))
     N = rates.shape[0]
     schedule = ActuatorSchedule(breaks=np.linspace(0.0, T, N + 1), rates=rates / T)
     diagnostics = {"objective": req.objective, "singularity": "full",
-                   "shooting": {"intervals": N, "rk4_substeps": RK4_SUBSTEPS,
+                   "shooting": {"intervals": N, "rk4_substeps": tr.substeps,
+                                "rate_bound": tr.rate_bound,
                                 "status": sol.status, "iterations": sol.iterations,
-                                "start": sol.start, "tried": list(sol.tried),
+                                "start": sol.start, "tried": tried + list(sol.tried),
                                 "terminal_error_per_correction": errors}}
     return finish_actuator_plan(req, schedule, "shooting", sol.nodes, timing, diagnostics,
                                 replay=replay)
