@@ -631,22 +631,47 @@ class PlannedInputs:
         self.path = path
         self.T = path.inputs.duration
         inp = path.inputs
-        # highest power first, for Horner's rule in u_scalar
-        self._z_rev = [arr[:, ::-1].T.copy() for arr in path.polys]
-        self._v_rev = [(inp.v1[s][::-1].copy(), inp.v2[s][::-1].copy()) for s in range(inp.pieces)]
         self._breaks = inp.breaks
-        self._u_fn = transform.symbolic.u_from_zv
-        # the same for u(t): per piece, rows [z_1..z_{n+1}, V1, V2] padded to one degree, highest
-        # power first (one Horner pass evaluates the state and the inputs together)
+        # the inner breaks: the piece of tau is searchsorted(inner, tau, "right"), as
+        # InputSchedule.piece_index (right-continuous, the last piece closed)
+        self._inner = inp.breaks[1:-1]
+        # for u(t): rows [z_1..z_{n+1}, V1, V2] of every piece, shape (L, S, n+3), highest power
+        # first, zero-padded to one degree L (a leading zero leaves Horner's values unchanged,
+        # bit for bit): one Horner pass evaluates the state and the inputs of all pieces together
+        polys = path.polys
         nz = path.z0.size
-        self._zv_rev: list[np.ndarray] = []
-        for s in range(inp.pieces):
-            deg = max(path.polys[s].shape[1], inp.v1[s].size, inp.v2[s].size)
-            c = np.zeros((nz + 2, deg))
-            c[:nz, :path.polys[s].shape[1]] = path.polys[s]
-            c[nz, :inp.v1[s].size] = inp.v1[s]
-            c[nz + 1, :inp.v2[s].size] = inp.v2[s]
-            self._zv_rev.append(np.ascontiguousarray(c[:, ::-1].T)[:, :, None])
+        pieces = len(polys)
+        lz = max(c.shape[1] for c in polys)
+        l1 = max(c.size for c in inp.v1)
+        l2 = max(c.size for c in inp.v2)
+        c = np.zeros((max(lz, l1, l2), pieces, nz + 2))
+        if all(a.shape[1] == lz for a in polys) and all(a.size == l1 for a in inp.v1) \
+                and all(a.size == l2 for a in inp.v2):
+            # one copy per block (the usual case: pieces of one degree)
+            c[:lz, :, :nz] = np.stack(polys).transpose(2, 0, 1)
+            c[:l1, :, nz] = np.stack(inp.v1).T
+            c[:l2, :, nz + 1] = np.stack(inp.v2).T
+        else:
+            for s in range(pieces):
+                c[:polys[s].shape[1], s, :nz] = polys[s].T
+                c[:inp.v1[s].size, s, nz] = inp.v1[s]
+                c[:inp.v2[s].size, s, nz + 1] = inp.v2[s]
+        self._zv_rev = c[::-1].copy()
+
+    @functools.cached_property
+    def _z_rev(self) -> list[np.ndarray]:
+        # per piece, highest power first, for Horner's rule in u_scalar (built on first use:
+        # only the DOP853 fallback and the replays evaluate the inputs one time at a time)
+        return [arr[:, ::-1].T.copy() for arr in self.path.polys]
+
+    @functools.cached_property
+    def _v_rev(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        inp = self.path.inputs
+        return [(inp.v1[s][::-1].copy(), inp.v2[s][::-1].copy()) for s in range(inp.pieces)]
+
+    @functools.cached_property
+    def _u_fn(self) -> Callable[..., object]:
+        return self.cf.symbolic.u_from_zv  # type: ignore[no-any-return]
 
     def q(self, t: np.ndarray) -> np.ndarray:
         inv = self.cf.from_chained(self.path.z(np.asarray(t, float) / self.T))
@@ -664,25 +689,29 @@ class PlannedInputs:
         t = np.atleast_1d(np.asarray(t, float))
         tau = t / self.T
         nz = self.path.z0.size
-        if len(self._zv_rev) == 1:
-            zv = self._horner(0, tau)
-        else:
-            zv = np.empty((nz + 2, tau.size))
-            idx = self.path.inputs.piece_index(tau)
-            for s in range(len(self._zv_rev)):
-                sel = idx == s
-                if sel.any():
-                    zv[:, sel] = self._horner(s, tau[sel] - self._breaks[s])
-        return self.cf.u_from_zv(zv[:nz].T, zv[nz:].T / self.T)
+        zv = self._horner(tau)
+        return self.cf.u_from_zv(zv[:, :nz], zv[:, nz:] / self.T)
 
-    def _horner(self, s: int, x: np.ndarray) -> np.ndarray:
-        """Rows ``[z(tau), V(tau)]`` of piece ``s`` at ``x = tau - tau_s``, shape (n+3, N):
-        the same Horner steps as ``numpy.polynomial.polynomial.polyval`` (same rounding)."""
-        c = self._zv_rev[s]
-        acc = c[0] + 0.0 * x
-        for row in c[1:]:
+    def _horner(self, tau: np.ndarray) -> np.ndarray:
+        """Rows ``[z(tau), V(tau)]``, shape (N, n+3): per point, the piece's coefficients (one
+        gather per Horner step, ``np.take`` into one buffer) and the same Horner steps as
+        ``numpy.polynomial.polynomial.polyval`` at ``x = tau - tau_s`` (same rounding)."""
+        c = self._zv_rev
+        if c.shape[1] == 1:  # one piece: its rows broadcast, no gather
+            x = (tau - self._breaks[0])[:, None]
+            acc = c[0, 0] + 0.0 * x
+            for k in range(1, c.shape[0]):
+                acc *= x
+                acc += c[k, 0]
+            return acc
+        idx = np.searchsorted(self._inner, tau, side="right")
+        x = (tau - self._breaks[idx])[:, None]
+        acc = np.take(c[0], idx, axis=0)
+        acc += 0.0 * x
+        row = np.empty_like(acc)
+        for k in range(1, c.shape[0]):
             acc *= x
-            acc += row
+            acc += np.take(c[k], idx, axis=0, out=row, mode="clip")  # idx is in range
         return acc
 
     @property
