@@ -8,6 +8,7 @@ which keeps the start fast and the workers small.
 
 from __future__ import annotations
 
+import gc
 import logging
 
 from . import jobs, workers  # noqa: F401 - loaded once for every forked worker
@@ -18,3 +19,9 @@ except Exception as exc:  # noqa: BLE001 - an optimisation only; each worker war
     WARMUP = {"warmup_error": type(exc).__name__}
     logging.getLogger("service.worker").warning("forkserver warm-up failed: %s",
                                                 type(exc).__name__)
+
+# everything loaded so far lives as long as the forkserver and the workers forked from it: out
+# of the collector's reach (:func:`service.workers._freeze_heap`), so that no worker's
+# collections walk them (and, by writing to their headers, copy the pages they share)
+gc.collect()
+gc.freeze()
