@@ -146,7 +146,25 @@ class Plan:
 
 
 def json_safe(obj: Any) -> Any:
-    """Recursively convert numpy types to Python and refuse non-finite floats (-> None)."""
+    """Recursively convert numpy types to Python and refuse non-finite floats (-> None).
+
+    Dict keys become strings, tuples lists, numpy arrays nested lists, numpy scalars Python
+    ones; strings, ``None`` and other objects are returned as they are.
+    """
+    # exact built-in types first (a plan's answer is mostly these): one type() test each
+    # instead of a chain of isinstance() tests; subclasses (numpy's float64 is a float) take
+    # the general path below, with the same result
+    tp = type(obj)
+    if tp is float:
+        return obj if _isfinite(obj) else None
+    if tp is dict:
+        return {k if type(k) is str else str(k): json_safe(v) for k, v in obj.items()}
+    if tp is list or tp is tuple:
+        if tp is list and _finite_floats(obj):
+            return obj.copy()  # a new list, as always (the caller may change it)
+        return [json_safe(v) for v in obj]
+    if tp is str or tp is int or tp is bool or obj is None:
+        return obj
     if isinstance(obj, dict):
         return {str(k): json_safe(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
@@ -167,3 +185,17 @@ def json_safe(obj: Any) -> Any:
         x = float(obj)
         return x if math.isfinite(x) else None
     return obj
+
+
+_isfinite = math.isfinite
+
+
+def _finite_floats(items: list[Any]) -> bool:
+    """Whether a list holds Python floats only, all finite: then :func:`json_safe` would
+    return an equal list (the same floats), so the list itself can be used."""
+    for x in items:
+        if type(x) is not float:
+            return False
+    # a sum of floats is finite only if every term is (an inf or nan term makes it inf or
+    # nan; a finite overflow to inf makes it look non-finite: the slow path decides then)
+    return _isfinite(sum(items, 0.0))

@@ -80,3 +80,69 @@ def test_planned_inputs_u_one_piece():
     ref = _reference_u(cf, path, t)
     np.testing.assert_allclose(inputs.u(t), ref, rtol=1e-13, atol=1e-13)
     np.testing.assert_array_equal(inputs.u(t)[:, 0], ref[:, 0])
+
+
+# ---------------------------------------------------------------------- json_safe
+def _json_safe_reference(obj):
+    """The rule of :func:`optimizer.results.json_safe`, written plainly (its former body)."""
+    import math
+    if isinstance(obj, dict):
+        return {str(k): _json_safe_reference(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe_reference(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_safe_reference(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        x = float(obj)
+        return x if math.isfinite(x) else None
+    return obj
+
+
+def _same(a, b) -> None:
+    """Equal values of identical types, recursively (1 == 1.0 == True is not enough)."""
+    assert type(a) is type(b), (a, b)
+    if isinstance(a, dict):
+        assert list(a) == list(b)
+        for k in a:
+            assert type(k) is str
+            _same(a[k], b[k])
+    elif isinstance(a, list):
+        assert len(a) == len(b)
+        for x, y in zip(a, b):
+            _same(x, y)
+    else:
+        assert a == b or (a != a and b != b), (a, b)
+
+
+class _Sub(float):
+    pass
+
+
+def test_json_safe_matches_reference_rule():
+    from optimizer.results import json_safe
+    inf, nan = float("inf"), float("nan")
+    cases = [
+        1.5, -0.0, inf, -inf, nan, 7, True, False, None, "text", _Sub(2.5), _Sub(inf),
+        np.float64(3.25), np.float64(nan), np.float32(1.5), np.int64(4), np.bool_(True),
+        [0.1, 0.2, 0.3], [0.1, inf], [0.1, nan, 0.3], [1e308, 1e308], [1e308, 1e308, inf],
+        [0.1, 2], [0.1, np.float64(0.2)], [0.1, True], [_Sub(0.5)], [], (0.1, 0.2), (1, inf),
+        {1: 0.5, "a": [0.1, -inf], ("t", 2): {"b": np.array([1.0, nan])}},
+        {"x": np.array([[0.1, 0.2], [0.3, 0.4]]), "i": np.array([1, 2]), "b": np.array([True])},
+        {"nested": [[0.1, 0.2], [inf, 0.4], (np.float64(1.0), None)]},
+    ]
+    for obj in cases:
+        _same(json_safe(obj), _json_safe_reference(obj))
+    # a new list every time (a caller may change the answer without changing the plan)
+    floats = [0.1, 0.2]
+    out = json_safe({"a": floats})
+    assert out["a"] == floats and out["a"] is not floats
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        vals = rng.choice([0.5, -2.0, inf, -inf, nan, 1e308], size=rng.integers(0, 6)).tolist()
+        _same(json_safe(vals), _json_safe_reference(vals))
+        _same(json_safe({"v": vals, "t": tuple(vals)}), _json_safe_reference({"v": vals,
+                                                                              "t": tuple(vals)}))
