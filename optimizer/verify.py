@@ -64,6 +64,13 @@ CASCADE_NOISE = 1e-8
 CASCADE_NODES = 32
 #: Initial panels per input piece.
 CASCADE_INITIAL_PANELS = 3
+#: Initial panels of :func:`verify_plan` for schedules of several pieces: at most this fraction
+#: of ``T`` wide, at least one per piece (instead of :data:`CASCADE_INITIAL_PANELS` per piece):
+#: a retimed plan's 8 pieces, 4 long and 4 short, get 12 panels instead of 24. Measured on 80
+#: retimed plans: no refinement needed, largest estimate 7e-15 rad (5e-15 on 24 panels; target
+#: :data:`CASCADE_TOL`), 15 % less time. One-piece plans keep 3 initial panels (6 gained
+#: nothing there: they refine 3 to about 6 at the same cost).
+CASCADE_INITIAL_WIDTH = 1.0 / 6.0
 #: A panel that needs refinement is cut into this many.
 CASCADE_SPLIT = 4
 #: Refinement rounds and panels at most.
@@ -378,7 +385,8 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                       duration: float, t_eval: np.ndarray, breaks: np.ndarray | None = None, *,
                       nodes: int = CASCADE_NODES, tol: float = CASCADE_TOL,
                       accept: float = CASCADE_ACCEPT,
-                      initial_panels: int = CASCADE_INITIAL_PANELS, split: int = CASCADE_SPLIT,
+                      initial_panels: int = CASCADE_INITIAL_PANELS,
+                      initial_width: float | None = None, split: int = CASCADE_SPLIT,
                       max_rounds: int = CASCADE_MAX_ROUNDS, max_panels: int = CASCADE_MAX_PANELS,
                       fallback: Callable[[float, np.ndarray], np.ndarray] | None = None
                       ) -> Replay:
@@ -413,7 +421,10 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
         noise, or the refinement bounds, stop the refinement); above it, and above ``tol``,
         the run falls back to DOP853.
     initial_panels : int
-        Panels per input piece before refinement.
+        Panels per input piece before refinement (unless ``initial_width`` is given).
+    initial_width : float, optional
+        Instead: each input piece is cut into the fewest equal panels at most
+        ``initial_width * T`` wide (at least one per piece).
     split : int
         A panel that needs refinement is cut into this many panels: equal ones, or graded
         geometrically (ratio ``1/split``) toward the end where the inputs are steeper.
@@ -470,9 +481,20 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
     edges = np.array([0.0, T]) if breaks is None else np.asarray(breaks, float)
     if edges.size < 2 or edges[0] != 0.0 or edges[-1] != T or not np.all(np.diff(edges) > 0.0):
         edges = np.unique(np.concatenate([[0.0, T], np.clip(edges, 0.0, T)]))
-    k = max(int(initial_panels), 1)
-    new_a = (edges[:-1, None] + np.diff(edges)[:, None] * (np.arange(k) / k)).ravel()
-    new_h = np.repeat(np.diff(edges) / k, k)
+    if initial_width is None:
+        k = max(int(initial_panels), 1)
+        new_a = (edges[:-1, None] + np.diff(edges)[:, None] * (np.arange(k) / k)).ravel()
+        new_h = np.repeat(np.diff(edges) / k, k)
+    else:
+        widths = np.diff(edges)
+        # (a ratio that is an integer up to rounding, such as T / (T / 6), is not rounded up)
+        ks = np.maximum(np.ceil(widths / (float(initial_width) * T) * (1.0 - 1e-12)), 1.0)
+        ks = ks.astype(np.intp)
+        first = np.cumsum(ks) - ks
+        j = np.arange(int(ks.sum())) - np.repeat(first, ks)   # panel number within its piece
+        kk = np.repeat(ks, ks)
+        new_a = np.repeat(edges[:-1], ks) + np.repeat(widths, ks) * (j / kk)
+        new_h = np.repeat(widths / ks, ks)
     # panels (in no particular order until the cascade sorts them) and what is known on them
     a = h = np.empty(0)
     tn = np.empty((0, p))
@@ -751,12 +773,14 @@ def verify_plan(robot: Robot, inputs: PlannedInputs, q_start: np.ndarray, q_goal
     Parameters
     ----------
     integrator : {"cascade", "DOP853"}
-        ``"cascade"`` (default): :func:`integrate_cascade`, falling back to DOP853 when its
+        ``"cascade"`` (default): :func:`integrate_cascade` (several input pieces: initial
+        panels at most :data:`CASCADE_INITIAL_WIDTH` of ``T`` wide), falling back to DOP853 when its
         error estimate cannot be met; ``"DOP853"``: :func:`integrate` only.
     """
     if integrator == "cascade":
+        width = CASCADE_INITIAL_WIDTH if inputs.breaks.size > 2 else None
         rep = integrate_cascade(robot, inputs.u, q_start, inputs.T, t_samples, inputs.breaks,
-                                fallback=inputs.u_scalar)
+                                initial_width=width, fallback=inputs.u_scalar)
     elif integrator == DOP853_NAME:
         rep = integrate(robot, inputs.u_scalar, q_start, inputs.T, t_samples)
     else:

@@ -146,3 +146,70 @@ def test_json_safe_matches_reference_rule():
         _same(json_safe(vals), _json_safe_reference(vals))
         _same(json_safe({"v": vals, "t": tuple(vals)}), _json_safe_reference({"v": vals,
                                                                               "t": tuple(vals)}))
+
+
+# ---------------------------------------------------------------------- verify_plan's mesh
+@pytest.mark.parametrize("start_deg", [[10.0, 10.0, 10.0], [8.3, 11.6, 9.1], [11.9, 8.2, 10.7]])
+def test_verify_plan_initial_width_matches_reference(start_deg):
+    """Retimed plans (8 input pieces) verified on panels at most T/6 wide: the estimate meets
+    the target, and the states, samples and energy agree with scipy's DOP853 (rtol 1e-12, on
+    the test's own model) and with the former mesh (3 panels per piece)."""
+    import itertools
+
+    from scipy.integrate import solve_ivp
+
+    from optimizer.planner.plan import plan
+    from optimizer.problem import PlanRequest
+    from optimizer.verify import (CASCADE_INITIAL_WIDTH, CASCADE_NAME, integrate_cascade,
+                                  verify_plan)
+    from reference import model_rhs
+
+    req = PlanRequest(start=tuple(D(start_deg)), goal=tuple(D([30.0, 30.0, 30.0])),
+                      method="retimed")
+    p = plan(req)
+    inputs = PlannedInputs(chained_form(p.robot), p.chained)
+    assert inputs.breaks.size > 2
+    K, m = p.robot.gains, p.robot.exponents
+
+    def rhs(t, x):
+        u = inputs.u_scalar(t)
+        return np.concatenate([model_rhs(x[:-1], u, K, m), [u[0] ** 2 + u[1] ** 2]])
+
+    x = np.concatenate([req.q_start(), [0.0]])
+    samples = np.full((p.path.t.size, x.size), np.nan)
+    for a, b in itertools.pairwise(inputs.breaks):
+        sol = solve_ivp(rhs, (a, b), x, method="DOP853", rtol=1e-12, atol=1e-14,
+                        dense_output=True)
+        sel = (p.path.t >= a) & (p.path.t <= b)
+        samples[sel] = sol.sol(p.path.t[sel]).T
+        x = sol.y[:, -1]
+    ver = verify_plan(p.robot, inputs, req.q_start(), np.array(req.goal),
+                      req.phi_start + p.phi_change, p.path.t, p.path.q)
+    assert ver.integrator == CASCADE_NAME and ver.error_estimate <= 1e-11
+    np.testing.assert_allclose(ver.final, x[:-1], rtol=0, atol=1e-10)
+    assert ver.energy == pytest.approx(x[-1], rel=1e-9)
+    assert ver.max_deviation == pytest.approx(np.max(np.abs(samples[:, :-1] - p.path.q)),
+                                              abs=1e-9)
+    # the mesh: the fewest panels at most T/6 wide per piece, no refinement
+    rep = integrate_cascade(p.robot, inputs.u, req.q_start(), p.duration, p.path.t,
+                            inputs.breaks, initial_width=CASCADE_INITIAL_WIDTH)
+    widths = np.diff(inputs.breaks)
+    assert rep.panels == int(np.sum(np.maximum(np.ceil(widths / (p.duration / 6) - 1e-9), 1)))
+    old = integrate_cascade(p.robot, inputs.u, req.q_start(), p.duration, p.path.t,
+                            inputs.breaks)
+    assert old.panels == 3 * widths.size
+    np.testing.assert_allclose(rep.final, old.final, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(rep.q, old.q, rtol=0, atol=1e-13)
+    np.testing.assert_array_equal(rep.final, ver.final)
+
+
+def test_initial_width_one_piece():
+    """One piece of [0, T] under initial_width = 1/6: six equal panels (not seven by rounding)."""
+    from optimizer.verify import integrate_cascade
+    robot = Robot.default(3)
+    for T in (1.0, 0.3, 7.0):
+        rep = integrate_cascade(robot, lambda tt: np.column_stack([np.full(tt.size, 0.2),
+                                                                   np.full(tt.size, 0.1)]),
+                                np.array([0.0, 0.5, 0.5, 0.5]), T, np.linspace(0, T, 5),
+                                initial_width=1.0 / 6.0)
+        assert rep.panels == 6 and rep.success
