@@ -142,7 +142,7 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
         if b.get("status") != "success":
             continue
         if c["kind"] == "paper":
-            for m in ("polynomial", "retimed", "auto"):
+            for m in ("polynomial", "retimed", "shooting", "auto"):
                 r = c["methods"].get(m)
                 if r is None:
                     continue

@@ -87,6 +87,9 @@ class Settings(BaseSettings):
     port: int = Field(default=8000, ge=1, le=65535, description="Listen port.")
     workers: int = Field(default_factory=_cpu_count, ge=1, le=256,
                          description="Solver worker processes.")
+    worker_nice: int = Field(default=5, ge=0, le=19,
+                             description="Niceness of the worker processes (the event loop "
+                                         "keeps the CPU first: shorter latency tails).")
     queue_size: int = Field(default=64, ge=0, le=100_000,
                             description="Requests allowed to wait.")
     retry_after: int = Field(default=1, ge=1, le=3600,

@@ -177,3 +177,29 @@ def test_a_batch_reserves_its_places_when_admitted():
         pool.admit()
 
     asyncio.run(run())
+
+
+def test_workers_run_below_the_event_loop_priority():
+    """PLANNER_WORKER_NICE (default 5): each worker lowers its own priority after warm-up, so
+    that the event loop is not descheduled behind the solves."""
+    import os
+
+    from service.settings import Settings
+    from service.workers import WorkerPool
+
+    assert Settings().worker_nice == 5
+
+    async def main() -> list[int]:
+        pool = WorkerPool(1, 4, warmup=False, nice=3)
+        await pool.start()
+        try:
+            for _ in range(600):  # the worker says "ready" only after changing its priority
+                if pool.ready:
+                    break
+                await asyncio.sleep(0.05)
+            return [os.getpriority(os.PRIO_PROCESS, pid) for pid in pool.pids()]
+        finally:
+            await pool.close()
+
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    assert asyncio.run(main()) == [min(base + 3, 19)]
