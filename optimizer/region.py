@@ -726,14 +726,12 @@ class Region:
         C = comps[rows]
         u = _unit_grid(points)
         ar = np.arange(K)
-        best = np.full(K, np.inf)
         arg = lo
         t = v = j = None
         for _ in range(rounds):
             t = lo[:, None] + (hi - lo)[:, None] * u[None, :]
             v = np.asarray(self.values(polyval_each(C, t)))
             j = np.argmin(v, axis=1)
-            best = v[ar, j]
             arg = t[ar, j]
             step = (hi - lo) * (1.0 / (points - 1))
             lo, hi = np.maximum(arg - step, lo), np.minimum(arg + step, hi)

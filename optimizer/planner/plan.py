@@ -37,7 +37,7 @@ import numpy as np
 from ..chained_form import chained_form
 from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, PlannerError,
                       SolverTimeoutError)
-from ..indicators import compute_indicators, count_reversals
+from ..indicators import compute_indicators
 from ..problem import PlanRequest
 from ..region import Region
 from ..results import Plan, SampledPath
