@@ -79,6 +79,9 @@ from ..problem import PlanRequest
 from ..region import Region
 from ..results import Plan, SampledPath
 from ..verify import CASCADE_TOL, Verification, integrate_cascade
+from .family import SEARCH_SAMPLES as INDICATOR_SAMPLES  # the other methods' indicator grid
+from .penalty import MAX_TIME_LIMIT, TIMEOUT, _DeadlineCallback
+from .plan import TERMINAL_TOLERANCE
 
 @dataclass(frozen=True)
 class Transcription:
@@ -123,14 +126,8 @@ FATROP_MU_INIT = 1.0
 #: solution is returned).
 ATTEMPTS: tuple[tuple[str, float], ...] = (("fatrop", 1.0), ("fatrop", -1.0), ("ipopt", 1.0),
                                            ("ipopt", -1.0))
-#: Net travel of phi (rad) of the initial guess (its sign follows the joints' motion).
+#: Net travel of phi (rad) of the initial guesses (both signs, see :data:`ATTEMPTS`).
 GUESS_PHI_TRAVEL = 0.6
-#: A plan is verified when the re-integrated model ends this close to the goal (rad).
-TERMINAL_TOLERANCE = 1e-6
-#: Samples of the indicator grid (the same density as the other methods' searches).
-INDICATOR_SAMPLES = 1001
-
-_TIMEOUT = ("User_Requested_Stop", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded")
 
 
 def _power(c: Any, m: int) -> Any:
@@ -159,8 +156,6 @@ class ShootingNLP:
 
     def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
                  intervals: int, substeps: int) -> None:
-        from .penalty import MAX_TIME_LIMIT, _DeadlineCallback
-
         t0 = time.perf_counter()
         n = self.n = len(gains) + 1
         N = self.N = intervals
@@ -294,7 +289,7 @@ def shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi
 
 @dataclass(frozen=True)
 class ShootingSolution:
-    """IPOPT's answer in normalised time: node states ``(N+1, n+1)`` and rates ``(N, 2)``."""
+    """The NLP's answer in normalised time: node states ``(N+1, n+1)`` and rates ``(N, 2)``."""
 
     nodes: np.ndarray
     rates: np.ndarray
@@ -383,16 +378,12 @@ def solve_shooting(req: PlanRequest, deadline: Any,
             return ShootingSolution(nodes=nodes, rates=rates, status=f"{name}: {status}",
                                     iterations=iters, start=f"phi travel {travel:+.3g} rad",
                                     tried=tuple(tried))
-        if status in _TIMEOUT:
+        if status in TIMEOUT:
             raise SolverTimeoutError(
                 f"the shooting NLP did not converge within the time limit of "
                 f"{deadline.seconds:g} s", field="time_limit",
                 diagnostics={"stage": "shooting NLP", "tried": tried})
-    if not tried:
-        raise SolverTimeoutError(
-            f"no time was left for the shooting NLP (time limit {deadline.seconds:g} s)",
-            field="time_limit", diagnostics={"stage": "shooting NLP"})
-    if deadline.remaining <= 1e-3:
+    if not tried or deadline.remaining <= 1e-3:
         raise SolverTimeoutError(
             f"the shooting NLP did not converge within the time limit of {deadline.seconds:g} s",
             field="time_limit", diagnostics={"stage": "shooting NLP", "tried": tried})
@@ -411,15 +402,15 @@ def output_grid(samples: int, breaks: np.ndarray) -> np.ndarray:
 
 def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: str,
                          planned_nodes: np.ndarray, timing: dict[str, float],
-                         diagnostics: dict[str, Any], replay: Any = None) -> Plan:
-    """Re-integrate, check, sample and measure a piecewise-constant-rate plan.
+                         diagnostics: dict[str, Any], replay: Any) -> Plan:
+    """Check, sample and measure a piecewise-constant-rate plan.
 
-    The path is the original model integrated under ``schedule`` (cascade quadrature, error
-    estimate <= 1e-11 rad, DOP853 as fallback): samples, indicators, the region check at the
-    interval ends (enough, see the module docstring) and the terminal error all come from it.
-    ``planned_nodes`` (the NLP's own node states) give the verification's ``max_deviation``.
-    ``replay``: that integration already done, on :func:`output_grid` of the schedule's breaks
-    in normalised time (``t / T``: the model is driftless, the path is the same).
+    ``replay`` is the original model integrated under the schedule's rates (cascade quadrature,
+    error estimate <= 1e-11 rad, DOP853 as fallback) in normalised time (``t / T``: the model
+    is driftless, the path is the same), on :func:`output_grid` of the normalised breaks:
+    samples, indicators, the region check at the interval ends (enough, see the module
+    docstring) and the terminal error all come from it. ``planned_nodes`` (the NLP's own node
+    states) give the verification's ``max_deviation``.
 
     Raises
     ------
@@ -428,20 +419,13 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
     NumericalError
         The true path does not reach the goal.
     """
-    t0 = time.perf_counter()
     robot = req.robot
     cf = chained_form(robot)
     T = schedule.duration
     q0 = req.q_start()
     t = np.linspace(0.0, T, int(req.samples))
     td = np.linspace(0.0, T, INDICATOR_SAMPLES)
-    if replay is None:
-        rep = integrate_cascade(robot, schedule.u, q0, T, output_grid(req.samples,
-                                                                       schedule.breaks),
-                                schedule.breaks, fallback=schedule.u_scalar)
-        timing["verification"] = time.perf_counter() - t0
-    else:
-        rep = replay
+    rep = replay
     if not rep.success:
         raise NumericalError(f"the re-integration failed: {rep.message}",
                              diagnostics={"method": method})
@@ -470,13 +454,13 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
     al, be = cf.input_coefficients(q)
     v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
     z = cf.to_chained(q)
-    ind = compute_indicators(td, qd, schedule.u(td))
-    ind = dataclasses.replace(ind, energy=rep.energy)
+    energy = rep.energy
+    ind = dataclasses.replace(compute_indicators(td, qd, None), energy=energy)
     dphi = float(final[0] - q0[0])
     ver = Verification(terminal_error=terminal, phi_error=0.0,
                        max_deviation=float(np.max(np.abs(qb - planned_nodes))),
                        singular=False, final=tuple(float(x) for x in final),
-                       rtol=CASCADE_TOL, atol=CASCADE_TOL, energy=rep.energy,
+                       rtol=CASCADE_TOL, atol=CASCADE_TOL, energy=energy,
                        integrator=rep.integrator, error_estimate=rep.error_estimate)
     timing["sampling"] = time.perf_counter() - t1
     return Plan(robot=robot, method=method, phi_change=dphi, duration=T, inputs=schedule,
