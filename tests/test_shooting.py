@@ -249,3 +249,15 @@ def test_a_six_joint_goal_needs_the_finer_transcription():
     _, q = scipy_path(p, req, per_interval=11)
     assert np.max(np.abs(q[-1, 1:] - np.radians(b))) < 1e-8
     assert np.all((q[:, 1:6] > 0) & (q[:, 1:6] < np.pi / 2))
+
+
+@pytest.mark.parametrize("kw", [{"duration": 4.0}, {"max_u1": 0.8, "max_u2": 0.6}],
+                         ids=["duration", "actuator_limits"])
+def test_energy_is_the_physical_one_for_any_duration(kw):
+    """int |u|^2 dt of the returned rates (exact for piecewise-constant rates), whatever T:
+    the verification integrates in normalised time, where it is T times larger."""
+    p = plan(request(*OPP_A, **kw))
+    assert p.duration != pytest.approx(1.0)
+    exact = float(np.sum(np.diff(p.inputs.breaks) * np.sum(p.inputs.rates ** 2, axis=1)))
+    assert p.indicators.energy == pytest.approx(exact, rel=1e-8)
+    assert p.verification.energy == pytest.approx(exact, rel=1e-8)

@@ -454,7 +454,8 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
     al, be = cf.input_coefficients(q)
     v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
     z = cf.to_chained(q)
-    energy = rep.energy
+    # the replay ran in normalised time: int |u|^2 dt = int |U|^2 dtau / T
+    energy = rep.energy / T
     ind = dataclasses.replace(compute_indicators(td, qd, None), energy=energy)
     dphi = float(final[0] - q0[0])
     ver = Verification(terminal_error=terminal, phi_error=0.0,
