@@ -52,8 +52,9 @@ MAX_ROUNDS = 60
 _SPREAD = np.array([0.25, 0.5, 0.75])
 
 
-def _grid(lo: float, hi: float) -> np.ndarray:
-    """Grid over [lo, hi] that avoids dphi = 0 (Remark 2) by splitting around it."""
+def dphi_grid(lo: float, hi: float) -> np.ndarray:
+    """The interval search's coarse grid over [lo, hi] (also the retimed screen's): it avoids
+    dphi = 0 (Remark 2) by splitting around it."""
     pieces = []
     eps = 10 * MIN_ABS_DPHI
     for a, b in ((lo, min(hi, -eps)), (max(lo, eps), hi)):
@@ -91,7 +92,7 @@ def feasible_intervals(family: PolynomialFamily, lo: float, hi: float
         Sorted, disjoint closed intervals (ends refined to 1e-10 rad, on the feasible side; an
         end equal to a search bound is that bound).
     """
-    grid = _grid(lo, hi)
+    grid = dphi_grid(lo, hi)
     if grid.size == 0:
         return []
     N = grid.size

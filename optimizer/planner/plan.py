@@ -44,8 +44,7 @@ from ..results import Plan, SampledPath
 from ..steering import ChainedPath, InputSchedule
 from ..verify import PlannedInputs, verify_plan
 from .family import SEARCH_SAMPLES, PolynomialFamily
-from .intervals import _grid as dphi_grid  # the interval search's coarse grid
-from .intervals import feasible_intervals
+from .intervals import dphi_grid, feasible_intervals
 from .objectives import optimise
 
 #: A plan is verified when the re-integrated original model ends this close to the goal (rad).
