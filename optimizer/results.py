@@ -55,8 +55,8 @@ class Plan:
         ``T`` (s).
     inputs : InputSchedule or ActuatorSchedule
         Chained inputs (the paper's methods and the penalty method) or piecewise-constant
-        actuator rates (``shooting``, planned on the original model).
-        The chained inputs (coefficients), enough to regenerate everything.
+        actuator rates (``shooting``, planned on the original model): either is enough to
+        regenerate everything.
     chained : ChainedPath or None
         The chained path of chained inputs (None for actuator-rate plans).
     feasible_phi_changes : list of (float, float)
