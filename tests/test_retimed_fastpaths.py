@@ -17,7 +17,7 @@ from scipy import sparse
 from optimizer import region as region_mod
 from optimizer.indicators import count_reversals
 from optimizer.planner import retime
-from optimizer.planner.intervals import _grid
+from optimizer.planner.intervals import dphi_grid
 from optimizer.planner.plan import (RETIME_SIGMA_SAMPLES, Deadline, family_for, phi_search_bounds,
                                     plan)
 from optimizer.problem import PlanRequest
@@ -68,7 +68,7 @@ def test_time_law_scipy_fallback_agrees(monkeypatch: pytest.MonkeyPatch) -> None
 def test_screen_keeps_the_choice(start: list[float], goal: list[float]) -> None:
     req = _req(start, goal)
     fam = family_for(req, Deadline(10.0))
-    grid = _grid(*phi_search_bounds(req))
+    grid = dphi_grid(*phi_search_bounds(req))
     fine = fam.coarse_margins(grid) > 0.0
     screen = fam.coarse_margins(grid, grid=retime.SCREEN_TIMES) > 0.0
     assert np.all(screen[fine])                     # the screen keeps every member of the grid
