@@ -222,11 +222,19 @@ def test_hard_constraint_kind_is_the_default(opposite_plans):
     assert opposite_plans[0][1].diagnostics["penalty"]["constraint_kind"] == "hard"
 
 
-def test_tiny_time_limit_raises_quickly():
+def test_tiny_time_limit_answers_quickly():
+    """The documented contract (penalty.py, "Deadline"): no solve starts after the deadline;
+    a timeout when no solution was found in time, otherwise the best one so far, verified.
+    (Asserting the timeout alone failed once in CI: with the solver cached and a quiet machine,
+    the first solve and the plan's checks fit in the 20 ms.)"""
     req = request((10, 20, 30), (40, 25, 15), method="penalty", time_limit=0.02)
     t0 = time.perf_counter()
-    with pytest.raises(SolverTimeoutError):
-        plan(req)
+    try:
+        p = plan(req)
+    except SolverTimeoutError as exc:
+        assert exc.code == "timeout"
+    else:
+        assert p.verification.terminal_error < TERMINAL_TOL and not p.verification.singular
     assert time.perf_counter() - t0 < 2.0
 
 
