@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from optimizer.chained_form import chained_form
 from optimizer.errors import SingularSystemError
 from optimizer.indicators import count_reversals, line_deviation
 from optimizer.model import Robot

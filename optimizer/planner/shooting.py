@@ -71,6 +71,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from .. import native
 from ..actuation import ActuatorSchedule
 from ..chained_form import chained_form
 from ..errors import InfeasibleError, InvalidRequestError, NumericalError, SolverTimeoutError
@@ -240,6 +241,11 @@ class ShootingNLP:
                       "max_iter": 300, "max_wall_time": float(MAX_TIME_LIMIT)},
             "print_time": False, "error_on_fail": False, "iteration_callback": self.callback}
         self.solvers: list[tuple[str, Any]] = []
+        self.native: native.Library | None = None
+        self.compiled = False
+        self._native_cfg: native.NativeConfig | None = None
+        self._nlp: dict[str, Any] | None = None
+        self._native_opts: dict[str, Any] = {}
         if ca.has_nlpsol("fatrop"):
             fatrop_opts: dict[str, Any] = {
                 "structure_detection": "manual", "nx": [nx] * (N + 1), "nu": [2] * N + [0],
@@ -249,11 +255,46 @@ class ShootingNLP:
                            "mu_init": FATROP_MU_INIT}}
             self.solvers.append(("fatrop", ca.nlpsol("shooting_fatrop", "fatrop", nlp,
                                                      fatrop_opts)))
+            # for the same functions compiled (optimizer.native), see load_native
+            self._nlp = nlp
+            self._native_opts = {k: v for k, v in fatrop_opts.items() if k != "expand"}
         self.solvers.append(("ipopt", ca.nlpsol("shooting_ipopt", "ipopt", nlp, ipopt_opts)))
         self.lbg = np.where(self.equality, 0.0, -np.inf)
         self.ubg = np.zeros(n_g)
         self.stride = nx + 2
         self.build_time = time.perf_counter() - t0
+
+    def load_native(self, every: float = 1.0) -> bool:
+        """Use the compiled fatrop functions once their library is built (checked at most
+        every ``every`` s); True when they are in use.
+
+        The library is asked for (:func:`optimizer.native.library_for`: found in the cache,
+        or its build started) at the first call after :func:`optimizer.native.configure`, so
+        that an NLP built before (the service's forkserver builds it at start-up) gets it too.
+        """
+        if self.compiled:
+            return True
+        cfg = native.config()
+        if cfg is not self._native_cfg:
+            self._native_cfg, self.native = cfg, None
+            if cfg is not None and self._nlp is not None:
+                self.native = native.library_for(
+                    native.nlp_source(self._nlp, dict(self.solvers)["fatrop"]))
+            every = 0.0
+        if self.native is None:
+            return False
+        path = self.native.ready(every)
+        if path is None:
+            return False
+        try:
+            solver = ca.nlpsol("shooting_fatrop", "fatrop", str(path), self._native_opts)
+        except Exception:  # noqa: BLE001 - an unloadable library: keep the virtual machine
+            self.native = None
+            return False
+        self.solvers = [("fatrop", solver) if name == "fatrop" else (name, s)
+                        for name, s in self.solvers]
+        self.compiled = True
+        return True
 
     def guess(self, a: np.ndarray, b: np.ndarray, phi0: float, travel: float) -> np.ndarray:
         """Straight lines in joint space, ``phi`` moving by ``travel``; consistent rates."""
@@ -297,6 +338,16 @@ class ShootingSolution:
     iterations: int
     start: str
     tried: tuple[dict[str, Any], ...] = ()
+
+
+def prepare(gains: tuple[float, ...], exponents: tuple[int, ...]) -> ShootingNLP:
+    """Build (and cache) the first rung's NLP of a robot ahead of its first request; with
+    compiled functions configured (:mod:`optimizer.native`) this also starts their build."""
+    tr = LADDER[0]
+    nlp = shooting_nlp(tuple(float(k) for k in gains), tuple(int(m) for m in exponents),
+                       False, tr.intervals, tr.substeps)
+    nlp.load_native(every=0.0)
+    return nlp
 
 
 def _node_bounds(req: PlanRequest, region: Region) -> tuple[np.ndarray, np.ndarray]:
@@ -353,6 +404,7 @@ def solve_shooting(req: PlanRequest, deadline: Any,
         w_dev, w_en, w_da = DEVIATION_WEIGHT, 1.0, D_A_WEIGHT
     p = np.concatenate([[req.phi_start], a, b,
                         [w_dev, w_en, w_da, req.phi_change if fixed_phi else 0.0]])
+    nlp.load_native()
     solvers = dict(nlp.solvers)
     tried: list[dict[str, Any]] = []
     for name, sign in ATTEMPTS:
@@ -554,10 +606,12 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
                                 "rate_bound": tr.rate_bound,
                                 "status": sol.status, "iterations": sol.iterations,
                                 "start": sol.start, "tried": tried + list(sol.tried),
+                                # the answering solver evaluated compiled C (optimizer.native)
+                                "compiled": nlp.compiled and sol.status.startswith("fatrop"),
                                 "terminal_error_per_correction": errors}}
     return finish_actuator_plan(req, schedule, "shooting", sol.nodes, timing, diagnostics,
                                 replay=replay)
 
 
 __all__ = ["ActuatorSchedule", "ShootingNLP", "plan_shooting", "finish_actuator_plan",
-           "solve_shooting"]
+           "prepare", "solve_shooting"]

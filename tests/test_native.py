@@ -1,0 +1,171 @@
+"""Compiled NLP functions (:mod:`optimizer.native`): the same plans as CasADi's virtual
+machine, a cache that is built once and found again, and every failure falls back.
+
+The oracle of the compiled functions is the virtual machine evaluating the same expressions (a
+different engine), and the plans are checked against the tests' own scipy integration of the
+original model, as in ``test_shooting.py``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from optimizer import native
+from optimizer.model import Robot
+from optimizer.planner import shooting
+from optimizer.planner.plan import plan
+from optimizer.problem import PlanRequest
+
+from test_shooting import OPP_A, OPP_B, scipy_path
+
+pytestmark = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
+                                reason="no C compiler")
+
+
+@pytest.fixture(autouse=True)
+def fresh():
+    """Every test starts and ends with compiled functions off and no cached NLP."""
+    native.configure(None)
+    shooting.shooting_nlp.cache_clear()
+    yield
+    native.configure(None)
+    shooting.shooting_nlp.cache_clear()
+    native._builds.clear()
+
+
+def wait_for(pattern: str, where: Path, timeout: float = 120.0) -> list[Path]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        found = list(where.glob(pattern))
+        if found and not list(where.glob("*.lock")):
+            return found
+        time.sleep(0.1)
+    raise AssertionError(f"no {pattern} in {where} after {timeout} s")
+
+
+def _request(robot: Robot = Robot(), pair=OPP_A) -> PlanRequest:
+    return PlanRequest(start=pair[0], goal=pair[1], method="shooting", robot=robot)
+
+
+def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(tmp_path):
+    req = _request()
+    vm = plan(req)
+    assert vm.diagnostics["shooting"]["compiled"] is False
+    shooting.shooting_nlp.cache_clear()
+    assert native.configure(tmp_path, wait=True) is not None
+    p = plan(req)
+    assert p.diagnostics["shooting"]["compiled"] is True
+    assert len(list(tmp_path.glob("*.so"))) == 1
+    # the same iterates from the same arithmetic, up to the compiler's reordering
+    assert p.diagnostics["shooting"]["iterations"] == vm.diagnostics["shooting"]["iterations"]
+    assert np.max(np.abs(p.inputs.rates - vm.inputs.rates)) < 1e-9
+    t, q = scipy_path(p, req)
+    assert np.max(np.abs(q[-1, 1:] - np.array(req.goal))) < 1e-8
+    assert np.all((q[:, 1:3] > 0.0) & (q[:, 1:3] < np.pi / 2))
+
+
+def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp_path):
+    robot = Robot(gains=(0.9, 1.1))            # other expressions: a key of their own
+    req = _request(robot, OPP_B)
+    native.configure(tmp_path, wait=False)
+    p = plan(req)
+    # the first answer does not wait for the compiler
+    assert p.diagnostics["shooting"]["compiled"] is False
+    assert len(native._builds) == 1
+    # a detached build: not a child of this process
+    import psutil
+    assert not any("optimizer.native" in " ".join(c.cmdline())
+                   for c in psutil.Process().children(recursive=True))
+    assert len(wait_for("*.so", tmp_path)) == 1
+    assert not list(tmp_path.glob("*.lock")) and not list(tmp_path.glob("*.tmp"))
+    time.sleep(1.05)                         # the library is looked for at most once a second
+    assert plan(req).diagnostics["shooting"]["compiled"] is True
+    # another process (no cached NLP): found at once, nothing compiled
+    shooting.shooting_nlp.cache_clear()
+    native._builds.clear()
+    native.configure(tmp_path, wait=False)
+    q = plan(req)
+    assert q.diagnostics["shooting"]["compiled"] is True
+    assert not native._builds
+    assert np.max(np.abs(q.inputs.rates - p.inputs.rates)) < 1e-9
+
+
+def test_an_nlp_built_before_configure_gets_its_library(tmp_path):
+    """The service's forkserver builds the NLP before a worker configures the cache."""
+    nlp = shooting.prepare(Robot().gains, Robot().exponents)
+    assert nlp.compiled is False
+    native.configure(tmp_path, wait=True)
+    assert shooting.prepare(Robot().gains, Robot().exponents) is nlp
+    assert nlp.compiled is True
+
+
+def test_a_failed_build_falls_back_and_is_not_retried(tmp_path):
+    bad = tmp_path / "bad-cc"
+    bad.write_text("#!/bin/sh\necho 'no such luck' >&2\nexit 3\n")
+    bad.chmod(0o755)
+    cache = tmp_path / "cache"
+    native.configure(cache, wait=True, compiler=str(bad))
+    p = plan(_request())
+    assert p.diagnostics["shooting"]["compiled"] is False
+    failed = list(cache.glob("*.failed"))
+    assert len(failed) == 1 and "no such luck" in failed[0].read_text()
+    # nor does a second process try again
+    src = next(cache.glob("*.c")).read_text()
+    assert native.library_for(src) is None
+    assert not native._builds
+
+
+def test_no_compiler_turns_it_off(tmp_path):
+    assert native.configure(tmp_path, compiler="no-such-compiler-here") is None
+    assert native.config() is None
+    assert plan(_request()).diagnostics["shooting"]["compiled"] is False
+
+
+def test_a_directory_others_can_write_is_refused(tmp_path):
+    d = tmp_path / "shared"
+    d.mkdir()
+    d.chmod(0o777)
+    with pytest.raises(PermissionError, match="writable by other users"):
+        native.configure(d)
+    assert native.config() is None
+    cfg = native.configure(tmp_path / "new" / "dir")
+    assert cfg is not None and stat.S_IMODE(cfg.cache_dir.stat().st_mode) == 0o700
+
+
+def test_the_key_follows_the_source_and_the_compiler(tmp_path):
+    a = native.configure(tmp_path)
+    assert a is not None
+    k1 = native.library_key("int f(void){return 1;}", a)
+    assert k1 == native.library_key("int f(void){return 1;}", a)
+    assert k1 != native.library_key("int f(void){return 2;}", a)
+    other = native.NativeConfig(a.cache_dir, "/usr/bin/other-cc", False)
+    assert k1 != native.library_key("int f(void){return 1;}", other)
+
+
+def test_a_fresh_lock_means_someone_else_builds_and_a_stale_one_is_taken_over(tmp_path):
+    cc = shutil.which("cc") or shutil.which("gcc")
+    src = tmp_path / "k.c"
+    src.write_text("int answer(void) { return 42; }\n")
+    target = tmp_path / "k.so"
+    lock = tmp_path / "k.lock"
+    lock.write_text("")
+    assert native.build(cc, src, target) == 0 and not target.exists()   # someone else's
+    old = time.time() - native.STALE_LOCK - 10
+    os.utime(lock, (old, old))
+    assert native.build(cc, src, target) == 0 and target.exists()       # taken over
+    assert not lock.exists()
+    # the command-line entry the background build runs
+    target.unlink()
+    env = dict(os.environ, PYTHONPATH=str(Path(native.__file__).resolve().parents[1]))
+    res = subprocess.run([sys.executable, "-m", "optimizer.native", cc, str(src), str(target)],
+                         env=env, check=False)
+    assert res.returncode == 0 and target.exists()
