@@ -78,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                           start_method=settings.start_method, warmup=settings.warmup,
                           start_timeout=settings.worker_start_timeout,
                           log_level=settings.log_level, nice=settings.worker_nice,
+                          native_cache=settings.native_cache_dir,
                           on_restart=lambda reason: metrics.restarts.labels(reason).inc())
         app.state.pool = pool
         metrics.bind_pool(pool.stats)

@@ -74,6 +74,8 @@ class Settings(BaseSettings):
         How worker processes are created (never plain ``fork`` of a threaded server).
     warmup : bool
         Build the default robot's chained form in every worker before it takes work.
+    native_cache : str
+        Directory of compiled NLP functions, ``auto`` (the user's cache directory) or ``off``.
     api_keys : list of str
         Accepted keys (``X-API-Key`` header or ``Authorization: Bearer``); empty: no auth.
     cors_origins : list of str
@@ -117,6 +119,12 @@ class Settings(BaseSettings):
     shutdown_timeout: float = Field(default=30.0, gt=0, le=3600)
     start_method: Literal["forkserver", "spawn"] = "forkserver"
     warmup: bool = True
+    native_cache: str = Field(
+        default="auto", min_length=1,
+        description="Directory of the compiled NLP functions (optimizer.native; built once "
+                    "per machine in the background with the C compiler): 'auto' for "
+                    "$XDG_CACHE_HOME/chained-planner/native, 'off' for CasADi's virtual "
+                    "machine only.")
     api_keys: Annotated[list[str], NoDecode] = Field(default_factory=list)
     cors_origins: Annotated[list[str], NoDecode] = Field(default_factory=list)
     log_level: Literal["debug", "info", "warning", "error"] = "info"
@@ -130,6 +138,17 @@ class Settings(BaseSettings):
             if text.startswith("["):
                 return json.loads(text)
             return [part.strip() for part in text.split(",") if part.strip()]
+        return value
+
+    @property
+    def native_cache_dir(self) -> str | None:
+        """``native_cache`` as a directory, or None when off."""
+        value = self.native_cache.strip()
+        if value.lower() == "off":
+            return None
+        if value.lower() == "auto":
+            from optimizer.native import default_cache_dir
+            return str(default_cache_dir())
         return value
 
     @field_validator("log_level", mode="before")

@@ -81,7 +81,8 @@ class WorkerLost(PoolError):
 
 
 # ---------------------------------------------------------------------------- worker side
-def _worker_main(conn: Connection, warmup: bool, log_level: str, nice: int = 0) -> None:
+def _worker_main(conn: Connection, warmup: bool, log_level: str, nice: int = 0,
+                 native_cache: str | None = None) -> None:
     """Entry point of a worker process: warm up, then serve jobs until told to stop."""
     # the server decides when workers stop: a SIGINT/SIGTERM sent to the whole process group
     # (Ctrl-C, systemd, some container runtimes) must not kill a job in flight; the server
@@ -94,11 +95,19 @@ def _worker_main(conn: Connection, warmup: bool, log_level: str, nice: int = 0) 
 
     configure_logging(log_level)
     info: dict[str, Any] = {}
+    if native_cache:
+        from optimizer import native
+        try:
+            info["native"] = native.configure(native_cache) is not None
+        except OSError as exc:  # an unusable directory: the virtual machine serves alone
+            logging.getLogger("service.worker").warning(
+                "compiled NLP functions off: %s", type(exc).__name__)
+            info["native"] = False
     if warmup:
         try:
-            info = jobs.warm_up()
+            info.update(jobs.warm_up())
         except Exception as exc:  # noqa: BLE001 - warm-up is an optimisation only
-            info = {"warmup_error": type(exc).__name__}
+            info["warmup_error"] = type(exc).__name__
     _freeze_heap()
     if nice > 0:
         # below the event loop: it only routes requests, and a loop descheduled behind two
@@ -316,13 +325,16 @@ class WorkerPool:
         Level of the workers' JSON logs.
     nice : int
         Niceness added to each worker process after its warm-up (0: none).
+    native_cache : str, optional
+        Directory of compiled NLP functions (:func:`optimizer.native.configure`); None: off.
     on_restart : callable, optional
         Called with the reason (``"timeout"`` or ``"lost"``) whenever a worker is replaced.
     """
 
     def __init__(self, size: int, queue_size: int, *, start_method: str = "forkserver",
                  warmup: bool = True, start_timeout: float = 120.0, log_level: str = "info",
-                 nice: int = 0, on_restart: Callable[[str], None] | None = None) -> None:
+                 nice: int = 0, native_cache: str | None = None,
+                 on_restart: Callable[[str], None] | None = None) -> None:
         if size < 1:
             raise ValueError("size must be >= 1")
         self.size = size
@@ -331,6 +343,7 @@ class WorkerPool:
         self.start_timeout = start_timeout
         self.log_level = log_level
         self.nice = nice
+        self.native_cache = native_cache
         self.on_restart = on_restart
         self._ctx: Any = multiprocessing.get_context(start_method)
         if start_method == "forkserver":
@@ -568,7 +581,8 @@ class WorkerPool:
         with self._lock:
             ident = self._next_ident
             self._next_ident += 1
-        proc = self._ctx.Process(target=_worker_main, args=(theirs, self.warmup, self.log_level, self.nice),
+        proc = self._ctx.Process(target=_worker_main, args=(theirs, self.warmup, self.log_level, self.nice,
+                                                             self.native_cache),
                                  name=f"planner-worker-{ident}", daemon=True)
         t0 = time.perf_counter()
         try:

@@ -1,0 +1,60 @@
+"""Workers with compiled NLP functions (``PLANNER_NATIVE_CACHE``): the warm-up starts the
+default robot's build in the background, and once built the workers' shooting plans use it."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import shutil
+import time
+from pathlib import Path
+
+import pytest
+
+from optimizer.native import default_cache_dir
+from service.settings import Settings
+from service.workers import WorkerPool
+
+OPP_A = {"start": [math.radians(x) for x in (10, 20, 30)],
+         "goal": [math.radians(x) for x in (40, 25, 15)], "method": "shooting"}
+
+
+def test_native_cache_setting(monkeypatch, tmp_path):
+    assert Settings().native_cache_dir == str(default_cache_dir())
+    monkeypatch.setenv("PLANNER_NATIVE_CACHE", "off")
+    assert Settings().native_cache_dir is None
+    monkeypatch.setenv("PLANNER_NATIVE_CACHE", str(tmp_path))
+    assert Settings().native_cache_dir == str(tmp_path)
+
+
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
+                    reason="no C compiler")
+def test_workers_build_in_the_background_then_plan_with_compiled_functions(tmp_path: Path):
+    async def main() -> tuple[dict, list[bool]]:
+        pool = WorkerPool(1, 4, warmup=True, native_cache=str(tmp_path))
+        await pool.start()
+        try:
+            for _ in range(1200):
+                if pool.ready:
+                    break
+                await asyncio.sleep(0.05)
+            info = next(iter(pool._all)).ready_info
+            compiled = []
+            for _ in range(2):
+                out = await pool.run("plan", OPP_A, 30.0)
+                assert out["ok"], out
+                compiled.append(json.loads(out["body"])["diagnostics"]["shooting"]["compiled"])
+                # the warm-up started the build: wait for it, then plan again
+                deadline = time.monotonic() + 120
+                while not list(tmp_path.glob("*.so")) and time.monotonic() < deadline:
+                    await asyncio.sleep(0.2)
+                await asyncio.sleep(1.1)  # a worker looks for the library once a second
+            return info, compiled
+        finally:
+            await pool.close()
+
+    info, compiled = asyncio.run(main())
+    assert info.get("native") is True
+    assert len(list(tmp_path.glob("*.so"))) == 1
+    assert compiled[-1] is True
