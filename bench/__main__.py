@@ -54,6 +54,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--no-http", action="store_true", help="skip the HTTP measurements")
     p.add_argument("--http-seconds", type=float, default=None,
                    help="seconds per HTTP load level (default 10, --quick 3)")
+    p.add_argument("--no-native", action="store_true",
+                   help="evaluate the planner's NLP functions in CasADi's virtual machine, as "
+                        "where no C compiler is (default: compiled, optimizer.native)")
     p.add_argument("--no-scaling", action="store_true", help="skip the cost-growth measurements")
     p.add_argument("--joints", default=None,
                    help="comma-separated joint counts of the scaling part (default 3..8)")
@@ -79,6 +82,22 @@ def _versions() -> dict[str, str]:
         except Exception:  # noqa: BLE001 - informational
             vers[mod] = "unavailable"
     return vers
+
+
+def _native(off: bool) -> dict[str, Any]:
+    """Compiled NLP functions for the planner (the service's default), built in the
+    foreground on first use: the warm-up call pays it, the timed repeats do not."""
+    from optimizer import native
+    if off:
+        native.configure(None)
+        return {"on": False, "reason": "--no-native"}
+    try:
+        cfg = native.configure(native.default_cache_dir(), wait=True)
+    except OSError as exc:
+        return {"on": False, "reason": f"{type(exc).__name__}: {exc}"}
+    if cfg is None:
+        return {"on": False, "reason": "no C compiler found"}
+    return {"on": True, "compiler": cfg.compiler, "cache_dir": str(cfg.cache_dir)}
 
 
 def _json_default(obj: Any) -> Any:
@@ -114,6 +133,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "argv": sys.argv[1:], "commit": _git_commit(), "cpus": os.cpu_count(),
             "platform": platform.platform(), "versions": _versions(),
             "loadavg_start": [round(x, 2) for x in os.getloadavg()]}
+    meta["native"] = _native(bool(args.no_native))
     results: dict[str, Any] = {"meta": meta, "config": {
         "repeats": cfg.repeats, "min_repeats": cfg.min_repeats, "budget_s": cfg.budget,
         "baseline_build_repeats": cfg.build_repeats, "time_limit": cfg.time_limit,

@@ -243,6 +243,13 @@ def full_report(results: dict[str, Any]) -> str:
         parts.append("Baseline build (NLP + IPOPT object, once per n): " + ", ".join(
             f"n={n}: {_ms(b['build_time']['median'])} ms"
             for n, b in results["baseline_builds"].items()))
+    nat = results.get("meta", {}).get("native")
+    if nat is not None:
+        parts.append(
+            "Compiled NLP functions (`optimizer.native`): "
+            + (f"on ({nat['compiler']}, cache {nat['cache_dir']}; a build on first use is "
+               "part of the warm-up call, not of the timed repeats)" if nat.get("on")
+               else f"off ({nat.get('reason', 'disabled')}): CasADi's virtual machine"))
     parts += ["### HTTP", http_table(results.get("http") or {})]
     if results.get("scaling"):
         parts += ["### How cost grows", scaling_tables(results["scaling"])]
