@@ -8,6 +8,11 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 
 WORKDIR /app
 
+# A C compiler for the compiled NLP functions (optimizer.native: the shooting NLP's CasADi code,
+# compiled once and cached; without a compiler the service works, slower).
+RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/*
+
 # Install the package (library + service, docs assets included as package data).
 COPY pyproject.toml README.md ./
 COPY optimizer ./optimizer
@@ -18,6 +23,13 @@ RUN pip install . && rm -rf /app/build
 RUN useradd --system --create-home --uid 10001 planner
 USER planner
 WORKDIR /home/planner
+
+# The default robot's compiled shooting NLP, built into the image (other robots' are built on
+# first use, in the background, into the same cache: ~/.cache/chained-planner/native).
+RUN python -c "from optimizer import native; from optimizer.model import Robot; \
+from optimizer.planner.shooting import prepare; \
+native.configure(native.default_cache_dir(), wait=True); r = Robot(); \
+print('compiled:', prepare(r.gains, r.exponents).compiled)"
 
 ENV PLANNER_HOST=0.0.0.0 \
     PLANNER_PORT=8000

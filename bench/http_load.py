@@ -601,11 +601,34 @@ def run(seconds: float = 10.0, levels: tuple[int, ...] = (1, 8, 32),
     ok, why = available()
     if not ok:
         return {"available": False, "reason": why}
+    _prebuild_native(log)
     try:
         return _asyncio_run(_run(seconds, levels, methods, cold_starts, drain, log,
                                  overhead_jobs))
     except Exception as exc:  # noqa: BLE001 - the reason is the result
         return {"available": False, "reason": f"{type(exc).__name__}: {exc}"}
+
+
+def _prebuild_native(log: Any) -> None:
+    """Build the default robot's compiled shooting NLP into the service's default cache
+    before the server starts, as on a machine that has served before (or in the image):
+    otherwise its first start compiles in the background, inside the cold-start and load
+    measurements."""
+    from optimizer import native
+    from optimizer.model import Robot
+    from optimizer.planner.shooting import prepare
+    prev = native.config()
+    try:
+        if native.configure(native.default_cache_dir(), wait=True) is not None:
+            robot = Robot()
+            prepare(robot.gains, robot.exponents)
+    except OSError as exc:
+        log(f"  compiled NLP functions not prebuilt: {type(exc).__name__}: {exc}")
+    finally:  # this process's own setting as it was
+        if prev is None:
+            native.configure(None)
+        else:
+            native.configure(prev.cache_dir, wait=prev.wait, compiler=prev.compiler)
 
 
 def main(argv: list[str] | None = None) -> int:

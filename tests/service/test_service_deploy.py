@@ -5,11 +5,14 @@ with the environment the compose file sets."""
 from __future__ import annotations
 
 import json
+import os
 import re
+import shutil
 import subprocess
 import sys
 import urllib.request
 
+import pytest
 import yaml
 from jsonschema import Draft201909Validator
 
@@ -109,3 +112,24 @@ def test_container_start_command_serves_healthz(tmp_path):
     log = (tmp_path / "server.log").read_text(errors="replace")
     lines = [json.loads(x) for x in log.splitlines() if x.startswith("{")]
     assert any(x.get("route") == "/healthz" and x.get("request_id") for x in lines), log[-2000:]
+
+
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
+                    reason="no C compiler")
+def test_the_image_builds_the_default_robots_compiled_nlp(tmp_path):
+    """The Dockerfile's step that bakes the default robot's compiled shooting NLP into the
+    image, run here as written (HOME of the image's user replaced by a temporary one)."""
+    steps = [rest for word, rest in dockerfile_instructions()
+             if word == "RUN" and "optimizer.native" not in rest and "native.configure" in rest]
+    assert len(steps) == 1
+    assert any(word == "RUN" and "gcc" in rest and "libc6-dev" in rest
+               for word, rest in dockerfile_instructions())
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("PLANNER_", "XDG_"))}
+    env["HOME"] = str(tmp_path)
+    # the image's `python` is this interpreter here
+    env["PATH"] = os.path.dirname(sys.executable) + os.pathsep + env.get("PATH", "")
+    res = subprocess.run(["sh", "-c", steps[0]], env=env, cwd=tmp_path, capture_output=True,
+                         text=True, timeout=300, check=False)
+    assert res.returncode == 0, res.stderr
+    assert "compiled: True" in res.stdout
+    assert len(list((tmp_path / ".cache" / "chained-planner" / "native").glob("*.so"))) == 1
