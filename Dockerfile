@@ -28,8 +28,8 @@ WORKDIR /home/planner
 # first use, in the background, into the same cache: ~/.cache/chained-planner/native).
 RUN python -c "from optimizer import native; from optimizer.model import Robot; \
 from optimizer.planner.shooting import prepare; \
-native.configure(native.default_cache_dir(), wait=True); r = Robot(); \
-print('compiled:', prepare(r.gains, r.exponents).compiled)"
+native.configure(native.default_cache_dir()); r = Robot(); \
+print('compiled:', prepare(r.gains, r.exponents, wait=True).compiled)"
 
 ENV PLANNER_HOST=0.0.0.0 \
     PLANNER_PORT=8000

@@ -85,14 +85,14 @@ def _versions() -> dict[str, str]:
 
 
 def _native(off: bool) -> dict[str, Any]:
-    """Compiled NLP functions for the planner (the service's default), built in the
-    foreground on first use: the warm-up call pays it, the timed repeats do not."""
+    """Compiled NLP functions for the planner (the service's default); each case's are built
+    before its warm-up call (:func:`bench.inprocess.run_method`), not inside any timing."""
     from optimizer import native
     if off:
         native.configure(None)
         return {"on": False, "reason": "--no-native"}
     try:
-        cfg = native.configure(native.default_cache_dir(), wait=True)
+        cfg = native.configure(native.default_cache_dir())
     except OSError as exc:
         return {"on": False, "reason": f"{type(exc).__name__}: {exc}"}
     if cfg is None:

@@ -619,16 +619,16 @@ def _prebuild_native(log: Any) -> None:
     from optimizer.planner.shooting import prepare
     prev = native.config()
     try:
-        if native.configure(native.default_cache_dir(), wait=True) is not None:
+        if native.configure(native.default_cache_dir()) is not None:
             robot = Robot()
-            prepare(robot.gains, robot.exponents)
+            prepare(robot.gains, robot.exponents, wait=True)
     except OSError as exc:
         log(f"  compiled NLP functions not prebuilt: {type(exc).__name__}: {exc}")
     finally:  # this process's own setting as it was
         if prev is None:
             native.configure(None)
         else:
-            native.configure(prev.cache_dir, wait=prev.wait, compiler=prev.compiler)
+            native.configure(prev.cache_dir, compiler=prev.compiler)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -247,8 +247,8 @@ def full_report(results: dict[str, Any]) -> str:
     if nat is not None:
         parts.append(
             "Compiled NLP functions (`optimizer.native`): "
-            + (f"on ({nat['compiler']}, cache {nat['cache_dir']}; a build on first use is "
-               "part of the warm-up call, not of the timed repeats)" if nat.get("on")
+            + (f"on ({nat['compiler']}, cache {nat['cache_dir']}; built before the warm-up "
+               "call, like the baseline's build)" if nat.get("on")
                else f"off ({nat.get('reason', 'disabled')}): CasADi's virtual machine"))
     parts += ["### HTTP", http_table(results.get("http") or {})]
     if results.get("scaling"):

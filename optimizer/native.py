@@ -44,6 +44,9 @@ from typing import Any
 #: Flags of the compile (-O1: 5 s for the 5-joint NLP and within 2 % of -O2's speed, which
 #: takes 16 s; -O0 compiles in 1.6 s but runs 20 % slower).
 FLAGS: tuple[str, ...] = ("-O1", "-fPIC", "-shared")
+#: Larger sources are not compiled: cc1's time and memory grow with them (a 1.6 MB source:
+#: 5.6 s and 0.29 GB; 10.6 MB, the 6-joint 50-interval NLP: 20 s and 1.6 GB).
+MAX_SOURCE_BYTES = 3_000_000
 #: A lock older than this (s) belongs to a build that died: it is taken over.
 STALE_LOCK = 300.0
 
@@ -57,13 +60,10 @@ class NativeConfig:
     cache_dir : Path
     compiler : str
         The C compiler's executable (found on ``PATH``).
-    wait : bool
-        Build in this process and wait (benchmarks, tests) instead of in the background.
     """
 
     cache_dir: Path
     compiler: str
-    wait: bool
 
 
 _config: NativeConfig | None = None
@@ -77,7 +77,7 @@ def default_cache_dir() -> Path:
     return Path(base) / "chained-planner" / "native"
 
 
-def configure(cache_dir: str | os.PathLike[str] | None, *, wait: bool = False,
+def configure(cache_dir: str | os.PathLike[str] | None, *,
               compiler: str | None = None) -> NativeConfig | None:
     """Turn compiled NLP functions on (a directory) or off (None) for this process.
 
@@ -85,8 +85,6 @@ def configure(cache_dir: str | os.PathLike[str] | None, *, wait: bool = False,
     ----------
     cache_dir : path or None
         Directory of the compiled libraries; created (mode 0700) when missing.
-    wait : bool
-        Compile in the foreground when a library is missing.
     compiler : str, optional
         C compiler; default ``$CC``, else ``cc``, else ``gcc``.
 
@@ -114,7 +112,7 @@ def configure(cache_dir: str | os.PathLike[str] | None, *, wait: bool = False,
     mode = path.stat().st_mode
     if mode & (stat.S_IWGRP | stat.S_IWOTH) and not mode & stat.S_ISVTX:
         raise PermissionError(f"native cache directory {path} is writable by other users")
-    _config = NativeConfig(cache_dir=path, compiler=cc, wait=bool(wait))
+    _config = NativeConfig(cache_dir=path, compiler=cc)
     return _config
 
 
@@ -178,14 +176,16 @@ class Library:
         return self.path if self.path.exists() else None
 
 
-def library_for(source: str) -> Library | None:
-    """The library of ``source``: built now (``wait``), or its build started in the background.
+def library_for(source: str, wait: bool = False) -> Library | None:
+    """The library of ``source``: found in the cache, else built now (``wait``: benchmarks,
+    an image build) or its build started in the background.
 
-    Returns None when compiled functions are off or the build failed before (see the
-    ``.failed`` file). Use :meth:`Library.ready` to learn when it can be loaded.
+    Returns None when compiled functions are off, the source is larger than
+    :data:`MAX_SOURCE_BYTES` or its build failed before (see the ``.failed`` file). Use
+    :meth:`Library.ready` to learn when it can be loaded.
     """
     cfg = _config
-    if cfg is None:
+    if cfg is None or len(source) > MAX_SOURCE_BYTES:
         return None
     lib = Library(library_key(source, cfg), cfg)
     if lib.path.exists():
@@ -199,7 +199,7 @@ def library_for(source: str) -> Library | None:
         tmp.write_text(source)
         os.replace(tmp, src)
     cmd = [sys.executable, "-m", "optimizer.native", cfg.compiler, str(src), str(lib.path)]
-    if cfg.wait:
+    if wait:
         subprocess.run(cmd, check=False, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                        stdin=subprocess.DEVNULL, env=_child_env())
         return lib if lib.path.exists() else None

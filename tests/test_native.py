@@ -61,7 +61,8 @@ def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(tmp_path)
     vm = plan(req)
     assert vm.diagnostics["shooting"]["compiled"] is False
     shooting.shooting_nlp.cache_clear()
-    assert native.configure(tmp_path, wait=True) is not None
+    assert native.configure(tmp_path) is not None
+    assert shooting.prepare(req.robot.gains, req.robot.exponents, wait=True).compiled
     p = plan(req)
     assert p.diagnostics["shooting"]["compiled"] is True
     assert len(list(tmp_path.glob("*.so"))) == 1
@@ -76,7 +77,7 @@ def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(tmp_path)
 def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp_path):
     robot = Robot(gains=(0.9, 1.1))            # other expressions: a key of their own
     req = _request(robot, OPP_B)
-    native.configure(tmp_path, wait=False)
+    native.configure(tmp_path)
     p = plan(req)
     # the first answer does not wait for the compiler
     assert p.diagnostics["shooting"]["compiled"] is False
@@ -92,7 +93,7 @@ def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp
     # another process (no cached NLP): found at once, nothing compiled
     shooting.shooting_nlp.cache_clear()
     native._builds.clear()
-    native.configure(tmp_path, wait=False)
+    native.configure(tmp_path)
     q = plan(req)
     assert q.diagnostics["shooting"]["compiled"] is True
     assert not native._builds
@@ -103,8 +104,8 @@ def test_an_nlp_built_before_configure_gets_its_library(tmp_path):
     """The service's forkserver builds the NLP before a worker configures the cache."""
     nlp = shooting.prepare(Robot().gains, Robot().exponents)
     assert nlp.compiled is False
-    native.configure(tmp_path, wait=True)
-    assert shooting.prepare(Robot().gains, Robot().exponents) is nlp
+    native.configure(tmp_path)
+    assert shooting.prepare(Robot().gains, Robot().exponents, wait=True) is nlp
     assert nlp.compiled is True
 
 
@@ -113,7 +114,8 @@ def test_a_failed_build_falls_back_and_is_not_retried(tmp_path):
     bad.write_text("#!/bin/sh\necho 'no such luck' >&2\nexit 3\n")
     bad.chmod(0o755)
     cache = tmp_path / "cache"
-    native.configure(cache, wait=True, compiler=str(bad))
+    native.configure(cache, compiler=str(bad))
+    assert not shooting.prepare(Robot().gains, Robot().exponents, wait=True).compiled
     p = plan(_request())
     assert p.diagnostics["shooting"]["compiled"] is False
     failed = list(cache.glob("*.failed"))
@@ -147,7 +149,7 @@ def test_the_key_follows_the_source_and_the_compiler(tmp_path):
     k1 = native.library_key("int f(void){return 1;}", a)
     assert k1 == native.library_key("int f(void){return 1;}", a)
     assert k1 != native.library_key("int f(void){return 2;}", a)
-    other = native.NativeConfig(a.cache_dir, "/usr/bin/other-cc", False)
+    other = native.NativeConfig(a.cache_dir, "/usr/bin/other-cc")
     assert k1 != native.library_key("int f(void){return 1;}", other)
 
 
@@ -169,3 +171,11 @@ def test_a_fresh_lock_means_someone_else_builds_and_a_stale_one_is_taken_over(tm
     res = subprocess.run([sys.executable, "-m", "optimizer.native", cc, str(src), str(target)],
                          env=env, check=False)
     assert res.returncode == 0 and target.exists()
+
+
+def test_sources_too_large_to_compile_are_left_to_the_virtual_machine(tmp_path, monkeypatch):
+    native.configure(tmp_path)
+    monkeypatch.setattr(native, "MAX_SOURCE_BYTES", 1000)
+    assert native.library_for("/*" + "x" * 2000 + "*/", wait=True) is None
+    assert not list(tmp_path.iterdir())
+    assert native.library_for("int f(void) { return 0; }\n", wait=True) is not None

@@ -246,6 +246,9 @@ class ShootingNLP:
         self._native_cfg: native.NativeConfig | None = None
         self._nlp: dict[str, Any] | None = None
         self._native_opts: dict[str, Any] = {}
+        # only the first rung is compiled: the second's C (4-11 MB) takes 10-20 s and up to
+        # 1.6 GB to compile, for a rung that runs rarely (and for about a second)
+        self.native_ok = (intervals, substeps) == (LADDER[0].intervals, LADDER[0].substeps)
         if ca.has_nlpsol("fatrop"):
             fatrop_opts: dict[str, Any] = {
                 "structure_detection": "manual", "nx": [nx] * (N + 1), "nu": [2] * N + [0],
@@ -264,9 +267,9 @@ class ShootingNLP:
         self.stride = nx + 2
         self.build_time = time.perf_counter() - t0
 
-    def load_native(self, every: float = 1.0) -> bool:
+    def load_native(self, every: float = 1.0, wait: bool = False) -> bool:
         """Use the compiled fatrop functions once their library is built (checked at most
-        every ``every`` s); True when they are in use.
+        every ``every`` s; ``wait``: build it now when missing); True when they are in use.
 
         The library is asked for (:func:`optimizer.native.library_for`: found in the cache,
         or its build started) at the first call after :func:`optimizer.native.configure`, so
@@ -277,9 +280,9 @@ class ShootingNLP:
         cfg = native.config()
         if cfg is not self._native_cfg:
             self._native_cfg, self.native = cfg, None
-            if cfg is not None and self._nlp is not None:
+            if cfg is not None and self._nlp is not None and self.native_ok:
                 self.native = native.library_for(
-                    native.nlp_source(self._nlp, dict(self.solvers)["fatrop"]))
+                    native.nlp_source(self._nlp, dict(self.solvers)["fatrop"]), wait=wait)
             every = 0.0
         if self.native is None:
             return False
@@ -340,13 +343,15 @@ class ShootingSolution:
     tried: tuple[dict[str, Any], ...] = ()
 
 
-def prepare(gains: tuple[float, ...], exponents: tuple[int, ...]) -> ShootingNLP:
+def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: bool = False,
+            wait: bool = False) -> ShootingNLP:
     """Build (and cache) the first rung's NLP of a robot ahead of its first request; with
-    compiled functions configured (:mod:`optimizer.native`) this also starts their build."""
+    compiled functions configured (:mod:`optimizer.native`) this also starts their build
+    (``wait``: builds them before it returns)."""
     tr = LADDER[0]
     nlp = shooting_nlp(tuple(float(k) for k in gains), tuple(int(m) for m in exponents),
-                       False, tr.intervals, tr.substeps)
-    nlp.load_native(every=0.0)
+                       fixed_phi, tr.intervals, tr.substeps)
+    nlp.load_native(every=0.0, wait=wait)
     return nlp
 
 
