@@ -44,7 +44,8 @@ def warm_up() -> dict[str, Any]:
     Returns
     -------
     dict
-        ``robot`` (n) and ``seconds`` spent.
+        ``robot`` (n), ``seconds`` spent and whether the shooting NLP's compiled functions
+        are in use (``shooting_compiled``).
     """
     t0 = time.perf_counter()
     robot = Robot.default(3)
@@ -54,8 +55,9 @@ def warm_up() -> dict[str, Any]:
     cf.symbolic.forward(q)
     # the shooting NLP (0.1 s): not paid by the first 'shooting' request, and with compiled
     # functions configured their build starts now, in the background
-    prepare(robot.gains, robot.exponents)
-    return {"robot": robot.n, "seconds": time.perf_counter() - t0}
+    shooting = prepare(robot.gains, robot.exponents)
+    return {"robot": robot.n, "seconds": time.perf_counter() - t0,
+            "shooting_compiled": shooting.compiled}
 
 
 def job_plan(payload: Payload) -> dict[str, Any]:

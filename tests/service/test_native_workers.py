@@ -55,6 +55,10 @@ def test_workers_build_in_the_background_then_plan_with_compiled_functions(tmp_p
             await pool.close()
 
     info, compiled = asyncio.run(main())
-    assert info.get("native") is True
+    assert info.get("native") is True and info.get("shooting_compiled") is False
     assert len(list(tmp_path.glob("*.so"))) == 1
     assert compiled[-1] is True
+    # a restarted service finds the library at its workers' warm-up
+    info, compiled = asyncio.run(main())
+    assert info.get("shooting_compiled") is True and compiled == [True, True]
+    assert len(list(tmp_path.glob("*.so"))) == 1
