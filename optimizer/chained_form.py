@@ -123,7 +123,7 @@ class ChainedForm:
         if self.backend == "closed":
             z = _closed_forward(self.robot, qq)
         else:
-            z = np.asarray(self._sym.forward(qq.T)).T.reshape(qq.shape)
+            z = _eval_columns(self._sym.forward, self._sym.maps["forward"], qq)
         return z.reshape(q.shape)
 
     def input_coefficients(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -133,8 +133,8 @@ class ChainedForm:
         if self.backend == "closed":
             al, be = _closed_input(self.robot, qq)
         else:
-            al = np.asarray(self._sym.alpha(qq.T)).ravel()
-            be = np.asarray(self._sym.beta(qq.T)).ravel()
+            ab = _eval_columns(self._sym.alpha_beta, self._sym.maps["alpha_beta"], qq)
+            al, be = ab[:, 0], ab[:, 1]
         if q.ndim == 1:
             return al[:1].copy()[0], be[:1].copy()[0]
         return al, be
@@ -227,8 +227,8 @@ class ChainedForm:
             if self.backend == "closed":
                 a, b = _closed_ab(self.robot, k, q[idx])
             else:
-                ab = np.asarray(self._sym.ab[k](q[idx].T))
-                a, b = ab[0], ab[1]
+                ab = _eval_columns(self._sym.ab[k], self._sym.maps[f"ab{k}"], q[idx])
+                a, b = ab[:, 0], ab[:, 1]
             with np.errstate(divide="ignore", invalid="ignore"):
                 wk = (zz[idx, k - 1] - b) / a
             good = np.isfinite(wk) & (wk > W_TOL) & (wk < 1.0 - W_TOL)
@@ -411,8 +411,8 @@ class SymbolicChainedForm:
         The symbolic state.
     z : casadi.SX, (n+1,)
         The chained coordinates as expressions of ``q``.
-    forward, alpha, beta : casadi.Function
-        ``q -> z``, ``q -> L_g1 z2``, ``q -> L_g2 z2``.
+    forward, alpha, beta, alpha_beta : casadi.Function
+        ``q -> z``, ``q -> L_g1 z2``, ``q -> L_g2 z2``, ``q -> (L_g1 z2, L_g2 z2)``.
     a, b : dict of casadi.Function
         ``a[k](q)``, ``b[k](q)`` for k = 2..n (see the module docstring).
     u_from_zv, u_w_from_zv : casadi.Function
@@ -452,6 +452,8 @@ class SymbolicChainedForm:
         self.beta_expr = ca.jtimes(z2, q, g2)
         self.alpha = ca.Function("lie_g1_z2", [q], [self.alpha_expr])
         self.beta = ca.Function("lie_g2_z2", [q], [self.beta_expr])
+        self.alpha_beta = ca.Function("lie_z2", [q], [ca.vertcat(self.alpha_expr,
+                                                                 self.beta_expr)])
         self.a = {k: ca.Function(f"a{k}", [q], [a_expr[k]]) for k in a_expr}
         self.b = {k: ca.Function(f"b{k}", [q], [b_expr[k]]) for k in b_expr}
         # one call per level in the numeric inverse (the call overhead dominates)
@@ -475,6 +477,10 @@ class SymbolicChainedForm:
         u_w = ca.vertcat(vs[0], (vs[1] - al * vs[0]) / be, *w_z)
         self.u_w_from_zv = ca.Function("u_w_from_zv", [zsym, vs], [ca.cse(u_w)])
         self.u_w_maps: dict[int, ca.Function] = {}  # u_w_from_zv.map(N) by N
+        # the same for the maps evaluated on many points (ChainedForm: through the buffer
+        # interface of _eval_columns, 3-5x cheaper than a call that converts to and from DM)
+        self.maps: dict[str, dict[int, ca.Function]] = {
+            name: {} for name in ("forward", "alpha_beta", *(f"ab{k}" for k in self.ab))}
 
     def inverse_expr(self, z: ca.MX | ca.SX) -> tuple[list, list]:
         """Symbolic inverse map for NLPs: ``(th, w)`` with ``th[i-1] = theta_i`` and
