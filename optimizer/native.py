@@ -12,9 +12,10 @@ no request waits for a compiler.
 
 How
 ---
-* The key of a library is the SHA-256 of its C source, of the compiler command and of the CasADi
-  version: a cached library can never belong to other expressions (a changed model, transcription
-  or CasADi version gives other source, hence another key).
+* The key of a library is the SHA-256 of its C source, of the compiler command, of the CasADi
+  version and of the platform and machine type (for a cache shared between machines): a
+  cached library can never belong to other expressions (a changed model, transcription or
+  CasADi version gives other source, hence another key).
 * The build runs ``<cc> -O1 -fPIC -shared`` in a separate, detached process (``python -m
   optimizer.native``) that writes a temporary file and renames it into place, so a library is
   either complete or absent; a lock file keeps two processes of one machine from compiling the
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import platform
 import shutil
 import stat
 import subprocess
@@ -135,7 +137,8 @@ def library_key(source: str, cfg: NativeConfig) -> str:
     import casadi as ca
 
     h = hashlib.sha256()
-    for part in (source, cfg.compiler, " ".join(FLAGS), str(getattr(ca, "__version__", "")), sys.platform):
+    for part in (source, cfg.compiler, " ".join(FLAGS), str(getattr(ca, "__version__", "")),
+                 sys.platform, platform.machine()):
         h.update(part.encode())
         h.update(b"\0")
     return h.hexdigest()[:24]
