@@ -137,7 +137,7 @@ def main() -> None:
         medians[name] = statistics.median(times[name])
         print(f"{name:34s} {medians[name] * 1e3:8.3f}ms {q[0] * 1e3:8.3f}ms {q[1] * 1e3:8.3f}ms")
     convex.PERSISTENT_SOLVERS = True
-    fastest = min(medians, key=medians.get)
+    fastest = min(medians, key=medians.__getitem__)
     print(f"fastest: {fastest}; cvxpy-dpp / fastest = "
           f"{medians['cvxpy-dpp (Clarabel)'] / medians[fastest]:.2f}")
     ref = sols["clarabel-fresh (solver per solve)"]

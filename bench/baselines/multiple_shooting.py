@@ -281,13 +281,13 @@ class MultipleShootingBaseline:
         P = ca.SX.sym("p", 1 + 2 * n)
         phi0, th0, thg = P[0], P[1 : 1 + n], P[1 + n :]
 
-        g = [X[:, 0] - ca.vertcat(phi0, th0)]
-        g += [X[:, k + 1] - self._step(X[:, k], U[:, k]) for k in range(N)]
-        g.append(X[1:, N] - thg)
+        rows = [X[:, 0] - ca.vertcat(phi0, th0)]
+        rows += [X[:, k + 1] - self._step(X[:, k], U[:, k]) for k in range(N)]
+        rows.append(X[1:, N] - thg)
         f = self.h * ca.sumsqr(U)
 
         w = ca.vertcat(ca.vec(X), ca.vec(U))
-        g = ca.vertcat(*g)
+        g = ca.vertcat(*rows)
         self._ng = g.shape[0]
 
         # Variable bounds: th1..th_{n-1} in the box at every node.
@@ -299,7 +299,7 @@ class MultipleShootingBaseline:
         self._ubw = np.concatenate([ubX.ravel(order="F"), np.full(2 * N, np.inf)])
         self._nX = nx * (N + 1)
 
-        opts = {
+        opts: dict[str, Any] = {
             "ipopt": dict(self.ipopt_options),
             "print_time": False,
             "error_on_fail": False,
