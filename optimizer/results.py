@@ -91,8 +91,17 @@ class Plan:
         """The paper's constant ``v1 = b0 = dphi / T`` (None when ``v1`` varies)."""
         return self.phi_change / self.duration if self.inputs.constant_v1 else None
 
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON shape of a successful ``POST /v1/plans`` response (finite numbers only)."""
+    def to_dict(self, *, plain: bool = True) -> dict[str, Any]:
+        """The JSON shape of a successful ``POST /v1/plans`` response (finite numbers only).
+
+        Parameters
+        ----------
+        plain : bool
+            True: Python lists, floats and ``None`` for non-finite numbers
+            (:func:`json_safe`). False: numpy arrays and scalars are left in, for an encoder
+            that writes them itself and maps non-finite numbers to ``null`` (the service's
+            orjson), which saves the conversion (~0.3 ms of a 3 ms plan).
+        """
         ind = self.indicators
         ver = self.verification
         out = {
@@ -142,7 +151,7 @@ class Plan:
             "timing": dict(self.timing),
             "diagnostics": dict(self.diagnostics),
         }
-        return json_safe(out)
+        return json_safe(out) if plain else out
 
 
 def json_safe(obj: Any) -> Any:

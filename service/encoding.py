@@ -26,7 +26,7 @@ def finite_json(content: Any) -> bytes:
     """
     if orjson is not None:
         try:
-            return orjson.dumps(content, option=_OPTIONS)
+            return orjson.dumps(content, default=_default, option=_OPTIONS)
         except (TypeError, ValueError):  # orjson.JSONEncodeError is a TypeError
             pass
     safe = json_safe(content)
@@ -36,6 +36,15 @@ def finite_json(content: Any) -> bytes:
     except UnicodeEncodeError:  # lone surrogates: escaped
         return json.dumps(safe, allow_nan=False, separators=(",", ":"),
                           ensure_ascii=True).encode("ascii")
+
+
+def _default(obj: Any) -> Any:
+    """What orjson does not write itself: numpy arrays that are not C-contiguous (a column or
+    a strided view) and numpy scalars of other types, as Python lists or numbers (orjson then
+    writes their non-finite floats as ``null`` too)."""
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    raise TypeError(f"{type(obj).__name__} is not JSON serializable")
 
 
 def json_safe(obj: Any) -> Any:

@@ -61,8 +61,12 @@ def warm_up() -> dict[str, Any]:
 
 
 def job_plan(payload: Payload) -> dict[str, Any]:
-    """``POST /v1/plans``: payload is the plan-request dict."""
-    return plan(PlanRequest.from_dict(payload)).to_dict()
+    """``POST /v1/plans``: payload is the plan-request dict.
+
+    The answer keeps its numpy arrays: :func:`service.encoding.finite_json` writes them (and
+    any non-finite number as ``null``) without a conversion to Python lists first.
+    """
+    return plan(PlanRequest.from_dict(payload)).to_dict(plain=False)
 
 
 def job_sweep(payload: Payload) -> dict[str, Any]:

@@ -7,6 +7,7 @@ import logging
 import re
 
 import numpy as np
+import pytest
 
 from service.encoding import finite_json
 from service.logs import JSONFormatter
@@ -112,6 +113,29 @@ def test_encoder_never_emits_non_finite_numbers():
     assert json.loads(raw) == {"a": None, "b": [None, None, 1.5], "c": None, "d": [1.0, None],
                                "e": 3}
     assert b"NaN" not in raw and b"Infinity" not in raw
+
+
+def test_encoder_writes_strided_arrays_and_their_non_finite_numbers():
+    """Arrays orjson does not take as they are (not C-contiguous) go through ``_default``."""
+    a = np.array([[1.0, np.nan, 2.0], [np.inf, 3.0, -np.inf]])
+    raw = finite_json({"col": a[:, 1], "t": a.T, "f32": np.float32(0.5)})
+    assert json.loads(raw) == {"col": [None, 3.0], "t": [[1.0, None], [None, 3.0],
+                                                          [2.0, None]], "f32": 0.5}
+    assert b"NaN" not in raw and b"Infinity" not in raw
+
+
+@pytest.mark.parametrize("method", ["polynomial", "retimed", "shooting"])
+def test_plans_keep_numpy_arrays_and_encode_as_the_plain_dict(method):
+    """The worker encodes ``to_dict(plain=False)`` (numpy arrays left in): the same JSON
+    document as the plain dict of :func:`optimizer.results.json_safe`, encoded by the standard
+    library."""
+    from optimizer.planner.plan import plan
+    from optimizer.problem import PlanRequest
+
+    p = plan(PlanRequest.from_dict({**WORKED, "method": method, "samples": 21}))
+    raw = json.loads(finite_json(p.to_dict(plain=False)))
+    plain = json.loads(json.dumps(p.to_dict(), allow_nan=False))
+    assert raw == plain
 
 
 def test_unexpected_library_errors_become_clean_problems():
