@@ -168,7 +168,7 @@ def job_figure(payload: Payload) -> bytes:
     kind, fmt, inner = payload["figure"], payload["format"], payload["request"]
     data: dict[str, Any]
     if kind in ("joint_angles", "chained_state"):
-        data = job_plan(inner)
+        data = json_safe(job_plan(inner))  # the plain JSON shape the figures are drawn from
         if inner.get("constraint_points"):
             data = {"plan": data, "constraint_points": inner["constraint_points"]}
     elif kind == "sweep":
