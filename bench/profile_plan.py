@@ -1,4 +1,5 @@
-"""Profile of the hot path: the polynomial plan of [10, 10, 10] -> [30, 30, 30] deg (T = 1 s).
+"""Profile of the hot path: by default the polynomial plan of [10, 10, 10] -> [30, 30, 30] deg
+(T = 1 s); ``--case NAME --method M`` profiles any case of :mod:`bench.cases` and method instead.
 
 After one warm-up plan, ``--plans`` plans are profiled twice:
 
@@ -13,6 +14,7 @@ without a profiler and the planner's own stage timings.
 Usage::
 
     .venv/bin/python bench/profile_plan.py [--plans 20] [--out bench/results/profile.txt]
+    .venv/bin/python bench/profile_plan.py --case n5_small --method shooting
 """
 
 from __future__ import annotations
@@ -37,10 +39,15 @@ from optimizer.planner.plan import plan  # noqa: E402
 from optimizer.problem import PlanRequest  # noqa: E402
 
 
-def request() -> PlanRequest:
-    """The profiled request."""
-    return PlanRequest(start=tuple(np.radians([10.0] * 3)), goal=tuple(np.radians([30.0] * 3)),
-                       method="polynomial", duration=1.0)
+def request(case: str | None = None, method: str = "polynomial") -> PlanRequest:
+    """The profiled request: [10, 10, 10] -> [30, 30, 30] deg, or a case of
+    :mod:`bench.cases` (its robot, T = 1 s)."""
+    if case is None:
+        return PlanRequest(start=tuple(np.radians([10.0] * 3)),
+                           goal=tuple(np.radians([30.0] * 3)), method=method, duration=1.0)
+    from bench.cases import select
+    from bench.inprocess import make_request
+    return make_request(select([case])[0], method, 60.0)  # type: ignore[no-any-return]
 
 
 def stage_timings(req: PlanRequest, plans: int) -> tuple[float, dict[str, float]]:
@@ -95,14 +102,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plans", type=int, default=20, help="plans per profile (default 20)")
     ap.add_argument("--top", type=int, default=30, help="rows of the cProfile tables")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "profile.txt")
+    ap.add_argument("--case", default=None, help="a case of bench/cases.py (default: the "
+                    "[10, 10, 10] -> [30, 30, 30] deg worked example)")
+    ap.add_argument("--method", default="polynomial", help="planner method (default polynomial)")
+    ap.add_argument("--no-native", action="store_true",
+                    help="CasADi's virtual machine for the NLP functions (default: compiled, "
+                         "optimizer.native, as in the service)")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
-    req = request()
+    req = request(args.case, args.method)
+    if not args.no_native:
+        from optimizer import native
+        from optimizer.planner.shooting import prepare
+        if native.configure(native.default_cache_dir()) is not None and \
+                args.method in ("shooting", "auto"):
+            prepare(req.robot.gains, req.robot.exponents, wait=True)
     plan(req)  # warm-up: caches of the chained form, CasADi functions
     wall, stages = stage_timings(req, args.plans)
     parts: list[str] = [
-        "Profile of plan(PlanRequest([10, 10, 10] -> [30, 30, 30] deg, method='polynomial', "
-        "T = 1 s))",
+        f"Profile of plan(PlanRequest({args.case or '[10, 10, 10] -> [30, 30, 30] deg'}, "
+        f"method={args.method!r}, T = 1 s))",
         f"mean wall time per plan without a profiler: {wall * 1e3:.1f} ms ({args.plans} plans)",
         "planner's own stage timings (mean, ms): " + ", ".join(
             f"{k} {v * 1e3:.1f}" for k, v in stages.items()),
