@@ -62,3 +62,28 @@ def test_workers_build_in_the_background_then_plan_with_compiled_functions(tmp_p
     info, compiled = asyncio.run(main())
     assert info.get("shooting_compiled") is True and compiled == [True, True]
     assert len(list(tmp_path.glob("*.so"))) == 1
+
+
+def test_an_unsafe_cache_directory_leaves_the_workers_on_the_virtual_machine(tmp_path: Path):
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+
+    async def main() -> tuple[dict, dict]:
+        pool = WorkerPool(1, 4, warmup=True, native_cache=str(shared))
+        await pool.start()
+        try:
+            for _ in range(1200):
+                if pool.ready:
+                    break
+                await asyncio.sleep(0.05)
+            info = next(iter(pool._all)).ready_info
+            out = await pool.run("plan", OPP_A, 30.0)
+            return info, out
+        finally:
+            await pool.close()
+
+    info, out = asyncio.run(main())
+    assert info.get("native") is False and info.get("shooting_compiled") is False
+    assert out["ok"] and json.loads(out["body"])["diagnostics"]["shooting"]["compiled"] is False
+    assert not list(shared.iterdir())
