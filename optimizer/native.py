@@ -144,15 +144,14 @@ def library_key(source: str, cfg: NativeConfig) -> str:
     return h.hexdigest()[:24]
 
 
-def nlp_source(nlp: dict[str, Any], solver: Any) -> str:
-    """C source of the functions ``solver`` (an ``nlpsol``) evaluates, and of its problem
-    ``nlp`` as the oracle ``nlp(x, p) -> (f, g)``: what ``casadi.nlpsol(name, plugin,
-    library, opts)`` loads."""
+def nlp_source(solver: Any) -> str:
+    """C source of the functions ``solver`` (an ``nlpsol``) evaluates and of its problem, the
+    oracle ``nlp(x, p) -> (f, g)``: what ``casadi.nlpsol(name, plugin, library, opts)``
+    loads."""
     import casadi as ca
 
     cg = ca.CodeGenerator("nlp_functions.c", {"with_header": False})
-    cg.add(ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]],
-                       ["x", "p"], ["f", "g"]))
+    cg.add(solver.oracle())
     for name in solver.get_function():
         cg.add(solver.get_function(name))
     return str(cg.dump())

@@ -244,7 +244,6 @@ class ShootingNLP:
         self.native: native.Library | None = None
         self.compiled = False
         self._native_cfg: native.NativeConfig | None = None
-        self._nlp: dict[str, Any] | None = None
         self._native_opts: dict[str, Any] = {}
         # only the first rung is compiled: the second's C (4-11 MB) takes 10-20 s and up to
         # 1.6 GB to compile, for a rung that runs rarely (and for about a second)
@@ -259,7 +258,6 @@ class ShootingNLP:
             self.solvers.append(("fatrop", ca.nlpsol("shooting_fatrop", "fatrop", nlp,
                                                      fatrop_opts)))
             # for the same functions compiled (optimizer.native), see load_native
-            self._nlp = nlp
             self._native_opts = {k: v for k, v in fatrop_opts.items() if k != "expand"}
         self.solvers.append(("ipopt", ca.nlpsol("shooting_ipopt", "ipopt", nlp, ipopt_opts)))
         self.lbg = np.where(self.equality, 0.0, -np.inf)
@@ -280,9 +278,9 @@ class ShootingNLP:
         cfg = native.config()
         if cfg is not self._native_cfg:
             self._native_cfg, self.native = cfg, None
-            if cfg is not None and self._nlp is not None and self.native_ok:
-                self.native = native.library_for(
-                    native.nlp_source(self._nlp, dict(self.solvers)["fatrop"]), wait=wait)
+            fatrop = dict(self.solvers).get("fatrop")
+            if cfg is not None and fatrop is not None and self.native_ok:
+                self.native = native.library_for(native.nlp_source(fatrop), wait=wait)
             every = 0.0
         if self.native is None:
             return False
