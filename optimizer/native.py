@@ -205,6 +205,8 @@ def library_for(source: str, wait: bool = False) -> Library | None:
         subprocess.run(cmd, check=False, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                        stdin=subprocess.DEVNULL, env=_child_env())
         return lib if lib.path.exists() else None
+    if not hasattr(os, "fork"):  # no detached build (not POSIX): only builds asked to wait
+        return None
     if lib.key not in _builds:
         # Detached (its own session, not our child: a server's shutdown, signals to its
         # process group and measures of its process tree do not touch it, and a finished
