@@ -26,7 +26,7 @@ How
   ``PLANNER_NATIVE_CACHE``); the benchmark compiles before it measures.
 
 Safety: the cache directory holds code that is loaded into the process. It is created with mode
-0700, and a directory writable by other users is refused.
+0700; a directory (or library) that another user owns or may write to is refused.
 """
 
 from __future__ import annotations
@@ -99,7 +99,8 @@ def configure(cache_dir: str | os.PathLike[str] | None, *,
     Raises
     ------
     PermissionError
-        ``cache_dir`` is writable by other users (it holds code that is loaded).
+        ``cache_dir`` is writable by other users or owned by another (it holds code that is
+    loaded).
     """
     global _config
     if cache_dir is None:
@@ -111,11 +112,20 @@ def configure(cache_dir: str | os.PathLike[str] | None, *,
         return None
     path = Path(cache_dir).expanduser().resolve()
     path.mkdir(mode=0o700, parents=True, exist_ok=True)
-    mode = path.stat().st_mode
-    if mode & (stat.S_IWGRP | stat.S_IWOTH) and not mode & stat.S_ISVTX:
-        raise PermissionError(f"native cache directory {path} is writable by other users")
+    _check_private(path)
     _config = NativeConfig(cache_dir=path, compiler=cc)
     return _config
+
+
+def _check_private(path: Path) -> None:
+    """Refuse a file or directory that another user owns or may write: the cache's libraries
+    are loaded into the process, and their names (hashes of the source) can be predicted, so
+    a directory others can write to (sticky or not) would let them plant one."""
+    st = path.stat()
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        raise PermissionError(f"native cache path {path} is writable by other users")
+    if hasattr(os, "getuid") and st.st_uid != os.getuid():
+        raise PermissionError(f"native cache path {path} belongs to another user")
 
 
 def config() -> NativeConfig | None:
@@ -175,7 +185,13 @@ class Library:
         if now - self.last_check < every:
             return None
         self.last_check = now
-        return self.path if self.path.exists() else None
+        if not self.path.exists():
+            return None
+        try:
+            _check_private(self.path)
+        except PermissionError:
+            return None
+        return self.path
 
 
 def library_for(source: str, wait: bool = False) -> Library | None:
@@ -253,6 +269,7 @@ def build(compiler: str, source: Path, target: Path) -> int:
         if res.returncode != 0 or not tmp.exists():
             target.with_suffix(".failed").write_text(res.stdout + res.stderr)
             return 1
+        os.chmod(tmp, 0o700)  # whatever the umask: only its owner may change what is loaded
         os.replace(tmp, target)
         return 0
     finally:

@@ -139,8 +139,22 @@ def test_a_directory_others_can_write_is_refused(tmp_path):
     with pytest.raises(PermissionError, match="writable by other users"):
         native.configure(d)
     assert native.config() is None
+    d.chmod(0o1777)   # sticky, like /tmp: others may still create files (a planted library)
+    with pytest.raises(PermissionError, match="writable by other users"):
+        native.configure(d)
+    assert native.config() is None
     cfg = native.configure(tmp_path / "new" / "dir")
     assert cfg is not None and stat.S_IMODE(cfg.cache_dir.stat().st_mode) == 0o700
+
+
+def test_a_library_others_could_have_written_is_not_loaded(tmp_path):
+    native.configure(tmp_path)
+    lib = native.library_for("int f(void) { return 0; }\n", wait=True)
+    assert lib is not None and lib.ready(every=0.0) == lib.path
+    lib.path.chmod(0o777)
+    assert lib.ready(every=0.0) is None
+    lib.path.chmod(0o755)
+    assert lib.ready(every=0.0) == lib.path
 
 
 def test_the_key_follows_the_source_and_the_compiler(tmp_path):
