@@ -114,8 +114,12 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_native:
         from optimizer import native
         from optimizer.planner.shooting import prepare
-        if native.configure(native.default_cache_dir()) is not None and \
-                args.method in ("shooting", "auto"):
+        try:
+            on = native.configure(native.default_cache_dir()) is not None
+        except OSError as exc:  # an unusable cache directory: the virtual machine
+            print(f"compiled NLP functions off: {exc}")
+            on = False
+        if on and args.method in ("shooting", "auto"):
             prepare(req.robot.gains, req.robot.exponents, wait=True)
     plan(req)  # warm-up: caches of the chained form, CasADi functions
     wall, stages = stage_timings(req, args.plans)
