@@ -271,6 +271,7 @@ def build(compiler: str, source: Path, target: Path) -> int:
             return 1
         os.chmod(tmp, 0o700)  # whatever the umask: only its owner may change what is loaded
         os.replace(tmp, target)
+        source.unlink(missing_ok=True)  # 1-3 MB, generated again whenever it is needed
         return 0
     finally:
         for leftover in (tmp, lock):

@@ -87,6 +87,7 @@ def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp
     assert not any("optimizer.native" in " ".join(c.cmdline())
                    for c in psutil.Process().children(recursive=True))
     assert len(wait_for("*.so", tmp_path)) == 1
+    assert not list(tmp_path.glob("*.c"))  # the source goes once its library is built
     assert not list(tmp_path.glob("*.lock")) and not list(tmp_path.glob("*.tmp"))
     time.sleep(1.05)                         # the library is looked for at most once a second
     assert plan(req).diagnostics["shooting"]["compiled"] is True
