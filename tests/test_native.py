@@ -180,8 +180,10 @@ def test_a_fresh_lock_means_someone_else_builds_and_a_stale_one_is_taken_over(tm
     os.utime(lock, (old, old))
     assert native.build(cc, src, target) == 0 and target.exists()       # taken over
     assert not lock.exists()
+    assert not src.exists()  # a built library's source is removed
     # the command-line entry the background build runs
     target.unlink()
+    src.write_text("int answer(void) { return 42; }\n")
     env = dict(os.environ, PYTHONPATH=str(Path(native.__file__).resolve().parents[1]))
     res = subprocess.run([sys.executable, "-m", "optimizer.native", cc, str(src), str(target)],
                          env=env, check=False)
