@@ -181,7 +181,7 @@ class ChainedForm:
         if self.backend == "closed":
             u, w = _closed_u_from_zv(self.robot, zz, vv)
         else:
-            uw = _eval_columns(self._sym.u_w_from_zv, self._sym.u_w_maps, zz, vv)
+            uw = _eval_columns(self._sym.u_w_from_zv, self._sym.maps["u_w_from_zv"], zz, vv)
             u, w = uw[:, :2], uw[:, 2:]
         if zz.shape[0] and not (W_TOL < w.min() and w.max() < 1.0 - W_TOL   # NaN fails too
                                 and np.isfinite(zz).all()):
@@ -411,8 +411,8 @@ class SymbolicChainedForm:
         The symbolic state.
     z : casadi.SX, (n+1,)
         The chained coordinates as expressions of ``q``.
-    forward, alpha, beta, alpha_beta : casadi.Function
-        ``q -> z``, ``q -> L_g1 z2``, ``q -> L_g2 z2``, ``q -> (L_g1 z2, L_g2 z2)``.
+    forward, alpha_beta : casadi.Function
+        ``q -> z``, ``q -> (L_g1 z2, L_g2 z2)``.
     a, b : dict of casadi.Function
         ``a[k](q)``, ``b[k](q)`` for k = 2..n (see the module docstring).
     u_from_zv, u_w_from_zv : casadi.Function
@@ -450,8 +450,6 @@ class SymbolicChainedForm:
         z2 = zs[2]
         self.alpha_expr = ca.jtimes(z2, q, g1)
         self.beta_expr = ca.jtimes(z2, q, g2)
-        self.alpha = ca.Function("lie_g1_z2", [q], [self.alpha_expr])
-        self.beta = ca.Function("lie_g2_z2", [q], [self.beta_expr])
         self.alpha_beta = ca.Function("lie_z2", [q], [ca.vertcat(self.alpha_expr,
                                                                  self.beta_expr)])
         self.a = {k: ca.Function(f"a{k}", [q], [a_expr[k]]) for k in a_expr}
@@ -476,11 +474,12 @@ class SymbolicChainedForm:
         # instructions instead of ~2100).
         u_w = ca.vertcat(vs[0], (vs[1] - al * vs[0]) / be, *w_z)
         self.u_w_from_zv = ca.Function("u_w_from_zv", [zsym, vs], [ca.cse(u_w)])
-        self.u_w_maps: dict[int, ca.Function] = {}  # u_w_from_zv.map(N) by N
-        # the same for the maps evaluated on many points (ChainedForm: through the buffer
-        # interface of _eval_columns, 3-5x cheaper than a call that converts to and from DM)
+        # f.map(N) by N of the functions ChainedForm evaluates on many points at once (through
+        # the buffer interface of _eval_columns, 3-5x cheaper than a call that converts to and
+        # from DM)
         self.maps: dict[str, dict[int, ca.Function]] = {
-            name: {} for name in ("forward", "alpha_beta", *(f"ab{k}" for k in self.ab))}
+            name: {} for name in ("forward", "alpha_beta", "u_w_from_zv",
+                                  *(f"ab{k}" for k in self.ab))}
 
     def inverse_expr(self, z: ca.MX | ca.SX) -> tuple[list, list]:
         """Symbolic inverse map for NLPs: ``(th, w)`` with ``th[i-1] = theta_i`` and
