@@ -216,10 +216,10 @@ def library_for(source: str, wait: bool = False) -> Library | None:
         tmp = src.with_name(f"{src.name}.{os.getpid()}.tmp")
         tmp.write_text(source)
         os.replace(tmp, src)
-    cmd = [sys.executable, "-m", "optimizer.native", cfg.compiler, str(src), str(lib.path)]
+    entry = [sys.executable, "-m", "optimizer.native"]
+    args = [cfg.compiler, str(src), str(lib.path)]
     if wait:
-        subprocess.run(cmd, check=False, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                       stdin=subprocess.DEVNULL, env=_child_env())
+        _run_quiet(entry + args)
         return lib if lib.path.exists() else None
     if not hasattr(os, "fork"):  # no detached build (not POSIX): only builds asked to wait
         return None
@@ -229,17 +229,18 @@ def library_for(source: str, wait: bool = False) -> Library | None:
         # build is reaped by init) and at niceness +10 on top of ours: it never competes
         # with a solve. The intermediate process exits at once.
         _builds.add(lib.key)
-        subprocess.run((["nice", "-n", "10"] if shutil.which("nice") else []) + cmd[:3]
-                       + ["--detach"] + cmd[3:], check=False, stdout=subprocess.DEVNULL,
-                       stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL, env=_child_env())
+        nice = ["nice", "-n", "10"] if shutil.which("nice") else []
+        _run_quiet(nice + entry + ["--detach"] + args)
     return lib
 
 
-def _child_env() -> dict[str, str]:
+def _run_quiet(argv: list[str]) -> None:
+    """Run ``argv`` to its end, without its output, with this package importable."""
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parents[1])
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    return env
+    subprocess.run(argv, check=False, env=env, stdin=subprocess.DEVNULL,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
 def build(compiler: str, source: Path, target: Path) -> int:
@@ -274,11 +275,8 @@ def build(compiler: str, source: Path, target: Path) -> int:
         source.unlink(missing_ok=True)  # 1-3 MB, generated again whenever it is needed
         return 0
     finally:
-        for leftover in (tmp, lock):
-            try:
-                leftover.unlink()
-            except FileNotFoundError:
-                pass
+        tmp.unlink(missing_ok=True)
+        lock.unlink(missing_ok=True)
 
 
 def main(argv: list[str]) -> int:
