@@ -4,11 +4,13 @@ default robot's build in the background, and once built the workers' shooting pl
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import shutil
 import time
 from pathlib import Path
+from typing import AsyncIterator
 
 import pytest
 
@@ -18,6 +20,22 @@ from service.workers import WorkerPool
 
 OPP_A = {"start": [math.radians(x) for x in (10, 20, 30)],
          "goal": [math.radians(x) for x in (40, 25, 15)], "method": "shooting"}
+
+
+@contextlib.asynccontextmanager
+async def ready_pool(cache: Path) -> AsyncIterator[tuple[WorkerPool, dict]]:
+    """One warmed-up worker with ``cache`` as its compiled-function cache, and its warm-up
+    information."""
+    pool = WorkerPool(1, 4, warmup=True, native_cache=str(cache))
+    await pool.start()
+    try:
+        for _ in range(1200):
+            if pool.ready:
+                break
+            await asyncio.sleep(0.05)
+        yield pool, next(iter(pool._all)).ready_info
+    finally:
+        await pool.close()
 
 
 def test_native_cache_setting(monkeypatch, tmp_path):
@@ -32,14 +50,7 @@ def test_native_cache_setting(monkeypatch, tmp_path):
                     reason="no C compiler")
 def test_workers_build_in_the_background_then_plan_with_compiled_functions(tmp_path: Path):
     async def main() -> tuple[dict, list[bool]]:
-        pool = WorkerPool(1, 4, warmup=True, native_cache=str(tmp_path))
-        await pool.start()
-        try:
-            for _ in range(1200):
-                if pool.ready:
-                    break
-                await asyncio.sleep(0.05)
-            info = next(iter(pool._all)).ready_info
+        async with ready_pool(tmp_path) as (pool, info):
             compiled = []
             for _ in range(2):
                 out = await pool.run("plan", OPP_A, 30.0)
@@ -51,8 +62,6 @@ def test_workers_build_in_the_background_then_plan_with_compiled_functions(tmp_p
                     await asyncio.sleep(0.2)
                 await asyncio.sleep(1.1)  # a worker looks for the library once a second
             return info, compiled
-        finally:
-            await pool.close()
 
     info, compiled = asyncio.run(main())
     assert info.get("native") is True and info.get("shooting_compiled") is False
@@ -70,18 +79,8 @@ def test_an_unsafe_cache_directory_leaves_the_workers_on_the_virtual_machine(tmp
     shared.chmod(0o777)
 
     async def main() -> tuple[dict, dict]:
-        pool = WorkerPool(1, 4, warmup=True, native_cache=str(shared))
-        await pool.start()
-        try:
-            for _ in range(1200):
-                if pool.ready:
-                    break
-                await asyncio.sleep(0.05)
-            info = next(iter(pool._all)).ready_info
-            out = await pool.run("plan", OPP_A, 30.0)
-            return info, out
-        finally:
-            await pool.close()
+        async with ready_pool(shared) as (pool, info):
+            return info, await pool.run("plan", OPP_A, 30.0)
 
     info, out = asyncio.run(main())
     assert info.get("native") is False and info.get("shooting_compiled") is False
