@@ -31,7 +31,7 @@ if str(ROOT) not in sys.path:
 
 from bench import cases as cases_mod  # noqa: E402
 from bench import http_load, report, scaling  # noqa: E402
-from bench.inprocess import METHODS, Baselines, Config, run_case  # noqa: E402
+from bench.inprocess import METHODS, Baselines, Config, configure_native, run_case  # noqa: E402
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -84,22 +84,6 @@ def _versions() -> dict[str, str]:
     return vers
 
 
-def _native(off: bool) -> dict[str, Any]:
-    """Compiled NLP functions for the planner (the service's default); each case's are built
-    before its warm-up call (:func:`bench.inprocess.run_method`), not inside any timing."""
-    from optimizer import native
-    if off:
-        native.configure(None)
-        return {"on": False, "reason": "--no-native"}
-    try:
-        cfg = native.configure(native.default_cache_dir())
-    except OSError as exc:
-        return {"on": False, "reason": f"{type(exc).__name__}: {exc}"}
-    if cfg is None:
-        return {"on": False, "reason": "no C compiler found"}
-    return {"on": True, "compiler": cfg.compiler, "cache_dir": str(cfg.cache_dir)}
-
-
 def _json_default(obj: Any) -> Any:
     if hasattr(obj, "tolist"):
         return obj.tolist()
@@ -133,7 +117,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "argv": sys.argv[1:], "commit": _git_commit(), "cpus": os.cpu_count(),
             "platform": platform.platform(), "versions": _versions(),
             "loadavg_start": [round(x, 2) for x in os.getloadavg()]}
-    meta["native"] = _native(bool(args.no_native))
+    meta["native"] = configure_native(bool(args.no_native))
     results: dict[str, Any] = {"meta": meta, "config": {
         "repeats": cfg.repeats, "min_repeats": cfg.min_repeats, "budget_s": cfg.budget,
         "baseline_build_repeats": cfg.build_repeats, "time_limit": cfg.time_limit,

@@ -614,21 +614,16 @@ def _prebuild_native(log: Any) -> None:
     before the server starts, as on a machine that has served before (or in the image):
     otherwise its first start compiles in the background, inside the cold-start and load
     measurements."""
-    from optimizer import native
     from optimizer.model import Robot
     from optimizer.planner.shooting import prepare
-    prev = native.config()
-    try:
-        if native.configure(native.default_cache_dir()) is not None:
-            robot = Robot()
-            prepare(robot.gains, robot.exponents, wait=True)
-    except OSError as exc:
-        log(f"  compiled NLP functions not prebuilt: {type(exc).__name__}: {exc}")
-    finally:  # this process's own setting as it was
-        if prev is None:
-            native.configure(None)
-        else:
-            native.configure(prev.cache_dir, compiler=prev.compiler)
+
+    from .inprocess import configure_native
+    info = configure_native()
+    if info["on"]:
+        robot = Robot()
+        prepare(robot.gains, robot.exponents, wait=True)
+    else:
+        log(f"  compiled NLP functions not prebuilt: {info['reason']}")
 
 
 def main(argv: list[str] | None = None) -> int:

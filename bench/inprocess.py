@@ -56,6 +56,23 @@ class Config:
     methods: tuple[str, ...] = METHODS
 
 
+def configure_native(off: bool = False) -> dict[str, Any]:
+    """Compiled NLP functions for the planner (:mod:`optimizer.native`), in the service's
+    default cache, or off; what was done, for the results' ``meta``. Libraries are built by
+    ``shooting.prepare(..., wait=True)`` before anything is timed (:func:`run_method`)."""
+    from optimizer import native
+    if off:
+        native.configure(None)
+        return {"on": False, "reason": "--no-native"}
+    try:
+        cfg = native.configure(native.default_cache_dir())
+    except OSError as exc:  # an unusable cache directory: the virtual machine
+        return {"on": False, "reason": f"{type(exc).__name__}: {exc}"}
+    if cfg is None:
+        return {"on": False, "reason": "no C compiler found"}
+    return {"on": True, "compiler": cfg.compiler, "cache_dir": str(cfg.cache_dir)}
+
+
 def status_of(exc: BaseException | None) -> str:
     """``success``, the planner's failure code (``infeasible``, ``timeout``,
     ``numerical_failure``, ``invalid_request``) or ``error`` for anything unexpected."""

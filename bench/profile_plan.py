@@ -111,16 +111,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     req = request(args.case, args.method)
-    if not args.no_native:
-        from optimizer import native
+    from bench.inprocess import configure_native
+    native = configure_native(off=args.no_native)
+    if native["on"] and args.method in ("shooting", "auto"):
         from optimizer.planner.shooting import prepare
-        try:
-            on = native.configure(native.default_cache_dir()) is not None
-        except OSError as exc:  # an unusable cache directory: the virtual machine
-            print(f"compiled NLP functions off: {exc}")
-            on = False
-        if on and args.method in ("shooting", "auto"):
-            prepare(req.robot.gains, req.robot.exponents, wait=True)
+        prepare(req.robot.gains, req.robot.exponents, wait=True)
     plan(req)  # warm-up: caches of the chained form, CasADi functions
     wall, stages = stage_timings(req, args.plans)
     parts: list[str] = [
