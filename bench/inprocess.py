@@ -24,8 +24,10 @@ from .cases import DURATION, Case
 from .reintegrate import reintegrate_baseline, reintegrate_plan
 from .stats import Timed, summarise, time_repeats
 
-METHODS: tuple[str, ...] = ("polynomial", "retimed", "constraint_points", "penalty", "shooting",
-                          "auto")
+from optimizer.planner.registry import METHODS as REGISTRY
+
+#: Every registered method, then ``auto``.
+METHODS: tuple[str, ...] = tuple(REGISTRY) + ("auto",)
 
 
 @dataclass

@@ -71,7 +71,7 @@ def _feasible_goal(n: int, seed: int, tries: int, time_budget: float
     from optimizer.chained_form import chained_form
     from optimizer.model import Robot
     from optimizer.planner.family import PolynomialFamily
-    from optimizer.planner.plan import make_region
+    from optimizer.planner.rules import make_region
     from optimizer.problem import PlanRequest
     from optimizer.steering import ChainedPath, InputSchedule
     rng = np.random.default_rng(seed)
@@ -111,7 +111,8 @@ def joint_scaling(repeats: int, plan_repeats: int, budget: float,
     from optimizer.model import Robot
     from optimizer.planner.family import PolynomialFamily
     from optimizer.planner.intervals import GRID_STEP
-    from optimizer.planner.plan import make_region, plan
+    from optimizer.planner.plan import plan
+    from optimizer.planner.rules import make_region
     from optimizer.problem import PlanRequest
     from optimizer.steering import MIN_ABS_DPHI
 

@@ -17,7 +17,8 @@ from .indicators import compute_indicators, sensitivity_frobenius
 from .model import Robot
 from .planner.family import PolynomialFamily
 from .planner.intervals import feasible_intervals
-from .planner.plan import Deadline, check_endpoints, make_region
+from .planner.context import Deadline
+from .planner.rules import check_endpoints, make_region
 from .problem import PlanRequest
 from .results import Plan
 from .verify import PlannedInputs, replay

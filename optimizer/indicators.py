@@ -5,6 +5,11 @@
   joint space (perpendicular distance in R^n, eq 17) are offered too.
 * ``t_p`` (Definition 5): the number of interior extreme points of ``th1(t)``, i.e. reversals of
   the actuator driving joint 1, with a small dead band.
+* ``deviation``: the largest distance, in joint space ``(th_1..th_n)``, of the path from the
+  straight SEGMENT between start and goal. Geometric: a driftless system's path does not change
+  when it is retimed, and neither does this number. What the default objective ranks by.
+* ``reversals``: direction changes of each actuator, ``phi`` and ``th_1``, counted with the
+  dead band :data:`ACTUATOR_DEAD_BAND` (a motor does not reverse for a wiggle of 1e-4 rad).
 * ``||J_R||_F`` (eq 18-23): ``J_R = blockdiag(1, D)``, ``D_ij = s^(i-j)/(i-j)!`` (i >= j) with
   ``s = z1(t) - z1(0)`` (``= b0 t`` for the paper's constant ``v1``; ``dz_{k+1}/ds = z_k``
   holds for any ``v1``, so the formula stays exact when ``v1`` varies).
@@ -19,6 +24,8 @@ import numpy as np
 
 #: Dead band of t_p: a reversal counts once the signal has come back by more than this (rad).
 REVERSAL_DEAD_BAND = 1e-6
+#: Dead band of the actuator reversals of ``reversals`` (rad, 0.0057 deg).
+ACTUATOR_DEAD_BAND = 1e-4
 
 
 @dataclass(frozen=True)
@@ -43,6 +50,12 @@ class Indicators:
         ``max_t ||J_R(t)||_F``.
     energy : float
         ``integral of u1^2 + u2^2 dt`` (rad^2/s).
+    deviation : float
+        Largest distance (rad) in joint space of the path from the straight segment start ->
+        goal.
+    reversals_phi, reversals_th1 : int
+        Direction changes of the actuators ``phi`` and ``th_1`` (dead band
+        :data:`ACTUATOR_DEAD_BAND`).
     """
 
     d_a: float
@@ -53,6 +66,14 @@ class Indicators:
     sensitivity: float
     sensitivity_max: float
     energy: float
+    deviation: float = 0.0
+    reversals_phi: int = 0
+    reversals_th1: int = 0
+
+    @property
+    def reversals(self) -> int:
+        """Direction changes of both actuators together."""
+        return self.reversals_phi + self.reversals_th1
 
 
 def line_deviation(tau: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -78,6 +99,21 @@ def joint_space_distance(th: np.ndarray) -> float:
         return float(np.max(np.linalg.norm(l2, axis=1)))
     d2 = np.sum(l2 * l2, axis=1) - (l2 @ l1) ** 2 / nrm
     return float(np.sqrt(np.max(np.maximum(d2, 0.0))))
+
+
+def segment_distance(th: np.ndarray, a: np.ndarray | None = None,
+                     b: np.ndarray | None = None) -> float:
+    """Largest distance of the rows of ``th`` (N, n) from the segment ``a -> b`` (default: the
+    first and last row), in the unit of ``th``."""
+    th = np.asarray(th, float)
+    a = th[0] if a is None else np.asarray(a, float)
+    b = th[-1] if b is None else np.asarray(b, float)
+    d = b - a
+    rel = th - a
+    nrm = float(d @ d)
+    s = np.zeros(th.shape[0]) if nrm == 0.0 else np.clip((rel @ d) / nrm, 0.0, 1.0)
+    off = rel - s[:, None] * d
+    return float(np.sqrt(np.max(np.sum(off * off, axis=1))))
 
 
 def count_reversals(x: np.ndarray, dead_band: float = REVERSAL_DEAD_BAND) -> int:
@@ -117,6 +153,45 @@ def count_reversals(x: np.ndarray, dead_band: float = REVERSAL_DEAD_BAND) -> int
             count += 1
             direction, ext = 1, v
     return count
+
+
+def count_reversals_columns(X: np.ndarray, dead_band: float = REVERSAL_DEAD_BAND) -> np.ndarray:
+    """:func:`count_reversals` of every column of ``X`` (G, D), vectorised.
+
+    Columns whose turning points are all farther apart than the dead band (the usual case)
+    count their turning points; the others (zero steps, small wiggles) go through the scalar
+    rule.
+    """
+    G, D = X.shape
+    out = np.zeros(D, dtype=int)
+    if D == 0 or G < 3:
+        return out
+    sg = np.sign(np.diff(X, axis=0))
+    flat = (sg == 0.0).any(axis=0)
+    turn = sg[1:] != sg[:-1]                      # (G-2, D): turning point at sample g + 1
+    g, r = np.nonzero(turn)
+    cnt = np.bincount(r, minlength=D)
+    slow = flat.copy()
+    if r.size:
+        order = np.lexsort((g, r))                # by member, then time
+        g, r = g[order], r[order]
+        vals = X[g + 1, r]
+        first = np.ones(r.size, bool)
+        first[1:] = r[1:] != r[:-1]
+        last = np.ones(r.size, bool)
+        last[:-1] = r[:-1] != r[1:]
+        small = np.zeros(D, bool)
+        if r.size > 1:
+            leg = np.abs(np.diff(vals))
+            inner = ~first[1:]
+            small[r[1:][inner & (leg <= dead_band)]] = True
+        small[r[first][np.abs(vals[first] - X[0, r[first]]) <= dead_band]] = True
+        small[r[last][np.abs(X[-1, r[last]] - vals[last]) <= dead_band]] = True
+        slow |= small
+    out[:] = cnt
+    for i in np.nonzero(slow)[0]:
+        out[i] = count_reversals(X[:, i], dead_band)
+    return out
 
 
 def sensitivity_frobenius(s: np.ndarray | float, n: int) -> np.ndarray:
@@ -164,4 +239,7 @@ def compute_indicators(t: np.ndarray, q: np.ndarray, u: np.ndarray | None) -> In
         sensitivity=float(sens[-1]),
         sensitivity_max=float(np.max(sens)),
         energy=energy,
+        deviation=segment_distance(th),
+        reversals_phi=count_reversals(q[:, 0], ACTUATOR_DEAD_BAND),
+        reversals_th1=count_reversals(th[:, 0], ACTUATOR_DEAD_BAND),
     )

@@ -15,8 +15,10 @@ from .errors import InfeasibleError, InvalidRequestError
 from .model import Robot
 from .steering import ConstraintPoint, validate_constraint_points
 
-METHODS = ("auto", "polynomial", "retimed", "constraint_points", "penalty", "shooting")
-OBJECTIVES = ("tp_then_da", "tp_then_sensitivity", "weighted")
+OBJECTIVES = ("reversals_then_deviation", "tp_then_da", "tp_then_sensitivity", "weighted")
+#: Fewest actuator reversals (phi and th1), then the smallest joint-space deviation from the
+#: straight segment start -> goal (see :mod:`optimizer.planner.ranking`).
+DEFAULT_OBJECTIVE = "reversals_then_deviation"
 CRITERIA = ("full", "z2")
 
 #: Library-level limits (the service may set tighter ones).
@@ -58,7 +60,9 @@ class PlanRequest:
     duration : float or None
         ``T`` (s). ``None`` with actuator limits: the shortest ``T`` that respects them;
         ``None`` without: 1 s.
-    method, objective, singularity : str
+    method : str
+        A name of :mod:`optimizer.planner.registry` (checked by the planner).
+    objective, singularity : str
     weights : Weights
     constraint_points : tuple of ConstraintPoint
     samples : int
@@ -80,7 +84,7 @@ class PlanRequest:
     phi_change_bounds: tuple[float, float] = (-math.pi, math.pi)
     duration: float | None = None
     method: str = "auto"
-    objective: str = "tp_then_da"
+    objective: str = DEFAULT_OBJECTIVE
     singularity: str = "full"
     weights: Weights = field(default_factory=Weights)
     constraint_points: tuple[ConstraintPoint, ...] = ()
@@ -121,7 +125,10 @@ class PlanRequest:
                 raise InvalidRequestError(
                     f"duration = {self.duration} s must lie in [{MIN_DURATION}, {MAX_DURATION}] s",
                     field="duration")
-        for name, allowed in (("method", METHODS), ("objective", OBJECTIVES),
+        # the method's name is checked against the planner's registry, where methods live
+        if not isinstance(self.method, str) or not self.method:
+            raise InvalidRequestError("method must be a method's name", field="method")
+        for name, allowed in (("objective", OBJECTIVES),
                               ("singularity", CRITERIA)):
             if getattr(self, name) not in allowed:
                 raise InvalidRequestError(f"{name} = {getattr(self, name)!r} must be one of "

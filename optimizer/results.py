@@ -129,6 +129,8 @@ class Plan:
                 "sensitivity_max": ind.sensitivity_max,
                 "energy": ind.energy,
                 "margin": self.margin,
+                "deviation": ind.deviation,
+                "reversals": {"phi": ind.reversals_phi, "th1": ind.reversals_th1},
             },
             "path": {
                 "t": self.path.t,

@@ -24,7 +24,8 @@ from optimizer import analysis
 from optimizer.chained_form import chained_form
 from optimizer.errors import PlannerError
 from optimizer.model import Robot
-from optimizer.planner.plan import Deadline, plan
+from optimizer.planner.context import Deadline
+from optimizer.planner.plan import plan
 from optimizer.planner.shooting import prepare
 from optimizer.problem import PlanRequest
 from optimizer.results import json_safe

@@ -20,7 +20,15 @@ from typing import Annotated, Any, Literal, Optional
 from pydantic import (BaseModel, ConfigDict, Field, Strict, ValidationInfo, field_validator,
                       model_validator)
 
+from optimizer.planner.registry import METHODS, method_names
+from optimizer.problem import DEFAULT_OBJECTIVE, OBJECTIVES
+
 from .settings import LIBRARY_MAX_JOINTS, LIBRARY_MIN_DURATION, LIBRARY_MIN_JOINTS, Limits
+
+#: The planner's registered methods (and ``auto``) and objectives, as the schema's enums.
+MethodName = Literal[method_names()]  # type: ignore[valid-type]
+ObjectiveName = Literal[OBJECTIVES]  # type: ignore[valid-type]
+METHOD_HELP = " ".join(f"{name}: {m.summary}." for name, m in METHODS.items())
 
 PI = math.pi
 MAX_JOINTS = LIBRARY_MAX_JOINTS
@@ -108,18 +116,43 @@ class Coefficients(BaseModel):
     segments: list[Segment]
 
 
-class Indicators(BaseModel):
-    """Quality indicators of the plan (``null`` where undefined)."""
+class Reversals(BaseModel):
+    """Direction changes of each actuator (dead band 1e-4 rad)."""
 
-    d_a: Optional[float] = Field(None, description="Approximation distance d_a (rad).")
+    phi: int = Field(..., description="Direction changes of phi (u1 changes sign).")
+    th1: int = Field(..., description="Direction changes of th1 (u2 changes sign).")
+
+
+class Indicators(BaseModel):
+    """Quality indicators of the plan (``null`` where undefined).
+
+    The default objective ranks plans by ``reversals`` (phi and th1 together), then by
+    ``deviation``; the paper's objectives by ``t_p``, then ``d_a`` or ``sensitivity``.
+    """
+
+    deviation: Optional[float] = Field(
+        None, description="Largest distance (rad) in joint space (th1..thn) of the path from the "
+                          "straight segment start -> goal. Geometric: retiming cannot change it.")
+    reversals: Optional[Reversals] = Field(
+        None, description="Direction changes of the two actuators, phi and th1.")
+    d_a: Optional[float] = Field(
+        None, description="The paper's approximation distance d_a: largest |th1(t) - line(t)| "
+                          "of joint 1 against the straight line in time from start to goal (rad).")
     d_a_per_joint: list[Optional[float]] = Field(default_factory=list,
                                                  description="d_a of each joint (rad).")
-    d_a_joint_space: Optional[float] = Field(None, description="Joint-space distance (rad).")
-    t_p: Optional[int] = Field(None, description="Number of passes of phi (1 = no reversal).")
-    phi_reversals: Optional[int] = Field(None, description="Reversals of phi.")
-    sensitivity: Optional[float] = Field(None, description="||J_R(T)||_F.")
+    d_a_joint_space: Optional[float] = Field(
+        None, description="Largest perpendicular distance (rad) of the path from the infinite "
+                          "line through start and goal in joint space (the paper's eq 17).")
+    t_p: Optional[int] = Field(
+        None, description="The paper's t_p: interior extreme points of th1(t), i.e. reversals "
+                          "of the actuator driving joint 1 (dead band 1e-6 rad); 0 = th1 "
+                          "moves monotonically.")
+    phi_reversals: Optional[int] = Field(
+        None, description="Interior extreme points of phi(t) (dead band 1e-6 rad).")
+    sensitivity: Optional[float] = Field(None, description="||J_R(T)||_F (the paper's eq 22).")
     sensitivity_max: Optional[float] = Field(None, description="max_t ||J_R(t)||_F.")
-    energy: Optional[float] = Field(None, description="Input energy.")
+    energy: Optional[float] = Field(None, description="Input energy: integral of u1^2 + u2^2 "
+                                                      "dt (rad^2/s).")
     margin: Optional[float] = Field(None, description="Distance to the singular set (rad).")
 
 
@@ -382,19 +415,16 @@ def build_schemas(limits: Limits) -> Schemas:
         duration: Optional[num(MIN_DURATION, L.max_duration)] = Field(  # type: ignore[valid-type]
             None, description="T (s); default 1 s, or the shortest T that respects max_u1/"
                               "max_u2 when those are given.")
-        method: Literal["auto", "polynomial", "retimed", "constraint_points", "penalty",
-                        "shooting"] = Field(
-            "auto", description="polynomial: the paper's family; retimed: its geometric path "
-                                "under a d_a-optimal time law (no constraint points); "
-                                "constraint_points: QP; penalty: NLP, phi may reverse; "
-                                "shooting: multiple-shooting NLP on the original model, "
-                                "piecewise-constant actuator rates, minimum energy plus "
-                                "joint-space deviation, phi may reverse (no constraint points); "
-                                "auto tries polynomial, constraint points, then (objective "
-                                "tp_then_da) retimed, shooting (goals the family cannot "
-                                "reach) and penalty, and returns the best.")
-        objective: Literal["tp_then_da", "tp_then_sensitivity", "weighted"] = Field(
-            "tp_then_da", description="How the best dphi / plan is chosen.")
+        method: MethodName = Field(  # type: ignore[valid-type]
+            "auto", description="auto (the default): picks among the methods below and "
+                                "returns the best plan by the objective. " + METHOD_HELP)
+        objective: ObjectiveName = Field(  # type: ignore[valid-type]
+            DEFAULT_OBJECTIVE,
+            description="How the best plan is chosen. reversals_then_deviation (default): "
+                        "fewest actuator reversals (phi and th1), then the smallest joint-space "
+                        "deviation from the straight segment start -> goal; tp_then_da and "
+                        "tp_then_sensitivity: the paper's rules (fewest t_p, then smallest d_a "
+                        "of joint 1 or ||J_R(T)||_F); weighted: the smallest weighted score.")
         weights: Optional[Weights] = Field(None, description="For objective = weighted.")
         singularity: Literal["full", "z2"] = Field(
             "full", description="Singularity criterion used in the search.")

@@ -25,7 +25,8 @@ from optimizer.errors import InfeasibleError, SolverTimeoutError
 from optimizer.model import Robot
 from optimizer.planner.convex import (ConstraintPointQP, gram_monomials, legendre_to_monomial,
                                       necessary_dphi_range, plan_constraint_points)
-from optimizer.planner.plan import Deadline, plan
+from optimizer.planner.context import Deadline
+from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
 from optimizer.region import Region
 from optimizer.steering import ChainedPath, ConstraintPoint, solve_polynomial

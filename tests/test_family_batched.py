@@ -16,9 +16,10 @@ import pytest
 from optimizer.errors import SingularSystemError
 from optimizer.indicators import count_reversals, line_deviation
 from optimizer.model import Robot
-from optimizer.planner.family import PolynomialFamily, _reversals_cols
+from optimizer.indicators import count_reversals_columns
+from optimizer.planner.family import PolynomialFamily
 from optimizer.planner.intervals import feasible_intervals
-from optimizer.planner.plan import make_region
+from optimizer.planner.rules import make_region
 from optimizer.problem import PlanRequest
 from optimizer.steering import (ChainedPath, ConstraintPoint, FamilySystem, polyval_rows,
                                 solve_polynomial)
@@ -121,7 +122,7 @@ def test_reversal_count_vectorised():
             x = x + 1e-7 * rng.normal(size=t.size)   # wiggles inside the dead band
         cols.append(x)
     X = np.array(cols).T.copy()
-    np.testing.assert_array_equal(_reversals_cols(X),
+    np.testing.assert_array_equal(count_reversals_columns(X),
                                   [count_reversals(X[:, i]) for i in range(X.shape[1])])
 
 

@@ -9,7 +9,8 @@ from optimizer.chained_form import chained_form
 from optimizer.model import Robot
 from optimizer.planner.family import PolynomialFamily
 from optimizer.planner.intervals import feasible_intervals
-from optimizer.planner.plan import make_region, plan
+from optimizer.planner.plan import plan
+from optimizer.planner.rules import make_region
 from optimizer.problem import PlanRequest
 from optimizer.steering import ChainedPath, solve_polynomial
 

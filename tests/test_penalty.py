@@ -20,7 +20,8 @@ from optimizer.chained_form import chained_form
 from optimizer.errors import SolverTimeoutError
 from optimizer.model import Robot
 from optimizer.planner import penalty as pen
-from optimizer.planner.plan import Deadline, plan
+from optimizer.planner.context import Deadline
+from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
 from optimizer.steering import ChainedPath
 from optimizer.verify import PlannedInputs

@@ -79,7 +79,7 @@ def test_frechet_bound_matches_brute_force(seed):
 
 def _request(start_deg, goal_deg, **kw):
     d = {"start": [D(x) for x in start_deg], "goal": [D(x) for x in goal_deg],
-         "method": "retimed", "time_limit": 60.0}
+         "method": "retimed", "objective": "tp_then_da", "time_limit": 60.0}
     d.update(kw)
     return PlanRequest.from_dict(d)
 
@@ -149,14 +149,17 @@ def test_retimed_opposite_motion_is_infeasible_with_reason():
     assert exc.value.diagnostics["blocking"] == "opposite_joint_motion"
 
 
-def test_auto_returns_the_best_of_polynomial_retimed_and_penalty():
-    req = _request([1, 1, 1], [30, 30, 30], method="auto")
-    p = plan(req)
+def test_auto_under_the_papers_rule_returns_the_best_of_the_family():
+    """Under tp_then_da a goal the family reaches is answered by the family: the polynomial
+    optimum and its retimed path, the better by (t_p, d_a)."""
+    p = plan(_request([1, 1, 1], [30, 30, 30], method="auto"))
     r = plan(_request([1, 1, 1], [30, 30, 30]))
+    poly = plan(_request([1, 1, 1], [30, 30, 30], method="polynomial"))
     auto = p.diagnostics["auto"]
-    assert "retimed" in auto["tried"] and "penalty" in auto["tried"]
+    assert [t["method"] for t in auto["tried"]] == ["polynomial", "retimed"]
     assert auto["chosen"] == p.method
-    assert (p.indicators.t_p, p.indicators.d_a) <= (r.indicators.t_p, r.indicators.d_a + 1e-12)
+    best = min((x.indicators.t_p, x.indicators.d_a) for x in (r, poly))
+    assert (p.indicators.t_p, p.indicators.d_a) == best
 
 
 def test_retimed_speed_bound_and_actuator_limits():

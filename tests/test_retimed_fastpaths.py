@@ -18,14 +18,17 @@ from optimizer import region as region_mod
 from optimizer.indicators import count_reversals
 from optimizer.planner import retime
 from optimizer.planner.intervals import dphi_grid
-from optimizer.planner.plan import (RETIME_SIGMA_SAMPLES, Deadline, family_for, phi_search_bounds,
-                                    plan)
+from optimizer.planner.context import Deadline
+from optimizer.planner.family import family_for
+from optimizer.planner.plan import plan
+from optimizer.planner.retimed import RETIME_SIGMA_SAMPLES
+from optimizer.planner.rules import phi_search_bounds
 from optimizer.problem import PlanRequest
 
 
 def _req(start_deg: list[float], goal_deg: list[float], **kw: object) -> PlanRequest:
     return PlanRequest(start=tuple(np.radians(start_deg)), goal=tuple(np.radians(goal_deg)),
-                       method="retimed", **kw)  # type: ignore[arg-type]
+                       method="retimed", objective="tp_then_da", **kw)  # type: ignore[arg-type]
 
 
 def test_csc_matches_scipy() -> None:

@@ -14,7 +14,8 @@ import pytest
 from optimizer.analysis import robustness
 from optimizer.errors import InfeasibleError, InvalidRequestError, SolverTimeoutError
 from optimizer.model import Robot
-from optimizer.planner.plan import Deadline, plan
+from optimizer.planner.context import Deadline
+from optimizer.planner.plan import plan
 from optimizer.planner.shooting import solve_shooting
 from optimizer.problem import PlanRequest
 from optimizer.steering import ConstraintPoint

@@ -140,7 +140,10 @@ from ..steering import (MIN_ABS_DPHI, ChainedPath, ConstraintPoint, InputSchedul
                         solve_polynomial)
 from .family import SEARCH_SAMPLES, PolynomialFamily
 from .intervals import feasible_intervals
-from .plan import Deadline, direction_conflict, finish_plan, make_region, phi_search_bounds
+from .base import Capabilities, Method
+from .context import Deadline, PlanContext
+from .finish import finish_plan
+from .rules import direction_conflict, make_region, phi_search_bounds
 
 #: Extra V2 coefficients tried in turn until some dphi is feasible (the paper's m).
 EXTRA_DEGREES = (4, 6)
@@ -1129,3 +1132,16 @@ def _report(qp: ConstraintPointQP, s: Synthesis, scanned: dict[str, Any],
         "attempts": attempts,
         "source": s.source,
     }
+
+
+class ConstraintPointsMethod(Method):
+    name = "constraint_points"
+    summary = ("the paper's family with constraint points synthesised by a convex QP "
+               "(Clarabel) with cutting planes, in place of the paper's trial and error")
+    capabilities = Capabilities(constraint_points=True, fixed_phi_change=True,
+                                reverses_phi=False, inputs="chained")
+    options = {"extra_degrees": EXTRA_DEGREES, "grid_points": GRID_POINTS,
+               "max_cut_rounds": MAX_CUT_ROUNDS}
+
+    def run(self, req: PlanRequest, ctx: PlanContext) -> Plan:
+        return plan_constraint_points(req, ctx.deadline)

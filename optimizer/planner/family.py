@@ -17,12 +17,15 @@ from typing import Callable
 import numpy as np
 
 from ..chained_form import ChainedForm, chained_form
-from ..indicators import REVERSAL_DEAD_BAND, count_reversals, sensitivity_frobenius
+from ..indicators import count_reversals_columns, sensitivity_frobenius
 from ..model import Robot
 from ..region import PathCheck, PolyMinimum, Region
 from ..steering import (ChainedPath, ConstraintPoint, FamilySystem, InputSchedule,
                         matmul_single_thread, polyval_rows, solve_polynomial)
-from ..errors import SingularSystemError
+from ..errors import InfeasibleError, SingularSystemError
+from ..problem import PlanRequest
+from .context import Deadline
+from .rules import direction_conflict, make_region
 
 #: Normalised-time samples used to evaluate indicators inside searches.
 SEARCH_SAMPLES = 1001
@@ -242,7 +245,7 @@ class PolynomialFamily:
         if tp:
             t_p = np.full(d.size, _NO_TP)
             if ok.any():
-                t_p[ok] = _reversals_cols(th1[:, ok])
+                t_p[ok] = count_reversals_columns(th1[:, ok])
         en = None
         if energy:
             en = np.full(d.size, _INF)
@@ -294,40 +297,11 @@ class PolynomialFamily:
         return [s.member(i, self.n) for i in range(dphis.size)]
 
 
-def _reversals_cols(X: np.ndarray, dead_band: float = REVERSAL_DEAD_BAND) -> np.ndarray:
-    """:func:`optimizer.indicators.count_reversals` of every column of ``X`` (G, D), vectorised.
-
-    Columns whose turning points are all farther apart than the dead band (the usual case)
-    count their turning points; the others (zero steps, small wiggles) go through the scalar
-    rule.
-    """
-    G, D = X.shape
-    out = np.zeros(D, dtype=int)
-    if D == 0 or G < 3:
-        return out
-    sg = np.sign(np.diff(X, axis=0))
-    flat = (sg == 0.0).any(axis=0)
-    turn = sg[1:] != sg[:-1]                      # (G-2, D): turning point at sample g + 1
-    g, r = np.nonzero(turn)
-    cnt = np.bincount(r, minlength=D)
-    slow = flat.copy()
-    if r.size:
-        order = np.lexsort((g, r))                # by member, then time
-        g, r = g[order], r[order]
-        vals = X[g + 1, r]
-        first = np.ones(r.size, bool)
-        first[1:] = r[1:] != r[:-1]
-        last = np.ones(r.size, bool)
-        last[:-1] = r[:-1] != r[1:]
-        small = np.zeros(D, bool)
-        if r.size > 1:
-            leg = np.abs(np.diff(vals))
-            inner = ~first[1:]
-            small[r[1:][inner & (leg <= dead_band)]] = True
-        small[r[first][np.abs(vals[first] - X[0, r[first]]) <= dead_band]] = True
-        small[r[last][np.abs(X[-1, r[last]] - vals[last]) <= dead_band]] = True
-        slow |= small
-    out[:] = cnt
-    for i in np.nonzero(slow)[0]:
-        out[i] = count_reversals(X[:, i], dead_band)
-    return out
+def family_for(req: PlanRequest, deadline: Deadline) -> PolynomialFamily:
+    """The paper's family for ``req``; :class:`InfeasibleError` when no member can reach the
+    goal (joints that must move in opposite directions, or not at all)."""
+    conflict = direction_conflict(req)
+    if conflict:
+        raise InfeasibleError(conflict, diagnostics={"blocking": "opposite_joint_motion"})
+    return PolynomialFamily(req.robot, req.q_start(), req.q_goal(0.0), req.duration_or_default,
+                            req.constraint_points, make_region(req), deadline.check)

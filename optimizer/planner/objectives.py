@@ -4,6 +4,8 @@
 * ``tp_then_sensitivity``: fewest ``t_p``, then smallest ``||J_R(T)||_F``; it grows with
   ``|dphi|`` only, so this is the smallest ``|dphi|`` with the fewest ``t_p``.
 * ``weighted``: smallest ``w_da d_a + w_s ||J_R(T)||_F + w_e energy + w_tp t_p``.
+* ``reversals_then_deviation`` (the product's default): fewest actuator reversals, then the
+  smallest joint-space deviation from the straight segment; see :func:`optimise_geometry`.
 
 Each objective is optimised continuously, all candidate members of a step evaluated at once:
 
@@ -101,6 +103,8 @@ def optimise(family: PolynomialFamily, intervals: list[tuple[float, float]], obj
 
     The returned member's ``energy`` is computed only when the objective uses it (else inf).
     """
+    if objective == "reversals_then_deviation":
+        return optimise_geometry(family, intervals)
     _score(objective, weights)  # validates the objective
     pieces = []
     for a, b in intervals:
@@ -433,3 +437,80 @@ def _bisect_sensitivity(family: PolynomialFamily, best: MemberEval, toward: floa
             bad = mid
     e = family.evaluate(float(good))
     return e if e.ok else None
+
+
+# ---------------------------------------------------------------------- geometric objective
+#: Members screened over all intervals by the geometric objective (at least 3 per interval).
+GEOMETRY_NODES = 24
+#: Path samples per member of the geometric objective (the indicators' grid is finer; the
+#: winner is measured there).
+GEOMETRY_SAMPLES = 257
+
+
+def _geometry_keys(family: PolynomialFamily, dphis: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """``(reversals, deviation)`` of members (inf where a member cannot be inverted)."""
+    from ..indicators import ACTUATOR_DEAD_BAND, count_reversals, segment_distance
+
+    sig = np.linspace(0.0, 1.0, GEOMETRY_SAMPLES)
+    z, regular, _ = family.batch_z(dphis, sig)
+    D = dphis.size
+    inv = family.cf.from_chained(z.reshape(-1, family.n + 1))
+    q = inv.q.reshape(D, sig.size, family.n + 1)
+    valid = regular & inv.valid.reshape(D, sig.size).all(axis=1)
+    rev = np.full(D, np.inf)
+    dev = np.full(D, np.inf)
+    for i in np.flatnonzero(valid):
+        th = q[i, :, 1:]
+        # phi = b0 t is monotone in the family: only th1's actuator can reverse
+        rev[i] = count_reversals(th[:, 0], ACTUATOR_DEAD_BAND)
+        dev[i] = segment_distance(th)
+    return rev, dev
+
+
+def optimise_geometry(family: PolynomialFamily, intervals: list[tuple[float, float]]
+                      ) -> MemberEval | None:
+    """The member with the fewest actuator reversals, then the smallest joint-space deviation
+    from the straight segment start -> goal.
+
+    A screen of :data:`GEOMETRY_NODES` members spread over the intervals, then bounded Brent
+    minimisation of the deviation between the best node's neighbours (among members with as
+    few reversals), and the continuous check of the result; the next best node when that check
+    fails.
+    """
+    pieces = []
+    widths = np.array([b - a for a, b in intervals])
+    total = float(widths.sum())
+    for (a, b), w in zip(intervals, widths):
+        k = max(3, int(round(GEOMETRY_NODES * w / total)) if total > 0 else 3)
+        eps = min(1e-7, 0.25 * (b - a))
+        pieces.append(np.linspace(a + eps, b - eps, k))
+    if not pieces:
+        return None
+    nodes = np.concatenate(pieces)
+    rev, dev = _geometry_keys(family, nodes)
+    order = np.lexsort((dev, rev))
+    for i in order:
+        if not np.isfinite(dev[i]):
+            return None
+        r0 = rev[i]
+        lo = float(nodes[max(i - 1, 0)])
+        hi = float(nodes[min(i + 1, nodes.size - 1)])
+        x_best, f_best = float(nodes[i]), float(dev[i])
+        if hi > lo:
+            def f(x: float) -> float:
+                r, d = _geometry_keys(family, np.array([x]))
+                return float(d[0]) if r[0] <= r0 else _BAD
+
+            res = minimize_scalar(f, bounds=(lo, hi), method="bounded",
+                                  options={"xatol": 1e-6, "maxiter": 40})
+            if res.success and float(res.fun) < f_best:
+                x_best, f_best = float(res.x), float(res.fun)
+        for x in (x_best, float(nodes[i])):
+            ok, m = _confirm(family, x)
+            if ok:
+                return MemberEval(x, True, m, int(r0), _INF_F, _INF_F, _INF_F)
+    return None
+
+
+_INF_F = float("inf")

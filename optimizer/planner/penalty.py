@@ -128,6 +128,7 @@ but th1 swings widely (t_p of 8-12) and the search takes 4-16 s (plus the verifi
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -146,7 +147,11 @@ from ..problem import MAX_TIME_LIMIT, PlanRequest
 from ..results import Plan
 from ..steering import ChainedPath, InputSchedule
 from .family import SEARCH_SAMPLES
-from .plan import Deadline, direction_conflict, finish_plan, make_region
+from .base import Capabilities, Method
+from .solvers import DeadlineCallback
+from .context import Deadline, PlanContext
+from .finish import finish_plan
+from .rules import direction_conflict, joint_limits, make_region, phi_search_bounds
 
 # ---------------------------------------------------------------------- options
 #: Default kind of the singularity constraints: ``"hard"`` (inequalities) or ``"penalty"``.
@@ -278,39 +283,6 @@ class NLPKey:
         return len(self.gains) + 1
 
 
-class _DeadlineCallback(ca.Callback):
-    """IPOPT iteration callback: asks IPOPT to stop once ``stop_at`` (perf_counter) has passed.
-
-    ``stop_at`` is mutable state of a cached object: one thread per process only.
-    """
-
-    def __init__(self, nx: int, ng: int, npar: int) -> None:
-        ca.Callback.__init__(self)
-        self._dims = {"x": nx, "lam_x": nx, "g": ng, "lam_g": ng, "p": npar, "lam_p": npar}
-        self.stop_at = math.inf
-        self.construct("penalty_deadline", {})
-
-    def get_n_in(self) -> int:
-        return ca.nlpsol_n_out()
-
-    def get_n_out(self) -> int:
-        return 1
-
-    def get_name_in(self, i: int) -> str:
-        return ca.nlpsol_out(i)
-
-    def get_name_out(self, i: int) -> str:
-        return "ret"
-
-    def get_sparsity_in(self, i: int) -> ca.Sparsity:
-        name = ca.nlpsol_out(i)
-        return ca.Sparsity.scalar() if name == "f" else ca.Sparsity.dense(self._dims[name], 1)
-
-    def eval(self, arg: Sequence[Any]) -> list:  # type: ignore[override]
-        # a nonzero return makes IPOPT stop with User_Requested_Stop
-        return [1 if time.perf_counter() > self.stop_at else 0]
-
-
 @dataclass
 class PenaltyNLP:
     """A built NLP: the IPOPT solver plus the layout needed to fill and read it.
@@ -323,7 +295,7 @@ class PenaltyNLP:
     aux : casadi.Function
         ``(x, p) -> (th1 on the grid with its ends, region constraints (>= 0 inside),
         [reversal, s_da, sensitivity, energy, penalty, f])``.
-    callback : _DeadlineCallback
+    callback : DeadlineCallback
     m1, m2 : ndarray
         Legendre -> monomial matrices of one segment for ``V1`` and ``V2``.
     taus : ndarray
@@ -342,7 +314,7 @@ class PenaltyNLP:
     key: NLPKey
     solver: Any
     aux: Any
-    callback: _DeadlineCallback
+    callback: DeadlineCallback
     m1: np.ndarray
     m2: np.ndarray
     taus: np.ndarray
@@ -612,7 +584,7 @@ def _build(key: NLPKey) -> PenaltyNLP:
 
     gvec = ca.vertcat(*g)
     nx, ng, npar = x.numel(), gvec.numel(), p.numel()
-    cb = _DeadlineCallback(nx, ng, npar)
+    cb = DeadlineCallback(nx, ng, npar)
     ipopt = {**_IPOPT_OPTIONS, **(_IPOPT_EXPLORE if key.explore else {})}
     opts: dict[str, Any] = {"ipopt": ipopt, "print_time": False,
                             "iteration_callback": cb, "error_on_fail": False}
@@ -947,7 +919,6 @@ def _family_start(req: PlanRequest) -> InputSchedule | None:
     if direction_conflict(req) is not None or req.constraint_points:
         return None
     from .family import PolynomialFamily
-    from .plan import phi_search_bounds
     fam = PolynomialFamily(req.robot, req.q_start(), req.q_goal(0.0), req.duration_or_default,
                            (), make_region(req, "full"))
     if req.phi_change is not None:
@@ -1573,3 +1544,19 @@ def plan_penalty(req: PlanRequest, deadline: Deadline, *, warm_start: InputSched
     assert inputs is not None
     inputs = InputSchedule(inputs.breaks, inputs.v1, inputs.v2, T)
     return finish_plan(req, inputs, "penalty", [], timing, diagnostics)
+
+
+class PenaltyMethod(Method):
+    name = "penalty"
+    summary = ("the paper's Remark 3: the singularity-avoiding inequality as a penalty in the "
+               "objective; phi may reverse")
+    capabilities = Capabilities(constraint_points=True, fixed_phi_change=True,
+                                reverses_phi=True, inputs="chained")
+
+    def run(self, req: PlanRequest, ctx: PlanContext) -> Plan:
+        warm = ctx.warm_start if isinstance(ctx.warm_start, InputSchedule) else None
+        lo, hi = joint_limits(req)
+        bounds = tuple(None if req.joint_bounds is None and j < req.n - 1 else (lo[j], hi[j])
+                       for j in range(req.n))
+        return plan_penalty(dataclasses.replace(req, joint_bounds=bounds), ctx.deadline,
+                            warm_start=warm)

@@ -16,8 +16,8 @@ Transcription (normalised time ``tau = t / T`` in [0, 1]; ``T`` only rescales th
   step first; 50 of two when that NLP does not converge);
 * ``q_0`` = the start, ``th(1)`` = the goal; ``phi(1) - phi(0)`` within the request's
   ``phi_change_bounds`` (or equal to ``phi_change``);
-* ``th_1..th_n`` inside the region (:class:`~optimizer.region.Region`: ``(0, pi/2)`` for
-  ``th_1..th_{n-1}``, intersected with the joint bounds) with a margin of :data:`MARGIN`
+* ``th_1..th_n`` inside their limits (:func:`~.rules.joint_limits`: ``(0, pi/2)`` for every
+  joint unless the joint bounds say otherwise) with a margin of :data:`MARGIN`
   (less when the start or the goal is closer to a bound) at every node;
 * objective: ``int |U|^2 dtau + w_dev * S + w_da * S1`` with ``S >=`` the squared distance of
   every interior node's ``(th_1..th_n)`` from the straight line through start and goal (joint
@@ -80,12 +80,14 @@ from ..chained_form import chained_form
 from ..errors import InfeasibleError, InvalidRequestError, NumericalError, SolverTimeoutError
 from ..indicators import compute_indicators
 from ..problem import PlanRequest
-from ..region import Region
 from ..results import Plan, SampledPath
 from ..verify import CASCADE_TOL, Verification, integrate_cascade
-from .family import SEARCH_SAMPLES as INDICATOR_SAMPLES  # the other methods' indicator grid
-from .penalty import MAX_TIME_LIMIT, TIMEOUT, _DeadlineCallback
-from .plan import TERMINAL_TOLERANCE
+from ..problem import MAX_TIME_LIMIT
+from .base import Capabilities, Method
+from .context import PlanContext
+from .finish import finish_actuator_plan, output_grid
+from .solvers import TIMEOUT, DeadlineCallback
+from .rules import direction_conflict, joint_limits, phi_search_bounds
 
 @dataclass(frozen=True)
 class Transcription:
@@ -238,7 +240,7 @@ class ShootingNLP:
         self.nw = int(nlp["x"].shape[0])
         n_g = int(nlp["g"].shape[0])
         self.equality = np.array(eq)
-        self.callback = _DeadlineCallback(self.nw, n_g, int(P.shape[0]))
+        self.callback = DeadlineCallback(self.nw, n_g, int(P.shape[0]))
         ipopt_opts: dict[str, Any] = {
             "ipopt": {"print_level": 0, "sb": "yes", "tol": 1e-8, "acceptable_tol": 1e-6,
                       "max_iter": 300, "max_wall_time": float(MAX_TIME_LIMIT)},
@@ -356,10 +358,11 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
     return nlp
 
 
-def _node_bounds(req: PlanRequest, region: Region) -> tuple[np.ndarray, np.ndarray]:
-    """Per joint: the region's bounds moved in by :data:`MARGIN` (less near start or goal)."""
+def _node_bounds(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
+    """Per joint: its limits (:func:`~.rules.joint_limits`) moved in by :data:`MARGIN` (less
+    near start or goal)."""
     a, b = np.array(req.start), np.array(req.goal)
-    lo, hi = np.array(region.lower, float), np.array(region.upper, float)
+    lo, hi = joint_limits(req)
     inner_lo = np.minimum(a, b) - lo
     inner_hi = hi - np.maximum(a, b)
     lo_m = np.where(np.isfinite(lo), lo + np.minimum(MARGIN, 0.5 * inner_lo), -np.inf)
@@ -373,8 +376,32 @@ def nlp_for(req: PlanRequest, tr: Transcription) -> ShootingNLP:
                         req.phi_change is not None, tr.intervals, tr.substeps)
 
 
-def solve_shooting(req: PlanRequest, deadline: Any,
-                   tr: Transcription = LADDER[0]) -> ShootingSolution:
+def monotone_signs(req: PlanRequest) -> tuple[float, float] | None:
+    """Signs of ``(u1, u2)`` of a plan in which neither actuator reverses, or None when the
+    goal needs ``phi`` to reverse (:func:`~.rules.direction_conflict`).
+
+    With ``u1`` of one sign every joint ``th_2..th_n`` moves in ``phi``'s direction, so the
+    sign is the one the joints' motion demands; ``u2``'s is that of ``th_1``'s change (0: free,
+    ``th_1`` need not move).
+    """
+    if direction_conflict(req) is not None:
+        return None
+    lo, hi = phi_search_bounds(req)
+    if req.phi_change is not None:
+        s1 = float(np.sign(req.phi_change))
+    elif lo >= 0.0:
+        s1 = 1.0
+    elif hi <= 0.0:
+        s1 = -1.0
+    else:  # pragma: no cover - a direction is always demanded without a conflict
+        return None
+    if s1 == 0.0:
+        return None
+    return s1, float(np.sign(req.goal[0] - req.start[0]))
+
+
+def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0],
+                   monotone: tuple[float, float] | None = None) -> ShootingSolution:
     """Solve the NLP of transcription ``tr`` for ``req`` (normalised time); raise a typed error
     when it fails.
 
@@ -386,8 +413,7 @@ def solve_shooting(req: PlanRequest, deadline: Any,
     nlp = nlp_for(req, tr)
     n, N = nlp.n, nlp.N
     a, b = np.array(req.start), np.array(req.goal)
-    region = Region(robot, "full", req.joint_bounds)
-    lo, hi = _node_bounds(req, region)
+    lo, hi = _node_bounds(req)
     lbW = np.full((N + 1, nlp.stride), -np.inf)
     ubW = np.full((N + 1, nlp.stride), np.inf)
     lbW[:, 1:n + 1], ubW[:, 1:n + 1] = lo, hi
@@ -399,6 +425,19 @@ def solve_shooting(req: PlanRequest, deadline: Any,
     else:
         lo_phi, hi_phi = req.phi_change_bounds
         lbW[N, 0], ubW[N, 0] = req.phi_start + lo_phi, req.phi_start + hi_phi
+    attempts = ATTEMPTS
+    if monotone is not None:
+        # every rate of one sign: neither actuator reverses (see monotone_signs)
+        for col, sign in zip((nlp.nx, nlp.nx + 1), monotone):
+            if sign > 0:
+                lbW[:N, col] = 0.0
+            elif sign < 0:
+                ubW[:N, col] = 0.0
+        attempts = tuple(a for a in ATTEMPTS if a[1] == monotone[0])
+        if monotone[1] != 0.0:
+            # both actuators held monotone may be infeasible (th1 must overshoot on some
+            # goals): fatrop's iteration cap bounds the cost of finding out
+            attempts = tuple(a for a in attempts if a[0] == "fatrop")
     lbw, ubw = lbW.ravel()[:nlp.nw], ubW.ravel()[:nlp.nw]
     if req.objective == "weighted":
         w_dev, w_en = float(req.weights.d_a), float(req.weights.energy)
@@ -413,7 +452,7 @@ def solve_shooting(req: PlanRequest, deadline: Any,
     nlp.load_native()
     solvers = dict(nlp.solvers)
     tried: list[dict[str, Any]] = []
-    for name, sign in ATTEMPTS:
+    for name, sign in attempts:
         solver = solvers.get(name)
         if solver is None:
             continue
@@ -448,84 +487,6 @@ def solve_shooting(req: PlanRequest, deadline: Any,
     raise InfeasibleError("the shooting NLP found no path from any start: "
                           + "; ".join(f"{t['solver']} {t['status']}" for t in tried),
                           diagnostics={"blocking": "nlp_failed", "tried": tried})
-
-
-def output_grid(samples: int, breaks: np.ndarray) -> np.ndarray:
-    """Where the path is wanted, in units of ``breaks``: the returned samples, the indicators'
-    dense grid and the interval ends (the region check)."""
-    T = float(breaks[-1])
-    return np.concatenate([np.linspace(0.0, T, int(samples)),
-                           np.linspace(0.0, T, INDICATOR_SAMPLES), breaks])
-
-
-def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: str,
-                         planned_nodes: np.ndarray, timing: dict[str, float],
-                         diagnostics: dict[str, Any], replay: Any) -> Plan:
-    """Check, sample and measure a piecewise-constant-rate plan.
-
-    ``replay`` is the original model integrated under the schedule's rates (cascade quadrature,
-    error estimate <= 1e-11 rad, DOP853 as fallback) in normalised time (``t / T``: the model
-    is driftless, the path is the same), on :func:`output_grid` of the normalised breaks:
-    samples, indicators, the region check at the interval ends (enough, see the module
-    docstring) and the terminal error all come from it. ``planned_nodes`` (the NLP's own node
-    states) give the verification's ``max_deviation``.
-
-    Raises
-    ------
-    InfeasibleError
-        A node of the true path is outside the region.
-    NumericalError
-        The true path does not reach the goal.
-    """
-    robot = req.robot
-    cf = chained_form(robot)
-    T = schedule.duration
-    q0 = req.q_start()
-    t = np.linspace(0.0, T, int(req.samples))
-    td = np.linspace(0.0, T, INDICATOR_SAMPLES)
-    rep = replay
-    if not rep.success:
-        raise NumericalError(f"the re-integration failed: {rep.message}",
-                             diagnostics={"method": method})
-    ns, nd = t.size, td.size
-    q, qd, qb = rep.q[:ns], rep.q[ns:ns + nd], rep.q[ns + nd:]
-    region = Region(robot, "full", req.joint_bounds)
-    lo, hi = np.array(region.lower, float), np.array(region.upper, float)
-    th = qb[:, 1:]
-    margins = np.minimum(th - lo, hi - th)
-    margin = float(np.min(margins))
-    if not margin > 0.0 or rep.singular:
-        k, j = np.unravel_index(int(np.argmin(margins)), margins.shape)
-        raise InfeasibleError(
-            f"the re-integrated path leaves the singularity-free region: th{j + 1} at "
-            f"t = {schedule.breaks[k]:.6g} s", diagnostics={"margin": margin})
-    final = rep.final
-    terminal = float(np.max(np.abs(final[1:] - np.array(req.goal))))
-    if not terminal <= TERMINAL_TOLERANCE:
-        raise NumericalError(
-            "the planned inputs do not steer the original model to the goal "
-            f"(terminal error {terminal:.3g} rad)",
-            diagnostics={"terminal_error": terminal, "method": method})
-    t1 = time.perf_counter()
-    u = schedule.u(t)
-    # v = (u1, L_g1 z2 u1 + L_g2 z2 u2) along the path (eq 5); z by the forward map (eq 4)
-    al, be = cf.input_coefficients(q)
-    v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
-    z = cf.to_chained(q)
-    # the replay ran in normalised time: int |u|^2 dt = int |U|^2 dtau / T
-    energy = rep.energy / T
-    ind = dataclasses.replace(compute_indicators(td, qd, None), energy=energy)
-    dphi = float(final[0] - q0[0])
-    ver = Verification(terminal_error=terminal, phi_error=0.0,
-                       max_deviation=float(np.max(np.abs(qb - planned_nodes))),
-                       singular=False, final=tuple(float(x) for x in final),
-                       rtol=CASCADE_TOL, atol=CASCADE_TOL, energy=energy,
-                       integrator=rep.integrator, error_estimate=rep.error_estimate)
-    timing["sampling"] = time.perf_counter() - t1
-    return Plan(robot=robot, method=method, phi_change=dphi, duration=T, inputs=schedule,
-                chained=None, feasible_phi_changes=[], indicators=ind, margin=margin,
-                path=SampledPath(t=t, q=q, z=z, u=u, v=v), verification=ver, timing=timing,
-                diagnostics=diagnostics)
 
 
 def correct_rates(req: PlanRequest, nlp: ShootingNLP, rates: np.ndarray,
@@ -569,7 +530,9 @@ def correct_rates(req: PlanRequest, nlp: ShootingNLP, rates: np.ndarray,
         if errors[-1] <= CORRECTION_TARGET or k == MAX_CORRECTIONS:
             break
         J = np.asarray(nlp.end_jacobian(q0, U.ravel()))
-        step = J.T @ np.linalg.solve(J @ J.T, r)
+        # the minimum-norm step; lstsq, not the normal equations: J J^T can be singular in
+        # double precision (nearly parallel rows) while J itself is fine
+        step = np.linalg.lstsq(J, r, rcond=None)[0]
         U = U - step.reshape(N, 2)
     if best is None:  # the first integration failed: finish_actuator_plan reports it
         return U, errors, rep
@@ -588,12 +551,20 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     t0 = time.perf_counter()
     failures: list[str] = []
     tried: list[dict[str, Any]] = []
-    for tr in LADDER:
+    # Under the default objective (fewest reversals first) a plan in which neither actuator
+    # reverses wins whatever its deviation: try that NLP (rates of fixed signs) first.
+    signs = monotone_signs(req) if req.objective == "reversals_then_deviation" else None
+    rungs: list[tuple[Transcription, tuple[float, float] | None]] = [(tr, None) for tr in LADDER]
+    if signs is not None:
+        # neither actuator reversing, then phi alone not reversing, then free
+        rungs[:0] = ([(LADDER[0], signs)] if signs[1] != 0.0 else []) + [(LADDER[0], (signs[0], 0.0))]
+    for tr, mono in rungs:
         try:
-            sol = solve_shooting(req, deadline, tr)
+            sol = solve_shooting(req, deadline, tr, mono)
             break
-        except InfeasibleError as exc:  # a finer transcription may still converge
-            failures.append(f"{tr.intervals} intervals: {exc.message}")
+        except InfeasibleError as exc:  # a finer or free transcription may still converge
+            failures.append(f"{tr.intervals} intervals"
+                            + (" (monotone)" if mono else "") + f": {exc.message}")
             tried.extend(exc.diagnostics.get("tried", []))
     else:
         raise InfeasibleError("; ".join(failures),
@@ -609,6 +580,7 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     schedule = ActuatorSchedule(breaks=np.linspace(0.0, T, N + 1), rates=rates / T)
     diagnostics = {"objective": req.objective, "singularity": "full",
                    "shooting": {"intervals": N, "rk4_substeps": tr.substeps,
+                                "monotone": mono is not None,
                                 "rate_bound": tr.rate_bound,
                                 "status": sol.status, "iterations": sol.iterations,
                                 "start": sol.start, "tried": tried + list(sol.tried),
@@ -619,5 +591,18 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
                                 replay=replay)
 
 
-__all__ = ["ActuatorSchedule", "ShootingNLP", "plan_shooting", "finish_actuator_plan",
-           "prepare", "solve_shooting"]
+class ShootingMethod(Method):
+    name = "shooting"
+    summary = ("direct multiple shooting on the original model: piecewise-constant actuator "
+               "rates, minimum energy plus joint-space deviation; phi may reverse")
+    capabilities = Capabilities(constraint_points=False, fixed_phi_change=True,
+                                reverses_phi=True, inputs="actuator")
+    options = {"ladder": [dataclasses.asdict(t) for t in LADDER], "margin": MARGIN,
+               "deviation_weight": DEVIATION_WEIGHT, "d_a_weight": D_A_WEIGHT}
+
+    def run(self, req: PlanRequest, ctx: PlanContext) -> Plan:
+        return plan_shooting(req, ctx.deadline)
+
+
+__all__ = ["ActuatorSchedule", "ShootingNLP", "ShootingMethod", "plan_shooting", "prepare",
+           "solve_shooting"]

@@ -1,0 +1,131 @@
+"""``auto``: run only the methods that can win for the request, and return the best by its rule.
+
+What runs (each method through :mod:`.registry`, its capabilities checked there):
+
+* **Constraint points given**: only the paper's family honours them: ``polynomial`` and
+  ``constraint_points``, both, ranked.
+* **The paper's objectives** (``tp_then_da``, ``tp_then_sensitivity``): the family's answer is
+  the paper's answer. ``polynomial`` (and, for ``tp_then_da``, ``retimed``: the same path under
+  the ``d_a``-optimal time law); only when the family cannot reach the goal, ``shooting``, and
+  ``penalty`` if that fails.
+* **The default objective** (fewest reversals, then smallest joint-space deviation) and
+  ``weighted``: ``shooting`` first. Its NLP minimises the deviation directly over forty rates
+  on the original model, where the family has one parameter, so the family is not waited for;
+  it runs only when ``shooting`` fails (``weighted`` runs both, the weights decide). ``penalty``
+  solves the same transcription with the region as an exact penalty: at equal objective it
+  cannot beat a converged ``shooting`` plan, so it runs only when ``shooting`` found none.
+
+A method that fails (infeasible, numerical, or an unexpected exception: a bug in one method
+must not hide another's verified plan) is recorded and the next one runs; the deadline is
+shared. ``diagnostics.auto`` says what was tried, what won and by which rule.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+from ..errors import InfeasibleError, PlannerError, SolverTimeoutError
+from ..problem import PlanRequest
+from ..results import Plan
+from .context import PlanContext
+from .ranking import RULES, best, rank_key
+from .registry import METHODS
+from .rules import direction_conflict
+
+log = logging.getLogger(__name__)
+
+#: Length (characters) of a failure's message kept in the diagnostics.
+MESSAGE_CHARS = 160
+PAPER_OBJECTIVES = ("tp_then_da", "tp_then_sensitivity")
+
+
+class _Run:
+    """The methods tried for one request and what came of each."""
+
+    def __init__(self, req: PlanRequest, ctx: PlanContext) -> None:
+        self.req = req
+        self.ctx = ctx
+        self.tried: list[dict[str, Any]] = []
+        self.plans: list[Plan] = []
+        self.timed_out: SolverTimeoutError | None = None
+
+    def attempt(self, name: str) -> Plan | None:
+        method = METHODS[name]
+        if not method.can_plan(self.req) or self.timed_out is not None:
+            return None
+        t0 = time.perf_counter()
+        entry: dict[str, Any] = {"method": name}
+        plan: Plan | None = None
+        try:
+            plan = method.plan(self.req, PlanContext(self.ctx.deadline,
+                                                     warm_start=self.ctx.warm_start))
+        except SolverTimeoutError as exc:
+            self.timed_out = exc
+            entry["outcome"] = "timeout"
+        except PlannerError as exc:
+            entry["outcome"] = f"{exc.code}: {exc.message[:MESSAGE_CHARS]}"
+        except Exception as exc:  # noqa: BLE001 - one method's bug is that method's failure
+            log.exception("method %s failed unexpectedly inside auto", name)
+            entry["outcome"] = f"internal_error: {type(exc).__name__}"
+        entry["seconds"] = round(time.perf_counter() - t0, 6)
+        if plan is not None:
+            entry["outcome"] = "plan"
+            entry["rank_key"] = list(rank_key(plan.indicators, self.req.objective,
+                                              self.req.weights))
+            self.plans.append(plan)
+        self.tried.append(entry)
+        return plan
+
+    def finish(self) -> Plan:
+        req = self.req
+        chosen = best(self.plans, req.objective, req.weights)
+        if chosen is None:
+            if self.timed_out is not None:
+                self.timed_out.diagnostics["auto"] = {"tried": self.tried}
+                raise self.timed_out
+            raise InfeasibleError(
+                "no method found a singularity-free path: " + "; ".join(
+                    f"{t['method']}: {t['outcome']}" for t in self.tried),
+                diagnostics={"auto": {"tried": self.tried}})
+        chosen.diagnostics["auto"] = {
+            "tried": self.tried,
+            "chosen": chosen.method,
+            "rule": RULES[req.objective],
+        }
+        return chosen
+
+
+def plan_auto(req: PlanRequest, ctx: PlanContext) -> Plan:
+    """The best verified plan of the methods that can win for ``req`` (see the module)."""
+    run = _Run(req, ctx)
+    reachable = direction_conflict(req) is None
+    if req.constraint_points:
+        run.attempt("polynomial")
+        run.attempt("constraint_points")
+        return run.finish()
+    if req.objective in PAPER_OBJECTIVES:
+        if reachable:
+            run.attempt("polynomial")
+            if req.objective == "tp_then_da" and run.plans:
+                run.attempt("retimed")
+            if run.plans:
+                return run.finish()
+            run.attempt("constraint_points")
+        if not run.plans and run.attempt("shooting") is None:
+            run.attempt("penalty")
+        return run.finish()
+    # the default objective and weighted
+    shot = run.attempt("shooting")
+    if req.objective == "weighted" and reachable:
+        run.attempt("polynomial")
+    if shot is None:
+        if reachable and not run.plans:
+            run.attempt("polynomial")
+        if not run.plans:
+            run.attempt("penalty")
+    return run.finish()
+
+
+__all__ = ["plan_auto", "PAPER_OBJECTIVES"]

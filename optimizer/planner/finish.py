@@ -1,0 +1,216 @@
+"""One finishing path: a method's inputs -> a checked, sampled, measured and verified :class:`Plan`.
+
+Every method ends here, whatever its inputs:
+
+* chained inputs (:class:`~optimizer.steering.InputSchedule`, the paper's family and the
+  constraint-point QP): :func:`finish_plan` checks the continuous chained path against the
+  region, fixes the duration, samples it through the inverse map and re-integrates the
+  original model under the actuator inputs those chained inputs mean;
+* actuator rates (:class:`~optimizer.actuation.ActuatorSchedule`, planned on the original
+  model): :func:`finish_actuator_plan` takes the original model re-integrated under the rates
+  and checks, samples and measures that.
+
+Both measure the indicators on the same dense grid (:data:`INDICATOR_SAMPLES` points) with
+:func:`~optimizer.indicators.compute_indicators`, and both refuse a plan whose re-integrated
+path misses the goal by more than :data:`~.rules.TERMINAL_TOLERANCE` or leaves the joint limits.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import numpy as np
+
+from ..actuation import ActuatorSchedule
+from ..chained_form import chained_form
+from ..errors import InfeasibleError, NumericalError
+from ..indicators import compute_indicators
+from ..problem import PlanRequest
+from ..results import Plan, SampledPath
+from ..steering import ChainedPath, InputSchedule
+from ..verify import CASCADE_TOL, PlannedInputs, Verification, verify_plan
+from .family import SEARCH_SAMPLES
+from .rules import TERMINAL_TOLERANCE, joint_limits, make_region
+
+#: Points of the dense grid the indicators are measured on (the searches' own density, so
+#: that t_p and d_a agree with what was optimised).
+INDICATOR_SAMPLES = SEARCH_SAMPLES
+#: Normalised-time samples used to find the peak actuator rates for duration scaling.
+RATE_SAMPLES = 2001
+
+
+def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
+                feasible: list[tuple[float, float]], timing: dict[str, float],
+                diagnostics: dict[str, Any], *, chained: ChainedPath | None = None,
+                geometry: ChainedPath | None = None) -> Plan:
+    """Scale, sample, check, measure and verify a candidate; return it as a :class:`Plan`.
+
+    ``chained`` is the candidate's chained path when the method built it already (it must be
+    the path of ``inputs`` from the start); ``geometry`` a path that passes through exactly the
+    same states (a retimed plan's geometric path): the continuous region check then runs on
+    it, which is cheaper (one polynomial piece instead of many) and equivalent.
+
+    Raises
+    ------
+    InfeasibleError
+        The continuous path leaves the region, or the actuator limits cannot be met.
+    NumericalError
+        The original model driven by the planned inputs does not reach the goal.
+    """
+    t0 = time.perf_counter()
+    robot = req.robot
+    cf = chained_form(robot)
+    q0 = req.q_start()
+    if chained is None:
+        chained = ChainedPath.from_inputs(cf.to_chained(q0), inputs)
+    full = make_region(req, "full")
+    chk = full.check_path(geometry if geometry is not None else chained)
+    if not chk.ok:
+        when = chk.first_crossing_tau
+        raise InfeasibleError(
+            "the path leaves the singularity-free region"
+            + (f" at t/T = {when:.6g}" if when is not None else ""),
+            diagnostics={"margin": chk.margin, "first_crossing_tau": when})
+    # Duration: the geometric path depends on tau only; T rescales the rates.
+    T = _duration(req, cf, chained)
+    inputs = InputSchedule(inputs.breaks, inputs.v1, inputs.v2, T)
+    chained = ChainedPath(chained.z0, inputs, chained.polys)
+    planned = PlannedInputs(cf, chained)
+    t = np.linspace(0.0, T, int(req.samples))
+    tau = t / T
+    # indicators on a dense grid (at least the search density), independent of `samples`
+    # (the same normalised grid as the searches, so t_p and d_a agree with what was optimised)
+    td = np.linspace(0.0, T, INDICATOR_SAMPLES)
+    # the returned samples and the indicator grid through the maps in one pass (they act
+    # point by point, so this is two passes' values with half the calls)
+    ns = t.size
+    z_all = chained.z(np.concatenate([tau, td / T]))
+    inv = cf.from_chained(z_all)
+    if not inv.valid[:ns].all():
+        raise InfeasibleError("the sampled path leaves the singularity-free region",
+                              diagnostics={"margin": chk.margin})
+    z = z_all[:ns]
+    q = inv.q[:ns]
+    v = inputs.v(t)
+    u = cf.u_from_v(q, v)
+    dphi = inputs.phi_change
+    # th_n takes no part in the region checked above; with a constant v1 it is monotone
+    # (th_n' = z_n v1 with z_n > 0 inside), so its extremes are its ends, and the dense grid
+    # holds them
+    lo, hi = joint_limits(req)
+    th_all = inv.q[:, 1:]
+    if not (np.all(th_all > lo) and np.all(th_all < hi)):
+        worst = int(np.argmin(np.min(np.minimum(th_all - lo, hi - th_all), axis=0)))
+        raise InfeasibleError(f"the path takes th{worst + 1} outside its limits "
+                              f"[{lo[worst]:.6g}, {hi[worst]:.6g}] rad",
+                              diagnostics={"margin": chk.margin, "joint": worst + 1})
+    # no inputs on the dense grid: the sampled energy is replaced by the integrated one below
+    ind = compute_indicators(td, inv.q[ns:], None)
+    timing["sampling"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    ver = verify_plan(robot, planned, q0, np.array(req.goal), req.phi_start + dphi, t, q)
+    timing["verification"] = time.perf_counter() - t1
+    # the sampled energy misses sharp input peaks (u2 near th1 = 0): use the integrated one
+    ind = dataclasses.replace(ind, energy=ver.energy)
+    if ver.singular or not ver.terminal_error <= TERMINAL_TOLERANCE:
+        raise NumericalError(
+            "the planned inputs do not steer the original model to the goal "
+            f"(terminal error {ver.terminal_error:.3g} rad, singular={ver.singular})",
+            diagnostics={"terminal_error": ver.terminal_error, "singular": ver.singular,
+                         "method": method})
+    return Plan(robot=robot, method=method, phi_change=float(dphi), duration=T, inputs=inputs,
+                chained=chained, feasible_phi_changes=feasible, indicators=ind,
+                margin=float(chk.margin), path=SampledPath(t=t, q=q, z=z, u=u, v=v),
+                verification=ver, timing=timing, diagnostics=diagnostics)
+
+
+def _duration(req: PlanRequest, cf: Any, chained: ChainedPath) -> float:
+    limits = (req.max_u1, req.max_u2)
+    if all(x is None for x in limits):
+        return req.duration_or_default
+    tau = np.linspace(0.0, 1.0, RATE_SAMPLES)
+    q = cf.from_chained(chained.z(tau)).q
+    U = cf.u_from_v(q, chained.inputs.V(tau))  # rates per unit normalised time
+    if req.duration is None and req.constraint_points:
+        raise InfeasibleError("constraint point times are in seconds: give a duration when "
+                              "actuator limits are set", diagnostics={})
+    return req.duration_for_rates(np.max(np.abs(U), axis=0))
+
+
+def output_grid(samples: int, breaks: np.ndarray) -> np.ndarray:
+    """Where the path is wanted, in units of ``breaks``: the returned samples, the indicators'
+    dense grid and the interval ends (the region check)."""
+    T = float(breaks[-1])
+    return np.concatenate([np.linspace(0.0, T, int(samples)),
+                           np.linspace(0.0, T, INDICATOR_SAMPLES), breaks])
+
+
+def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: str,
+                         planned_nodes: np.ndarray, timing: dict[str, float],
+                         diagnostics: dict[str, Any], replay: Any) -> Plan:
+    """Check, sample and measure a piecewise-constant-rate plan.
+
+    ``replay`` is the original model integrated under the schedule's rates (cascade quadrature,
+    error estimate <= 1e-11 rad, DOP853 as fallback) in normalised time (``t / T``: the model
+    is driftless, the path is the same), on :func:`output_grid` of the normalised breaks:
+    samples, indicators, the region check at the interval ends (enough, see the module
+    docstring) and the terminal error all come from it. ``planned_nodes`` (the NLP's own node
+    states) give the verification's ``max_deviation``.
+
+    Raises
+    ------
+    InfeasibleError
+        A node of the true path is outside the region.
+    NumericalError
+        The true path does not reach the goal.
+    """
+    robot = req.robot
+    cf = chained_form(robot)
+    T = schedule.duration
+    q0 = req.q_start()
+    t = np.linspace(0.0, T, int(req.samples))
+    td = np.linspace(0.0, T, INDICATOR_SAMPLES)
+    rep = replay
+    if not rep.success:
+        raise NumericalError(f"the re-integration failed: {rep.message}",
+                             diagnostics={"method": method})
+    ns, nd = t.size, td.size
+    q, qd, qb = rep.q[:ns], rep.q[ns:ns + nd], rep.q[ns + nd:]
+    lo, hi = joint_limits(req)
+    th = qb[:, 1:]
+    margins = np.minimum(th - lo, hi - th)
+    margin = float(np.min(margins))
+    if not margin > 0.0 or rep.singular:
+        k, j = np.unravel_index(int(np.argmin(margins)), margins.shape)
+        raise InfeasibleError(
+            f"the re-integrated path leaves the singularity-free region: th{j + 1} at "
+            f"t = {schedule.breaks[k]:.6g} s", diagnostics={"margin": margin})
+    final = rep.final
+    terminal = float(np.max(np.abs(final[1:] - np.array(req.goal))))
+    if not terminal <= TERMINAL_TOLERANCE:
+        raise NumericalError(
+            "the planned inputs do not steer the original model to the goal "
+            f"(terminal error {terminal:.3g} rad)",
+            diagnostics={"terminal_error": terminal, "method": method})
+    t1 = time.perf_counter()
+    u = schedule.u(t)
+    # v = (u1, L_g1 z2 u1 + L_g2 z2 u2) along the path (eq 5); z by the forward map (eq 4)
+    al, be = cf.input_coefficients(q)
+    v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
+    z = cf.to_chained(q)
+    # the replay ran in normalised time: int |u|^2 dt = int |U|^2 dtau / T
+    energy = rep.energy / T
+    ind = dataclasses.replace(compute_indicators(td, qd, None), energy=energy)
+    dphi = float(final[0] - q0[0])
+    ver = Verification(terminal_error=terminal, phi_error=0.0,
+                       max_deviation=float(np.max(np.abs(qb - planned_nodes))),
+                       singular=False, final=tuple(float(x) for x in final),
+                       rtol=CASCADE_TOL, atol=CASCADE_TOL, energy=energy,
+                       integrator=rep.integrator, error_estimate=rep.error_estimate)
+    timing["sampling"] = time.perf_counter() - t1
+    return Plan(robot=robot, method=method, phi_change=dphi, duration=T, inputs=schedule,
+                chained=None, feasible_phi_changes=[], indicators=ind, margin=margin,
+                path=SampledPath(t=t, q=q, z=z, u=u, v=v), verification=ver, timing=timing,
+                diagnostics=diagnostics)

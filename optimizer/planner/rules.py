@@ -1,0 +1,77 @@
+"""The request's rules every method follows: the region, the joint limits, the sign of ``dphi``.
+
+A leaf of the planner (imports nothing of it).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..problem import PlanRequest
+from ..region import Region
+
+#: A plan is verified when the re-integrated original model ends this close to the goal (rad).
+TERMINAL_TOLERANCE = 1e-6
+HALF_PI = 0.5 * math.pi
+
+
+def make_region(req: PlanRequest, criterion: str | None = None) -> Region:
+    """The singularity-free region of the request (its criterion unless one is given)."""
+    return Region(req.robot, criterion or req.singularity, req.joint_bounds)
+
+
+def joint_limits(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds (rad) every joint ``th_1..th_n`` keeps on the whole path.
+
+    ``th_1..th_{n-1}`` lie in the region where the chained form is invertible, (0, pi/2),
+    narrowed by ``joint_bounds``. ``th_n`` takes no part in that region, but a joint that
+    leaves (0, pi/2) is of no use to the arm either: it keeps (0, pi/2) too unless
+    ``joint_bounds`` says otherwise (narrower or wider).
+    """
+    region = make_region(req, "full")
+    lo = np.array(region.lower, float)
+    hi = np.array(region.upper, float)
+    n = req.n
+    last = None if req.joint_bounds is None else req.joint_bounds[n - 1]
+    if last is None:
+        lo[n - 1], hi[n - 1] = 0.0, HALF_PI
+    return lo, hi
+
+
+def check_endpoints(req: PlanRequest, region: Region) -> None:
+    """Start and goal must be inside the (full) region: there the transform exists."""
+    region.check_point_q(np.array((0.0,) + req.start), "start")
+    region.check_point_q(np.array((0.0,) + req.goal), "goal")
+
+
+def direction_conflict(req: PlanRequest) -> str | None:
+    """Why the constant-v1 family cannot reach the goal, or None.
+
+    With ``v1`` constant every ``th_i`` (i >= 2) moves monotonically in the direction of
+    ``dphi`` (``th_i' = K_i cos(th_{i-1})^m_i u1`` with a positive factor in the region).
+    """
+    d = np.array(req.goal[1:]) - np.array(req.start[1:])
+    up = [i + 2 for i, x in enumerate(d) if x > 0]
+    down = [i + 2 for i, x in enumerate(d) if x < 0]
+    if up and down:
+        return (f"joints th{up[0]} and th{down[0]} must move in opposite directions: with a "
+                "constant v1 every joint th2..thn moves in the direction of phi, so phi must "
+                "reverse (use method 'shooting', 'penalty' or 'auto')")
+    if not up and not down:
+        return ("joints th2..thn do not move, which needs dphi = 0 where the steering system is "
+                "singular (Remark 2); phi must go and come back (use method 'shooting', "
+                "'penalty' or 'auto')")
+    return None
+
+
+def phi_search_bounds(req: PlanRequest) -> tuple[float, float]:
+    """The request's ``dphi`` bounds, cut to the sign the joints' motion demands."""
+    lo, hi = req.phi_change_bounds
+    d = np.array(req.goal[1:]) - np.array(req.start[1:])
+    if np.all(d >= 0):
+        lo = max(lo, 0.0)
+    elif np.all(d <= 0):
+        hi = min(hi, 0.0)
+    return lo, hi
