@@ -21,7 +21,7 @@ import pytest
 
 from optimizer import native
 from optimizer.model import Robot
-from optimizer.planner import shooting
+from optimizer.planner import nlp, shooting
 from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
 
@@ -35,10 +35,10 @@ pytestmark = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc
 def fresh():
     """Every test starts and ends with compiled functions off and no cached NLP."""
     native.configure(None)
-    shooting.shooting_nlp.cache_clear()
+    nlp.multiple_shooting_nlp.cache_clear()
     yield
     native.configure(None)
-    shooting.shooting_nlp.cache_clear()
+    nlp.multiple_shooting_nlp.cache_clear()
     native._builds.clear()
 
 
@@ -60,7 +60,7 @@ def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(tmp_path)
     req = _request()
     vm = plan(req)
     assert vm.diagnostics["shooting"]["compiled"] is False
-    shooting.shooting_nlp.cache_clear()
+    nlp.multiple_shooting_nlp.cache_clear()
     assert native.configure(tmp_path) is not None
     assert shooting.prepare(req.robot.gains, req.robot.exponents, wait=True).compiled
     p = plan(req)
@@ -92,7 +92,7 @@ def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp
     time.sleep(1.05)                         # the library is looked for at most once a second
     assert plan(req).diagnostics["shooting"]["compiled"] is True
     # another process (no cached NLP): found at once, nothing compiled
-    shooting.shooting_nlp.cache_clear()
+    nlp.multiple_shooting_nlp.cache_clear()
     native._builds.clear()
     native.configure(tmp_path)
     q = plan(req)
