@@ -64,7 +64,8 @@ import numpy as np
 from .. import native
 from ..actuation import ActuatorSchedule
 from ..dynamics import rk4_step, vector_field
-from ..errors import InfeasibleError, NumericalError, PlannerError, SolverTimeoutError
+from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, PlannerError,
+                      SolverTimeoutError)
 from ..problem import MAX_TIME_LIMIT, PlanRequest
 from ..region import Region
 from ..verify import integrate_cascade
@@ -89,6 +90,10 @@ class Transcription:
 #: more switching and faster rates (6 joints: the minimum-energy baseline's rates reach 14-21
 #: rad/s), has the baseline's 50 intervals, 2 RK4 steps each.
 LADDER: tuple[Transcription, ...] = (Transcription(20, 1, 10.0), Transcription(50, 2, 40.0))
+#: Weight of the squared joint-space deviation (rad^2) against the input energy.
+DEVIATION_WEIGHT = 3.0
+#: Weight of the squared d_a of joint 1 (rad^2; at the nodes) against the input energy.
+D_A_WEIGHT = 3.0
 #: Region modes of the transcription (see the module docstring).
 REGION_MODES = ("hard", "penalty")
 #: Distance (rad) kept from the region's bounds at the nodes (0.5 deg).
@@ -484,6 +489,25 @@ def node_bounds(req: PlanRequest, region: Region,
     return lo_m, hi_m
 
 
+def objective_weights(req: PlanRequest, method: str) -> tuple[float, float, float]:
+    """``(w_dev, w_energy, w_da)`` of the transcription's objective for ``req``:
+    :data:`DEVIATION_WEIGHT`, 1 and :data:`D_A_WEIGHT`, or ``weights.d_a`` (both deviations)
+    and ``weights.energy`` of a ``weighted`` request.
+
+    Raises
+    ------
+    InvalidRequestError
+        ``weighted`` with neither ``weights.d_a`` nor ``weights.energy`` positive.
+    """
+    if req.objective == "weighted":
+        w_dev, w_en = float(req.weights.d_a), float(req.weights.energy)
+        if w_dev <= 0.0 and w_en <= 0.0:
+            raise InvalidRequestError(f"method '{method}' with objective 'weighted' needs a "
+                                      "positive weights.d_a or weights.energy", field="weights")
+        return w_dev, w_en, w_dev
+    return DEVIATION_WEIGHT, 1.0, D_A_WEIGHT
+
+
 def variable_bounds(req: PlanRequest, nlp: MultipleShootingNLP, tr: Transcription,
                     node_lo: np.ndarray | None = None, node_hi: np.ndarray | None = None
                     ) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
@@ -600,8 +624,8 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
     return best[1], errors, best[2]  # a step that made things worse is not kept
 
 
-__all__ = ["CORRECTION_TARGET", "DeadlineCallback", "LADDER", "MARGIN", "MultipleShootingNLP",
+__all__ = ["CORRECTION_TARGET", "D_A_WEIGHT", "DEVIATION_WEIGHT", "DeadlineCallback", "LADDER", "MARGIN", "MultipleShootingNLP",
            "REGION_MODES", "SUCCESS", "SolveOutcome", "TIMEOUT", "Transcription", "classify",
            "correct_rates", "error_for", "fatrop_options", "ipopt_options",
-           "multiple_shooting_nlp", "nlp_for", "node_bounds", "parameters", "run_solver",
+           "multiple_shooting_nlp", "nlp_for", "node_bounds", "objective_weights", "parameters", "run_solver",
            "variable_bounds"]

@@ -72,38 +72,19 @@ import numpy as np
 
 from ..actuation import ActuatorSchedule
 from ..chained_form import chained_form
-from ..errors import (
-    InfeasibleError,
-    InvalidRequestError,
-    NumericalError,
-    SolverTimeoutError,
-)
+from ..errors import InfeasibleError, InvalidRequestError, NumericalError, SolverTimeoutError
 from ..indicators import compute_indicators
 from ..problem import PlanRequest
 from ..region import Region
 from ..results import Plan, SampledPath
 from ..verify import CASCADE_TOL, Verification
 from . import nlp as nlp_layer
-from .family import (
-    SEARCH_SAMPLES as INDICATOR_SAMPLES,  # the other methods' indicator grid
-)
-from .nlp import (
-    CORRECTION_TARGET,
-    LADDER,
-    MARGIN,
-    MultipleShootingNLP,
-    Transcription,
-    multiple_shooting_nlp,
-    nlp_for,
-    node_bounds,
-    run_solver,
-)
+from .family import SEARCH_SAMPLES as INDICATOR_SAMPLES  # the other methods' indicator grid
+from .nlp import (CORRECTION_TARGET, D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, MARGIN,
+                  MultipleShootingNLP, Transcription, multiple_shooting_nlp, nlp_for,
+                  node_bounds, objective_weights, run_solver)
 from .plan import TERMINAL_TOLERANCE
 
-#: Weight of the squared joint-space deviation (rad^2) against the input energy.
-DEVIATION_WEIGHT = 3.0
-#: Weight of the squared d_a of joint 1 (rad^2; at the nodes) against the input energy.
-D_A_WEIGHT = 3.0
 #: Solver and sign of phi's initial travel of each attempt, in order (the first converged
 #: solution is returned).
 ATTEMPTS: tuple[tuple[str, float], ...] = (("fatrop", 1.0), ("fatrop", -1.0), ("ipopt", 1.0),
@@ -137,18 +118,6 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
     return nlp
 
 
-def weights_for(req: PlanRequest, method: str = "shooting") -> tuple[float, float, float]:
-    """``(w_dev, w_energy, w_da)`` of the transcription's objective for ``req``: the defaults
-    above, or ``weights.d_a`` (both deviations) and ``weights.energy`` when ``weighted``."""
-    if req.objective == "weighted":
-        w_dev, w_en = float(req.weights.d_a), float(req.weights.energy)
-        if w_dev <= 0.0 and w_en <= 0.0:
-            raise InvalidRequestError(f"method '{method}' with objective 'weighted' needs a "
-                                      "positive weights.d_a or weights.energy", field="weights")
-        return w_dev, w_en, w_dev
-    return DEVIATION_WEIGHT, 1.0, D_A_WEIGHT
-
-
 def solve_shooting(req: PlanRequest, deadline: Any,
                    tr: Transcription = LADDER[0]) -> ShootingSolution:
     """Solve the NLP of transcription ``tr`` for ``req`` (normalised time); raise a typed error
@@ -161,7 +130,7 @@ def solve_shooting(req: PlanRequest, deadline: Any,
     a, b = np.array(req.start), np.array(req.goal)
     lo, hi = node_bounds(req, Region(req.robot, "full", req.joint_bounds))
     lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi)
-    p = nlp_layer.parameters(req, *weights_for(req))
+    p = nlp_layer.parameters(req, *objective_weights(req, "shooting"))
     nlp.load_native()
     solvers = dict(nlp.solvers)
     tried: list[dict[str, Any]] = []
@@ -323,18 +292,7 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
                                 replay=replay)
 
 
-# the transcription's names that this method's users and tests read here
-__all__ = [
-    "CORRECTION_TARGET",
-    "LADDER",
-    "MARGIN",
-    "ActuatorSchedule",
-    "correct_rates",
-    "finish_actuator_plan",
-    "nlp_for",
-    "output_grid",
-    "plan_shooting",
-    "prepare",
-    "solve_shooting",
-    "weights_for",
-]
+# the transcription's names that this method's users and tests read here, and its own
+__all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "LADDER", "MARGIN",
+           "ActuatorSchedule", "correct_rates", "finish_actuator_plan", "nlp_for", "output_grid",
+           "plan_shooting", "prepare", "solve_shooting"]
