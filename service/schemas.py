@@ -386,7 +386,9 @@ def build_schemas(limits: Limits) -> Schemas:
                         "shooting"] = Field(
             "auto", description="polynomial: the paper's family; retimed: its geometric path "
                                 "under a d_a-optimal time law (no constraint points); "
-                                "constraint_points: QP; penalty: NLP, phi may reverse; "
+                                "constraint_points: QP; penalty: the shooting NLP with the "
+                                "singularity-free region as an exact penalty (paper Remark "
+                                "3), phi may reverse (no constraint points); "
                                 "shooting: multiple-shooting NLP on the original model, "
                                 "piecewise-constant actuator rates, minimum energy plus "
                                 "joint-space deviation, phi may reverse (no constraint points); "
@@ -416,10 +418,6 @@ def build_schemas(limits: Limits) -> Schemas:
                 list[JointAngle], Field(min_length=2, max_length=2)]]]] = Field(
             None, max_length=L.max_joints,
             description="Per joint [lo, hi] (rad) or null; inside the region (0, pi/2).")
-        v1_degree: Optional[StrictInt] = Field(None, ge=0, le=12,
-                                               description="Degree of v1 (penalty method).")
-        v2_degree: Optional[StrictInt] = Field(None, ge=0, le=12,
-                                               description="Degree of v2 (penalty method).")
 
         def to_library(self) -> dict[str, Any]:
             """The dict :meth:`optimizer.problem.PlanRequest.from_dict` takes."""
