@@ -22,8 +22,8 @@ Transcription (normalised time ``tau = t / T`` in [0, 1]; ``T`` only rescales th
   ``"penalty"``
       an exact (l1) penalty (paper Remark 3): a slack ``s_k >= 0`` per interior node with
       ``s_k >= lo_j - th_kj`` and ``s_k >= th_kj - hi_j`` for every joint, and
-      ``rho * sum_k s_k`` in the objective (``lo``, ``hi``, ``rho`` are parameters). The term
-      is also the ``||J_R(T)||_F`` of ``s = phi(1) - phi(0)`` (eq 22) with weight ``w_sens``.
+      ``rho * sum_k s_k`` in the objective (``lo``, ``hi``, ``rho`` are parameters). This
+      mode's objective also has ``w_sens ||J_R(T)||_F`` of ``s = phi(1) - phi(0)`` (eq 22).
 
 Stage-wise layout (what fatrop needs, IPOPT does not mind): ``w = [x_0, u_0, x_1, u_1, ...,
 x_N]`` with ``x_k = (q_k, S_k, S1_k)`` (the two epigraph variables are carried as constant
