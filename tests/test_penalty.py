@@ -87,7 +87,8 @@ def reachable_goal(rng: np.random.Generator, n: int, margin: float = R(3.0)
         sol = integrate_model(u, np.concatenate([[0.0], a]), 1.0, robot.gains,
                               robot.exponents, t_eval=np.linspace(0.0, 1.0, 401))
         th = sol.y[1:].T
-        if np.all((th > margin) & (th < HALF_PI - margin)) and np.ptp(th[[0, -1]], axis=0).max() > R(2):
+        inside = np.all((th > margin) & (th < HALF_PI - margin))
+        if inside and np.max(np.abs(th[-1] - th[0])) > R(2):
             return tuple(a), tuple(th[-1])
 
 

@@ -624,8 +624,9 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
     return best[1], errors, best[2]  # a step that made things worse is not kept
 
 
-__all__ = ["CORRECTION_TARGET", "D_A_WEIGHT", "DEVIATION_WEIGHT", "DeadlineCallback", "LADDER", "MARGIN", "MultipleShootingNLP",
-           "REGION_MODES", "SUCCESS", "SolveOutcome", "TIMEOUT", "Transcription", "classify",
-           "correct_rates", "error_for", "fatrop_options", "ipopt_options",
-           "multiple_shooting_nlp", "nlp_for", "node_bounds", "objective_weights", "parameters", "run_solver",
+__all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "DeadlineCallback", "INFEASIBLE",
+           "IPOPT_OPTIONS", "LADDER", "MARGIN", "MultipleShootingNLP", "REGION_MODES", "SUCCESS",
+           "SolveOutcome", "TIMEOUT", "Transcription", "classify", "correct_rates", "error_for",
+           "fatrop_options", "ipopt_options", "multiple_shooting_nlp", "nlp_for", "node_bounds",
+           "objective_weights", "parameters", "run_solver", "sensitivity_frobenius",
            "variable_bounds"]

@@ -50,7 +50,8 @@ half IPOPT's time per iteration here. From ``phi`` travelling +0.6 rad, then -0.
 same NLP (a test checks that they find the same solution). With compiled functions configured
 (:mod:`optimizer.native`: the service does it), fatrop evaluates the first rung's functions as
 compiled C once their library is built (:meth:`~.nlp.MultipleShootingNLP.load_native`): the
-same iterates, 19-25 % less time per plan; until then, and for the second rung, CasADi's virtual machine.
+same iterates, 19-25 % less time per plan; until then, and for the second rung, CasADi's
+virtual machine.
 
 Caching, threads, deadline
 --------------------------
