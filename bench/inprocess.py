@@ -61,7 +61,8 @@ class Config:
 def configure_native(off: bool = False) -> dict[str, Any]:
     """Compiled NLP functions for the planner (:mod:`optimizer.native`), in the service's
     default cache, or off; what was done, for the results' ``meta``. Libraries are built by
-    ``shooting.prepare(..., wait=True)`` before anything is timed (:func:`run_method`)."""
+    ``shooting.prepare`` and ``penalty.prepare`` (``wait=True``) before anything is timed
+    (:func:`run_method`)."""
     from optimizer import native
     if off:
         native.configure(None)
@@ -164,13 +165,15 @@ def run_method(case: Case, method: str, cfg: Config) -> dict[str, Any]:
     except Exception as exc:  # noqa: BLE001 - recorded
         out.update(status="error", error=describe(exc))
         return out
-    if method in ("shooting", "auto"):
-        # its compiled NLP functions (optimizer.native, when configured), built or loaded
+    if method in ("shooting", "penalty", "auto"):
+        # their compiled NLP functions (optimizer.native, when configured), built or loaded
         # before the warm-up call: a one-off per machine, reported like the baseline's build
-        from optimizer.planner.shooting import prepare
+        from optimizer.planner import penalty, shooting
         t0 = time.perf_counter()
-        out["native_compiled"] = prepare(req.robot.gains, req.robot.exponents,
-                                         wait=True).compiled
+        prepares = {"shooting": (shooting.prepare,), "penalty": (penalty.prepare,),
+                    "auto": (shooting.prepare, penalty.prepare)}[method]
+        out["native_compiled"] = all([prep(req.robot.gains, req.robot.exponents,
+                                           wait=True).compiled for prep in prepares])
         out["native_prepare_s"] = time.perf_counter() - t0
     call: Callable[[], Any] = lambda: plan(req)  # noqa: E731
     timed: Timed = time_repeats(call, cfg.repeats, cfg.budget, cfg.min_repeats)

@@ -1,6 +1,7 @@
 """Re-integration of the ORIGINAL kinematic model under a method's actuator inputs, and metrics.
 
-The right-hand side is written here, independently of :mod:`optimizer.model` and of the baseline::
+The right-hand side is the model's one definition (:func:`optimizer.dynamics.vector_field`), with
+the input energy integrated alongside; the integrator (scipy) is independent of the planner's::
 
     phi'  = u1
     th1'  = u2
@@ -44,6 +45,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy.integrate import solve_ivp
+
+from optimizer.dynamics import vector_field
 
 RTOL = 1e-10
 ATOL = 1e-12
@@ -115,15 +118,13 @@ def model_rhs(gains: Sequence[float], exponents: Sequence[int]
     callable
         ``rhs(t, x, u) -> x'``.
     """
-    K = np.asarray(gains, float)
-    m = np.asarray(exponents, float)
-    n = K.size + 1
+    K = tuple(float(k) for k in gains)
+    m = tuple(int(e) for e in exponents)
+    n = len(K) + 1
 
     def rhs(t: float, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         dx = np.empty_like(x)
-        dx[0] = u[0]
-        dx[1] = u[1]
-        dx[2:n + 1] = K * np.cos(x[1:n]) ** m * u[0]
+        dx[:n + 1] = vector_field(K, m, x, u[0], u[1], np.cos)
         dx[n + 1] = u[0] * u[0] + u[1] * u[1]
         return dx
 

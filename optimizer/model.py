@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .dynamics import field_numpy
 from .errors import InvalidRequestError
 
 #: Prototype constants fitted to the paper's §3.3 example (NOTES §1).
@@ -109,18 +110,11 @@ class Robot:
 
     def g1(self, q: np.ndarray) -> np.ndarray:
         """Vector field multiplying ``u1`` (eq 3), for ``q`` of shape (..., n+1)."""
-        q = np.asarray(q, dtype=float)
-        out = np.zeros_like(q)
-        out[..., 0] = 1.0
-        for i in range(2, self.n + 1):
-            out[..., i] = self.gains[i - 2] * np.cos(q[..., i - 1]) ** self.exponents[i - 2]
-        return out
+        return field_numpy(self.gains, self.exponents, q, (1.0, 0.0))
 
     def rhs(self, q: np.ndarray, u: np.ndarray) -> np.ndarray:
         """``q' = g1(q) u1 + g2(q) u2`` (eq 2) for one state ``q`` and input ``u``."""
-        dq = self.g1(q) * u[0]
-        dq[1] = u[1]
-        return dq
+        return field_numpy(self.gains, self.exponents, q, (u[0], u[1]))
 
     def as_dict(self) -> dict[str, object]:
         """JSON-friendly description."""

@@ -72,8 +72,6 @@ class PlanRequest:
     max_u1, max_u2 : float or None
         Actuator rate limits (rad/s).
     joint_bounds : tuple of (lo, hi) or None
-    v1_degree, v2_degree : int or None
-        Input degrees of the penalty method (None: its defaults).
     """
 
     start: tuple[float, ...]
@@ -93,8 +91,6 @@ class PlanRequest:
     max_u1: float | None = None
     max_u2: float | None = None
     joint_bounds: tuple[tuple[float, float] | None, ...] | None = None
-    v1_degree: int | None = None
-    v2_degree: int | None = None
 
     def __post_init__(self) -> None:
         n = self.robot.n
@@ -167,10 +163,6 @@ class PlanRequest:
         if self.joint_bounds is not None:
             from .region import Region  # validates shape and that bounds lie in the region
             Region(self.robot, "full", self.joint_bounds)
-        for name in ("v1_degree", "v2_degree"):
-            x = getattr(self, name)
-            if x is not None and not 0 <= int(x) <= 12:
-                raise InvalidRequestError(f"{name} = {x} must lie in [0, 12]", field=name)
 
     @property
     def n(self) -> int:

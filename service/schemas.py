@@ -28,7 +28,7 @@ from .settings import LIBRARY_MAX_JOINTS, LIBRARY_MIN_DURATION, LIBRARY_MIN_JOIN
 #: The planner's registered methods (and ``auto``) and objectives, as the schema's enums.
 MethodName = Literal[method_names()]  # type: ignore[valid-type]
 ObjectiveName = Literal[OBJECTIVES]  # type: ignore[valid-type]
-METHOD_HELP = " ".join(f"{name}: {m.summary}." for name, m in METHODS.items())
+METHOD_HELP = " ".join(f"{e.name}: {e.summary}." for e in METHODS.values())
 
 PI = math.pi
 MAX_JOINTS = LIBRARY_MAX_JOINTS
@@ -446,10 +446,6 @@ def build_schemas(limits: Limits) -> Schemas:
                 list[JointAngle], Field(min_length=2, max_length=2)]]]] = Field(
             None, max_length=L.max_joints,
             description="Per joint [lo, hi] (rad) or null; inside the region (0, pi/2).")
-        v1_degree: Optional[StrictInt] = Field(None, ge=0, le=12,
-                                               description="Degree of v1 (penalty method).")
-        v2_degree: Optional[StrictInt] = Field(None, ge=0, le=12,
-                                               description="Degree of v2 (penalty method).")
 
         def to_library(self) -> dict[str, Any]:
             """The dict :meth:`optimizer.problem.PlanRequest.from_dict` takes."""

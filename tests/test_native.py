@@ -21,7 +21,7 @@ import pytest
 
 from optimizer import native
 from optimizer.model import Robot
-from optimizer.planner import shooting
+from optimizer.planner import nlp, penalty, shooting
 from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
 
@@ -35,10 +35,10 @@ pytestmark = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc
 def fresh():
     """Every test starts and ends with compiled functions off and no cached NLP."""
     native.configure(None)
-    shooting.shooting_nlp.cache_clear()
+    nlp.multiple_shooting_nlp.cache_clear()
     yield
     native.configure(None)
-    shooting.shooting_nlp.cache_clear()
+    nlp.multiple_shooting_nlp.cache_clear()
     native._builds.clear()
 
 
@@ -60,7 +60,7 @@ def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(tmp_path)
     req = _request()
     vm = plan(req)
     assert vm.diagnostics["shooting"]["compiled"] is False
-    shooting.shooting_nlp.cache_clear()
+    nlp.multiple_shooting_nlp.cache_clear()
     assert native.configure(tmp_path) is not None
     assert shooting.prepare(req.robot.gains, req.robot.exponents, wait=True).compiled
     p = plan(req)
@@ -72,6 +72,24 @@ def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(tmp_path)
     t, q = scipy_path(p, req)
     assert np.max(np.abs(q[-1, 1:] - np.array(req.goal))) < 1e-8
     assert np.all((q[:, 1:3] > 0.0) & (q[:, 1:3] < np.pi / 2))
+
+
+def test_the_penalty_nlp_is_compiled_too_and_plans_the_same(tmp_path):
+    """Every NLP of the shared transcription gets compiled functions: the penalty method's
+    (another region mode, another library) gives the virtual machine's plan, on the goal."""
+    req = PlanRequest(start=OPP_B[0], goal=OPP_B[1], method="penalty")
+    vm = plan(req)
+    assert vm.diagnostics["penalty"]["compiled"] is False
+    nlp.multiple_shooting_nlp.cache_clear()
+    native.configure(tmp_path)
+    assert penalty.prepare(req.robot.gains, req.robot.exponents, wait=True).compiled
+    p = plan(req)
+    assert p.diagnostics["penalty"]["compiled"] is True
+    assert p.diagnostics["penalty"]["iterations"] == vm.diagnostics["penalty"]["iterations"]
+    assert np.max(np.abs(p.inputs.rates - vm.inputs.rates)) < 1e-9
+    _, q = scipy_path(p, req)
+    assert np.max(np.abs(q[-1, 1:] - np.array(req.goal))) < 1e-8
+    assert np.all((q[:, 1:] > 0.0) & (q[:, 1:] < np.pi / 2))
 
 
 def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp_path):
@@ -92,7 +110,7 @@ def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp
     time.sleep(1.05)                         # the library is looked for at most once a second
     assert plan(req).diagnostics["shooting"]["compiled"] is True
     # another process (no cached NLP): found at once, nothing compiled
-    shooting.shooting_nlp.cache_clear()
+    nlp.multiple_shooting_nlp.cache_clear()
     native._builds.clear()
     native.configure(tmp_path)
     q = plan(req)

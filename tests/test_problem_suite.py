@@ -51,7 +51,7 @@ def test_suite(name, method, outcome, raw):
         return
     p = plan(req)
     robot = p.robot
-    if p.chained is None:  # actuator-rate plan (shooting)
+    if p.chained is None:  # actuator-rate plan (shooting, penalty)
         check_actuator_plan(p, req)
         return
     cf = chained_form(robot)
@@ -89,4 +89,4 @@ def check_actuator_plan(p, req) -> None:
     th = np.concatenate(th)
     assert np.all((th > 0) & (th < np.pi / 2))
     assert p.verification.terminal_error < 1e-6 and not p.verification.singular
-    assert p.method == "shooting"
+    assert p.method == req.method if req.method != "auto" else p.method in ("shooting", "penalty")

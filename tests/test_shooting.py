@@ -67,10 +67,11 @@ def test_plans_reach_the_goal_inside_the_region(start, goal, robot):
     t, q = scipy_path(p, req)
     # the Newton correction puts the exact model on the goal (RK4 alone: 1e-8 to 1e-5 rad)
     assert np.max(np.abs(q[-1, 1:] - np.array(goal))) < 1e-8
-    th = q[:, 1:robot.n]
+    # every joint, th_n included, stays inside (0, pi/2) by default
+    th = q[:, 1:robot.n + 1]
     assert np.all((th > 0.0) & (th < np.pi / 2))
     # the returned samples are the model's path (the library's own quadrature), and its
-    # margin is the smallest distance of th_1..th_{n-1} from (0, pi/2) (nodes: monotone pieces)
+    # margin is the smallest distance of th_1..th_n from (0, pi/2) (nodes: monotone pieces)
     ref = np.array([np.interp(p.path.t, t, q[:, j]) for j in range(q.shape[1])]).T
     assert np.max(np.abs(p.path.q - ref)) < 1e-4  # linear interpolation of 41-point pieces
     assert p.margin == pytest.approx(float(np.min(np.minimum(th, np.pi / 2 - th))), abs=1e-6)

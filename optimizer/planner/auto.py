@@ -31,7 +31,7 @@ from ..problem import PlanRequest
 from ..results import Plan
 from .context import PlanContext
 from .ranking import RULES, best, rank_key
-from .registry import METHODS
+from .registry import get
 from .rules import direction_conflict
 
 log = logging.getLogger(__name__)
@@ -52,7 +52,7 @@ class _Run:
         self.timed_out: SolverTimeoutError | None = None
 
     def attempt(self, name: str) -> Plan | None:
-        method = METHODS[name]
+        method = get(name)
         if not method.can_plan(self.req) or self.timed_out is not None:
             return None
         t0 = time.perf_counter()

@@ -49,11 +49,11 @@ class Capabilities:
 
 
 class Method:
-    """A planning method. Subclasses set :attr:`name`, :attr:`summary`, :attr:`capabilities`
-    and :attr:`options` (their own tuning, read-only) and implement :meth:`run`."""
+    """A planning method. Subclasses set :attr:`name`, :attr:`capabilities` and
+    :attr:`options` (their own tuning, read-only) and implement :meth:`run`; the registry
+    (:mod:`.registry`) holds the line that describes it."""
 
     name: ClassVar[str]
-    summary: ClassVar[str]
     capabilities: ClassVar[Capabilities]
     options: ClassVar[Mapping[str, Any]] = {}
 

@@ -1136,8 +1136,6 @@ def _report(qp: ConstraintPointQP, s: Synthesis, scanned: dict[str, Any],
 
 class ConstraintPointsMethod(Method):
     name = "constraint_points"
-    summary = ("the paper's family with constraint points synthesised by a convex QP "
-               "(Clarabel) with cutting planes, in place of the paper's trial and error")
     capabilities = Capabilities(constraint_points=True, fixed_phi_change=True,
                                 reverses_phi=False, inputs="chained")
     options = {"extra_degrees": EXTRA_DEGREES, "grid_points": GRID_POINTS,

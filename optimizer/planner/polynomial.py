@@ -97,8 +97,6 @@ def closest_feasible(fam: PolynomialFamily, target: float, deadline: Deadline,
 
 class PolynomialMethod(Method):
     name = "polynomial"
-    summary = ("the paper's family: constant v1 = b0, polynomial v2 through the request's "
-               "constraint points; dphi from its singularity-free intervals by the objective")
     capabilities = Capabilities(constraint_points=True, fixed_phi_change=True,
                                 reverses_phi=False, inputs="chained")
 

@@ -165,8 +165,6 @@ def _window_nodes(intervals: list[tuple[float, float]], count: int) -> np.ndarra
 
 class RetimedMethod(Method):
     name = "retimed"
-    summary = ("the paper's geometric path along the time law that minimises d_a of joint 1 "
-               "(same path, t_p and deviation as 'polynomial')")
     capabilities = Capabilities(constraint_points=False, fixed_phi_change=True,
                                 reverses_phi=False, inputs="chained")
 

@@ -28,14 +28,14 @@ def joint_limits(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
     ``th_1..th_{n-1}`` lie in the region where the chained form is invertible, (0, pi/2),
     narrowed by ``joint_bounds``. ``th_n`` takes no part in that region, but a joint that
     leaves (0, pi/2) is of no use to the arm either: it keeps (0, pi/2) too unless
-    ``joint_bounds`` says otherwise (narrower or wider).
+    ``joint_bounds`` says otherwise (narrower or wider), or its start or goal lies outside.
     """
     region = make_region(req, "full")
     lo = np.array(region.lower, float)
     hi = np.array(region.upper, float)
     n = req.n
     last = None if req.joint_bounds is None else req.joint_bounds[n - 1]
-    if last is None:
+    if last is None and all(0.0 < x[n - 1] < HALF_PI for x in (req.start, req.goal)):
         lo[n - 1], hi[n - 1] = 0.0, HALF_PI
     return lo, hi
 
@@ -75,3 +75,27 @@ def phi_search_bounds(req: PlanRequest) -> tuple[float, float]:
     elif np.all(d <= 0):
         hi = min(hi, 0.0)
     return lo, hi
+
+
+def monotone_signs(req: PlanRequest) -> tuple[float, float] | None:
+    """Signs of ``(u1, u2)`` of a plan in which neither actuator reverses, or None when the
+    goal needs ``phi`` to reverse (:func:`direction_conflict`).
+
+    With ``u1`` of one sign every joint ``th_2..th_n`` moves in ``phi``'s direction, so the
+    sign is the one the joints' motion demands; ``u2``'s is that of ``th_1``'s change (0: free,
+    ``th_1`` need not move).
+    """
+    if direction_conflict(req) is not None:
+        return None
+    lo, hi = phi_search_bounds(req)
+    if req.phi_change is not None:
+        s1 = float(np.sign(req.phi_change))
+    elif lo >= 0.0:
+        s1 = 1.0
+    elif hi <= 0.0:
+        s1 = -1.0
+    else:  # pragma: no cover - a direction is always demanded without a conflict
+        return None
+    if s1 == 0.0:
+        return None
+    return s1, float(np.sign(req.goal[0] - req.start[0]))

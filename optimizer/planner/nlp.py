@@ -1,0 +1,658 @@
+"""The NLP layer below the methods: solver presets, the deadline, status classes, and one
+multiple-shooting transcription of the ORIGINAL model (shared by ``shooting`` and ``penalty``).
+
+This module imports nothing from the methods or the orchestrator.
+
+Transcription (normalised time ``tau = t / T`` in [0, 1]; ``T`` only rescales the rates)
+----------------------------------------------------------------------------------------
+* equal intervals with piecewise-constant actuator rates ``U = (U1, U2)`` (``u = U / T``),
+  node states ``q_k = (phi, th_1..th_n)``, continuity by classical RK4 steps
+  (:func:`optimizer.dynamics.rk4_step` of :func:`optimizer.dynamics.vector_field`); the number
+  of intervals, of steps and the rate bound are a rung of :data:`LADDER`;
+* ``q_0`` = the start, ``th(1)`` = the goal; ``phi(1) - phi(0)`` equal to a parameter when
+  ``fixed_phi`` (else the caller bounds ``phi_N``);
+* objective: ``w_en int |U|^2 dtau + w_dev S + w_da S1`` with ``S >=`` the squared distance of
+  every interior node's ``(th_1..th_n)`` from the straight line through start and goal (joint
+  space) and ``S1 >=`` the squared distance of ``th_1`` from its straight line in time (the
+  paper's ``d_a``);
+* the region, by ``region``:
+
+  ``"hard"``
+      the caller's bounds on the node states (``lbx``/``ubx``): inequality constraints;
+  ``"penalty"``
+      an exact (l1) penalty (paper Remark 3): a slack ``s_k >= 0`` per interior node with
+      ``s_k >= lo_j - th_kj`` and ``s_k >= th_kj - hi_j`` for every joint, and
+      ``rho * sum_k s_k`` in the objective (``lo``, ``hi``, ``rho`` are parameters). This
+      mode's objective also has ``w_sens ||J_R(T)||_F`` of ``s = phi(1) - phi(0)`` (eq 22).
+
+Stage-wise layout (what fatrop needs, IPOPT does not mind): ``w = [x_0, u_0, x_1, u_1, ...,
+x_N]`` with ``x_k = (q_k, S_k, S1_k)`` (the two epigraph variables are carried as constant
+states, so that every constraint couples one stage only) and ``u_k = U_k`` (``"hard"``) or
+``(U_k, s_k)`` (``"penalty"``); constraints per stage: the gap ``x_{k+1} - F(x_k, u_k)``, then
+the stage's own rows (start at ``k = 0``; deviation epigraphs and, with the penalty, the slack
+rows inside; goal and, when fixed, ``dphi`` at ``k = N``).
+
+Solvers
+-------
+fatrop (an interior-point solver for this stage structure, bundled with CasADi) and IPOPT, with
+the options of :func:`fatrop_options` and :func:`ipopt_options`. IPOPT is stopped at the
+deadline by :class:`DeadlineCallback`; fatrop by its iteration cap :data:`FATROP_MAX_ITER` (tens
+of milliseconds). :func:`run_solver` runs one of them and classifies its return status
+(:data:`SUCCESS`, :data:`TIMEOUT`, :data:`INFEASIBLE`); :func:`error_for` turns a class into the
+library's typed error. With compiled functions configured (:mod:`optimizer.native`), fatrop
+evaluates the first rung's functions as compiled C once their library is built
+(:meth:`MultipleShootingNLP.load_native`).
+
+Caching, threads
+----------------
+The NLP and its solvers are built once per robot, transcription and region mode per process
+(:func:`multiple_shooting_nlp`); start, goal, weights and bounds are parameters. CasADi objects
+are not thread-safe and the cached callback holds the current deadline: one thread per process.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import casadi as ca
+import numpy as np
+
+from .. import native
+from ..actuation import ActuatorSchedule
+from ..dynamics import rk4_step, vector_field
+from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, PlannerError,
+                      SolverTimeoutError)
+from ..problem import MAX_TIME_LIMIT, PlanRequest
+from ..region import Region
+from .rules import monotone_signs
+from ..verify import integrate_cascade
+
+
+@dataclass(frozen=True)
+class Transcription:
+    """One rung of the ladder of transcriptions: intervals, RK4 steps per interval inside the
+    NLP (the returned path is re-integrated accurately and the rates corrected onto the goal of
+    the exact model, see :func:`correct_rates`) and the bound of ``|U1|, |U2|`` (rad per unit
+    of normalised time, i.e. per ``T``) that keeps those steps close to the exact model."""
+
+    intervals: int
+    substeps: int
+    rate_bound: float
+
+
+#: Tried in order until one NLP converges. The first: 20 intervals, one RK4 step each, at most
+#: 0.5 rad per interval (without a bound the NLP found a spurious optimum with phi moving 2 rad
+#: in one interval, where RK4 and the exact model part by 0.1 rad; a bound of 6 left 3 of 80
+#: random 3- and 4-joint goals unsolved, 10 solved all 80). The second, for goals that need
+#: more switching and faster rates (6 joints: the minimum-energy baseline's rates reach 14-21
+#: rad/s), has the baseline's 50 intervals, 2 RK4 steps each.
+LADDER: tuple[Transcription, ...] = (Transcription(20, 1, 10.0), Transcription(50, 2, 40.0))
+#: Weight of the squared joint-space deviation (rad^2) against the input energy.
+DEVIATION_WEIGHT = 3.0
+#: Weight of the squared d_a of joint 1 (rad^2; at the nodes) against the input energy.
+D_A_WEIGHT = 3.0
+#: Region modes of the transcription (see the module docstring).
+REGION_MODES = ("hard", "penalty")
+#: Distance (rad) kept from the region's bounds at the nodes (0.5 deg).
+MARGIN = math.radians(0.5)
+#: Iteration cap of fatrop (it converged in 15-38 iterations on the bench's goals; a failing run
+#: ends early and the next attempt starts).
+FATROP_MAX_ITER = 60
+#: fatrop's convergence tolerance: the optimum to 1e-6 is plenty, the goal's precision comes
+#: from the correction on the exact model (1e-8 took one or two more iterations, same plans).
+FATROP_TOL = 1e-6
+#: fatrop's initial barrier parameter. Its default, 0.1, failed from the straight-line guess on
+#: some goals; 1.0 converged at the first attempt on 30 of 40 random 3- and 4-joint goals
+#: (0.1: 23 of 40) and halved the median time.
+FATROP_MU_INIT = 1.0
+#: IPOPT options of every NLP here (``max_wall_time``: the library's largest time limit, a
+#: backstop; the deadline itself is the callback's).
+IPOPT_OPTIONS: dict[str, Any] = {"print_level": 0, "sb": "yes", "tol": 1e-8,
+                                 "acceptable_tol": 1e-6, "max_iter": 300,
+                                 "max_wall_time": float(MAX_TIME_LIMIT)}
+#: Return statuses that are converged solutions (IPOPT's names; fatrop reports ``success``).
+SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+#: Return statuses that mean "ran out of time".
+TIMEOUT = ("User_Requested_Stop", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded")
+#: Return statuses that mean "no point satisfies the constraints" (IPOPT's local certificate).
+INFEASIBLE = ("Infeasible_Problem_Detected",)
+#: The Newton correction stops once the exact model ends this close to the goal (rad)...
+CORRECTION_TARGET = 1e-10
+#: ... or after this many steps.
+MAX_CORRECTIONS = 4
+#: A bound of a joint the region leaves open (th_n without joint bounds), for the penalty's
+#: parameters, which must be finite.
+OPEN_BOUND = 1e3
+
+
+# ---------------------------------------------------------------------- solver presets
+class DeadlineCallback(ca.Callback):
+    """IPOPT iteration callback: asks IPOPT to stop once ``stop_at`` (perf_counter) has passed.
+
+    IPOPT options are frozen when an ``nlpsol`` is created, so a cached solver cannot take
+    ``max_wall_time = deadline.remaining`` per call; this stops it at the granularity of one
+    iteration instead. ``stop_at`` is mutable state of a cached object: one thread per process.
+    """
+
+    def __init__(self, nx: int, ng: int, npar: int) -> None:
+        ca.Callback.__init__(self)
+        self._dims = {"x": nx, "lam_x": nx, "g": ng, "lam_g": ng, "p": npar, "lam_p": npar}
+        self.stop_at = math.inf
+        self.construct("nlp_deadline", {})
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i: int) -> str:
+        return "ret"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        name = ca.nlpsol_out(i)
+        return ca.Sparsity.scalar() if name == "f" else ca.Sparsity.dense(self._dims[name], 1)
+
+    def eval(self, arg: Sequence[Any]) -> list:  # type: ignore[override]
+        # a nonzero return makes IPOPT stop with User_Requested_Stop
+        return [1 if time.perf_counter() > self.stop_at else 0]
+
+
+def ipopt_options(callback: DeadlineCallback | None = None, **ipopt: Any) -> dict[str, Any]:
+    """``nlpsol`` options of IPOPT: :data:`IPOPT_OPTIONS` updated by ``ipopt``, the deadline
+    ``callback``, no printing, no exception on failure (the status is classified instead)."""
+    opts: dict[str, Any] = {"ipopt": {**IPOPT_OPTIONS, **ipopt}, "print_time": False,
+                            "error_on_fail": False}
+    if callback is not None:
+        opts["iteration_callback"] = callback
+    return opts
+
+
+def fatrop_options(nx: Sequence[int], nu: Sequence[int], ng: Sequence[int],
+                   equality: Sequence[bool], *, expand: bool = True) -> dict[str, Any]:
+    """``nlpsol`` options of fatrop for a stage-wise NLP of ``len(nu) - 1`` intervals
+    (``nx``, ``nu``, ``ng``: per stage; ``equality``: per constraint row)."""
+    opts: dict[str, Any] = {
+        "structure_detection": "manual", "nx": list(nx), "nu": list(nu), "ng": list(ng),
+        "N": len(nu) - 1, "equality": list(equality), "print_time": False,
+        "error_on_fail": False,
+        "fatrop": {"print_level": 0, "tol": FATROP_TOL, "max_iter": FATROP_MAX_ITER,
+                   "mu_init": FATROP_MU_INIT}}
+    if expand:
+        opts["expand"] = True
+    return opts
+
+
+def classify(status: str, success: bool) -> str:
+    """The class of a solver's return: ``"success"``, ``"timeout"``, ``"infeasible"`` or
+    ``"failure"``."""
+    if success:
+        return "success"
+    if status in TIMEOUT:
+        return "timeout"
+    if status in INFEASIBLE:
+        return "infeasible"
+    return "failure"
+
+
+def error_for(kind: str, message: str, *, diagnostics: dict[str, Any] | None = None,
+              field: str | None = None) -> PlannerError:
+    """The library's typed error of a class of :func:`classify` (``failure``: numerical)."""
+    cls: type[PlannerError] = {"timeout": SolverTimeoutError,
+                               "infeasible": InfeasibleError}.get(kind, NumericalError)
+    return cls(message, field=field, diagnostics=diagnostics)
+
+
+@dataclass(frozen=True)
+class SolveOutcome:
+    """One solver run: its class (:func:`classify`), status, iterations, time and answer."""
+
+    solver: str
+    kind: str
+    status: str
+    iterations: int
+    seconds: float
+    x: np.ndarray | None
+
+    @property
+    def success(self) -> bool:
+        return self.kind == "success"
+
+
+# ---------------------------------------------------------------------- the transcription
+class MultipleShootingNLP:
+    """The transcription of the module docstring for one robot, with its solvers (built once,
+    cached by :func:`multiple_shooting_nlp`).
+
+    Parameters
+    ----------
+    gains, exponents : tuple
+        The robot (``K_2..K_n``, ``m_2..m_n``).
+    fixed_phi : bool
+        ``phi(1) - phi(0)`` is a parameter (else the caller bounds ``phi_N``).
+    intervals, substeps : int
+        A rung of :data:`LADDER`.
+    region : {"hard", "penalty"}
+        How the region enters (see the module docstring).
+
+    Attributes
+    ----------
+    solvers : list of (name, nlpsol)
+        fatrop (when CasADi has it) then IPOPT.
+    end_jacobian : casadi.Function
+        ``(q0, U) -> d q_N / d U`` of the NLP's RK4 model (single shooting; the Newton
+        correction of :func:`correct_rates`).
+    """
+
+    def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
+                 intervals: int, substeps: int, region: str = "hard") -> None:
+        if region not in REGION_MODES:
+            raise ValueError(f"region must be one of {REGION_MODES}, not {region!r}")
+        t0 = time.perf_counter()
+        n = self.n = len(gains) + 1
+        N = self.N = intervals
+        self.region = region
+        penalty = region == "penalty"
+        nq = n + 1
+        nx = self.nx = nq + 2
+        nu = self.nu = 3 if penalty else 2
+        h = 1.0 / N
+
+        def field(y: Any, rates: Any) -> Any:
+            # the epigraph states are constant along the path
+            return ca.vertcat(*vector_field(gains, exponents, y, rates[0], rates[1], ca.cos),
+                              0, 0)
+
+        x, u = ca.SX.sym("x", nx), ca.SX.sym("u", 2)
+        step = ca.Function("rk4", [x, u], [rk4_step(field, x, u, h, substeps)])
+        # the NLP model's end state as a function of the start and all rates (single shooting)
+        # and its Jacobian: the Newton correction (correct_rates) uses them
+        q0s, Us = ca.SX.sym("q0", nq), ca.SX.sym("U", 2 * N)
+        xe = ca.vertcat(q0s, 0, 0)
+        for k in range(N):
+            xe = step(xe, Us[2 * k:2 * k + 2])
+        self.end_jacobian = ca.Function("end_jacobian", [q0s, Us],
+                                        [ca.jacobian(xe[:nq], Us)])
+
+        # p = [phi0, a (n), b (n), w_dev, w_energy, w_da, dphi] and, with the penalty,
+        #     [w_sens, rho, lo (n), hi (n)]
+        P = ca.SX.sym("p", 2 * n + 5 + (2 + 2 * n if penalty else 0))
+        phi0, a, b = P[0], P[1:1 + n], P[1 + n:1 + 2 * n]
+        w_dev, w_en, w_da, dphi = P[1 + 2 * n], P[2 + 2 * n], P[3 + 2 * n], P[4 + 2 * n]
+        ell = b - a
+        nrm = ca.sumsqr(ell)
+        X = [ca.SX.sym(f"x{k}", nx) for k in range(N + 1)]
+        U = [ca.SX.sym(f"u{k}", nu) for k in range(N)]
+        w: list[Any] = []
+        g: list[Any] = []
+        eq: list[bool] = []
+        ng: list[int] = []
+        f: Any = 0
+        if penalty:
+            w_sens, rho = P[5 + 2 * n], P[6 + 2 * n]
+            lo, hi = P[7 + 2 * n:7 + 3 * n], P[7 + 3 * n:7 + 4 * n]
+
+        def stage_rows(k: int) -> list[tuple[Any, bool]]:
+            if k == 0:
+                return [(X[0][:nq] - ca.vertcat(phi0, a), True)]
+            if k == N:
+                rows = [(X[N][1:nq] - b, True)]
+                if fixed_phi:
+                    rows.append((X[N][0] - phi0 - dphi, True))
+                return rows
+            d = X[k][1:nq] - a
+            along = ca.if_else(nrm > 0, ca.dot(d, ell) ** 2 / ca.fmax(nrm, 1e-300), 0)
+            rows = [(ca.sumsqr(d) - along - X[k][nq], False),
+                    ((X[k][1] - (a[0] + (b[0] - a[0]) * k * h)) ** 2 - X[k][nq + 1], False)]
+            if penalty:
+                th, s = X[k][1:nq], U[k][2]
+                rows += [(th - s - hi, False), (lo - th - s, False)]
+            return rows
+
+        for k in range(N + 1):
+            w.append(X[k])
+            if k < N:
+                w.append(U[k])
+                f += w_en * h * ca.sumsqr(U[k][:2])
+                if penalty:
+                    f += rho * U[k][2]
+                g.append(X[k + 1] - step(X[k], U[k][:2]))  # fatrop: x_{k+1} - F(x_k, u_k)
+                eq += [True] * nx
+            rows = stage_rows(k)
+            for expr, is_eq in rows:
+                g.append(expr)
+                eq += [is_eq] * int(expr.shape[0])
+            ng.append(sum(int(e.shape[0]) for e, _ in rows))
+        f += w_dev * X[N][nq] + w_da * X[N][nq + 1]
+        if penalty:
+            f += w_sens * sensitivity_frobenius(X[N][0] - phi0, n)
+        nlp = {"x": ca.vertcat(*w), "p": P, "f": f, "g": ca.vertcat(*g)}
+        self.nw = int(nlp["x"].shape[0])
+        self.np = int(P.shape[0])
+        n_g = int(nlp["g"].shape[0])
+        self.equality = np.array(eq)
+        self.callback = DeadlineCallback(self.nw, n_g, self.np)
+        self.solvers: list[tuple[str, Any]] = []
+        self.native: native.Library | None = None
+        self.compiled = False
+        self._native_cfg: native.NativeConfig | None = None
+        self._native_opts: dict[str, Any] = {}
+        # only the first rung is compiled: the second's C (4-11 MB) takes 10-20 s and up to
+        # 1.6 GB to compile, for a rung that runs rarely (and for about a second)
+        self.native_ok = (intervals, substeps) == (LADDER[0].intervals, LADDER[0].substeps)
+        name = "shooting" if region == "hard" else "penalty"
+        if ca.has_nlpsol("fatrop"):
+            fatrop_opts = fatrop_options([nx] * (N + 1), [nu] * N + [0], ng, eq)
+            self.solvers.append(("fatrop", ca.nlpsol(f"{name}_fatrop", "fatrop", nlp,
+                                                     fatrop_opts)))
+            # for the same functions compiled (optimizer.native), see load_native
+            self._native_opts = {k: v for k, v in fatrop_opts.items() if k != "expand"}
+        self.solvers.append(("ipopt", ca.nlpsol(f"{name}_ipopt", "ipopt", nlp,
+                                                ipopt_options(self.callback))))
+        self._name = name
+        self.lbg = np.where(self.equality, 0.0, -np.inf)
+        self.ubg = np.zeros(n_g)
+        self.stride = nx + nu
+        self.build_time = time.perf_counter() - t0
+
+    def load_native(self, every: float = 1.0, wait: bool = False) -> bool:
+        """Use the compiled fatrop functions once their library is built (checked at most
+        every ``every`` s; ``wait``: build it now when missing); True when they are in use.
+
+        The library is asked for (:func:`optimizer.native.library_for`: found in the cache,
+        or its build started) at the first call after :func:`optimizer.native.configure`, so
+        that an NLP built before (the service's forkserver builds it at start-up) gets it too.
+        """
+        if self.compiled:
+            return True
+        cfg = native.config()
+        if cfg is not self._native_cfg:
+            self._native_cfg, self.native = cfg, None
+            fatrop = dict(self.solvers).get("fatrop")
+            if cfg is not None and fatrop is not None and self.native_ok:
+                self.native = native.library_for(native.nlp_source(fatrop), wait=wait)
+            every = 0.0
+        if self.native is None:
+            return False
+        path = self.native.ready(every)
+        if path is None:
+            return False
+        try:
+            solver = ca.nlpsol(f"{self._name}_fatrop", "fatrop", str(path), self._native_opts)
+        except Exception:  # noqa: BLE001 - an unloadable library: keep the virtual machine
+            self.native = None
+            return False
+        self.solvers = [("fatrop", solver) if name == "fatrop" else (name, s)
+                        for name, s in self.solvers]
+        self.compiled = True
+        return True
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Open variable bounds ``(N+1, stride)`` (row ``k``: ``x_k`` then ``u_k``; the last
+        row's ``u`` part is not in ``w``), with the epigraphs and slacks >= 0 and the start's
+        slack 0 (the start is fixed): the caller adds its own and ravels with :meth:`flat`."""
+        n = self.n
+        lb = np.full((self.N + 1, self.stride), -np.inf)
+        ub = np.full((self.N + 1, self.stride), np.inf)
+        lb[:, n + 1:n + 3] = 0.0
+        if self.region == "penalty":
+            lb[:, self.nx + 2] = 0.0
+            ub[0, self.nx + 2] = 0.0
+        return lb, ub
+
+    def flat(self, W: np.ndarray) -> np.ndarray:
+        """A ``(N+1, stride)`` table of variables as the NLP's vector."""
+        return np.asarray(W, float).ravel()[:self.nw]
+
+    def guess(self, a: np.ndarray, b: np.ndarray, phi0: float, travel: float) -> np.ndarray:
+        """Straight lines in joint space (inside the region's box when start and goal are),
+        ``phi`` moving by ``travel``; consistent rates."""
+        N, n = self.N, self.n
+        s = np.linspace(0.0, 1.0, N + 1)
+        Q = np.empty((N + 1, n + 1))
+        Q[:, 0] = phi0 + travel * s
+        Q[:, 1:] = a + np.outer(s, b - a)
+        W = np.concatenate([self.guess_from_nodes(Q, a, b), np.zeros(self.nu)]).reshape(
+            N + 1, self.stride)
+        W[:, n + 2] = 1e-4  # th1 on its line
+        W[:N, n + 3], W[:N, n + 4] = travel, b[0] - a[0]
+        return self.flat(W)
+
+    def guess_from_nodes(self, Q: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """A guess through node states ``Q`` (N+1, n+1): the rates of ``phi`` and ``th1``
+        that join them, the deviations' epigraphs just above their values, zero slacks."""
+        N, n = self.N, self.n
+        d = Q[:, 1:] - a
+        ell = b - a
+        nrm = float(ell @ ell)
+        S0 = float(np.max(np.sum(d * d, axis=1) - ((d @ ell) ** 2 / nrm if nrm > 0 else 0.0)))
+        line1 = a[0] + (b[0] - a[0]) * np.linspace(0.0, 1.0, N + 1)
+        W = np.zeros((N + 1, self.stride))
+        W[:, :n + 1] = Q
+        W[:, n + 1] = max(S0, 0.0) + 1e-4
+        W[:, n + 2] = float(np.max((Q[:, 1] - line1) ** 2)) + 1e-4
+        W[:N, n + 3:n + 5] = N * np.diff(Q[:, :2], axis=0)
+        return self.flat(W)
+
+    def unpack(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Node states ``(N+1, n+1)`` and rates ``(N, 2)`` of a solution vector."""
+        W = np.concatenate([w, np.zeros(self.nu)]).reshape(self.N + 1, self.stride)
+        return W[:, :self.n + 1].copy(), W[:self.N, self.nx:self.nx + 2].copy()
+
+    def slacks(self, w: np.ndarray) -> np.ndarray:
+        """The penalty's slacks ``s_0..s_{N-1}`` of a solution vector (zeros when hard)."""
+        if self.region != "penalty":
+            return np.zeros(self.N)
+        W = np.concatenate([w, np.zeros(self.nu)]).reshape(self.N + 1, self.stride)
+        return W[:self.N, self.nx + 2].copy()
+
+
+def sensitivity_frobenius(s: Any, n: int) -> Any:
+    """``||J_R||_F`` of ``s = z1(T) - z1(0)`` (eq 22) for a CasADi symbol ``s``:
+    ``sqrt(1 + sum_{k<n} (n - k) s^(2k) / (k!)^2)``."""
+    tot: Any = 1.0
+    for k in range(n):
+        tot = tot + (n - k) * s ** (2 * k) / math.factorial(k) ** 2
+    return ca.sqrt(tot)
+
+
+@functools.lru_cache(maxsize=16)
+def multiple_shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
+                          intervals: int, substeps: int,
+                          region: str = "hard") -> MultipleShootingNLP:
+    """The cached NLP of one robot, transcription and region mode (per process)."""
+    return MultipleShootingNLP(gains, exponents, fixed_phi, intervals, substeps, region)
+
+
+def rungs(req: PlanRequest) -> list[tuple[Transcription, tuple[float, float] | None]]:
+    """The transcriptions a method tries in turn, each with the signs its rates are held to.
+
+    Under the default objective (fewest actuator reversals first) a plan in which no actuator
+    reverses wins whatever its deviation: the first rung with rates of fixed signs
+    (:func:`~.rules.monotone_signs`), then with phi's sign alone fixed, then :data:`LADDER`
+    free.
+    """
+    out: list[tuple[Transcription, tuple[float, float] | None]] = [(t, None) for t in LADDER]
+    signs = monotone_signs(req) if req.objective == "reversals_then_deviation" else None
+    if signs is not None:
+        out[:0] = (([(LADDER[0], signs)] if signs[1] != 0.0 else [])
+                   + [(LADDER[0], (signs[0], 0.0))])
+    return out
+
+
+def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard") -> MultipleShootingNLP:
+    """The cached NLP of ``req``'s robot under transcription ``tr``."""
+    return multiple_shooting_nlp(tuple(float(k) for k in req.robot.gains),
+                                 tuple(int(m) for m in req.robot.exponents),
+                                 req.phi_change is not None, tr.intervals, tr.substeps, region)
+
+
+def node_bounds(req: PlanRequest, limits: tuple[np.ndarray, np.ndarray],
+                margin: float = MARGIN) -> tuple[np.ndarray, np.ndarray]:
+    """Per joint: its limits ``(lo, hi)`` moved in by ``margin`` (less near start or goal)."""
+    a, b = np.array(req.start), np.array(req.goal)
+    lo, hi = (np.array(x, float) for x in limits)
+    inner_lo = np.minimum(a, b) - lo
+    inner_hi = hi - np.maximum(a, b)
+    lo_m = np.where(np.isfinite(lo), lo + np.minimum(margin, 0.5 * inner_lo), -np.inf)
+    hi_m = np.where(np.isfinite(hi), hi - np.minimum(margin, 0.5 * inner_hi), np.inf)
+    return lo_m, hi_m
+
+
+def objective_weights(req: PlanRequest, method: str) -> tuple[float, float, float]:
+    """``(w_dev, w_energy, w_da)`` of the transcription's objective for ``req``:
+    :data:`DEVIATION_WEIGHT`, 1 and :data:`D_A_WEIGHT`, or ``weights.d_a`` (both deviations)
+    and ``weights.energy`` of a ``weighted`` request.
+
+    Raises
+    ------
+    InvalidRequestError
+        ``weighted`` with neither ``weights.d_a`` nor ``weights.energy`` positive.
+    """
+    if req.objective == "weighted":
+        w_dev, w_en = float(req.weights.d_a), float(req.weights.energy)
+        if w_dev <= 0.0 and w_en <= 0.0:
+            raise InvalidRequestError(f"method '{method}' with objective 'weighted' needs a "
+                                      "positive weights.d_a or weights.energy", field="weights")
+        return w_dev, w_en, w_dev
+    return DEVIATION_WEIGHT, 1.0, D_A_WEIGHT
+
+
+def variable_bounds(req: PlanRequest, nlp: MultipleShootingNLP, tr: Transcription,
+                    node_lo: np.ndarray | None = None, node_hi: np.ndarray | None = None,
+                    rate_signs: tuple[float, float] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+    """``lbx, ubx`` of ``req`` on ``nlp``: the rates within ``tr.rate_bound`` (keeps the NLP's
+    RK4 steps accurate, see :data:`LADDER`), ``phi_N`` within the request's ``dphi`` bounds
+    (unless fixed), the joints of every node within ``node_lo, node_hi`` when given (the hard
+    region), each rate of the sign ``rate_signs`` gives it (0: either); also the ``dphi`` range
+    ``(lo, hi)`` the guesses must respect."""
+    n, N = nlp.n, nlp.N
+    lbW, ubW = nlp.bounds()
+    if node_lo is not None and node_hi is not None:
+        lbW[:, 1:n + 1], ubW[:, 1:n + 1] = node_lo, node_hi
+    lbW[:N, nlp.nx:nlp.nx + 2], ubW[:N, nlp.nx:nlp.nx + 2] = -tr.rate_bound, tr.rate_bound
+    for col, sign in zip((nlp.nx, nlp.nx + 1), rate_signs or (0.0, 0.0)):
+        if sign > 0:
+            lbW[:N, col] = 0.0
+        elif sign < 0:
+            ubW[:N, col] = 0.0
+    if req.phi_change is not None:
+        lo_phi = hi_phi = float(req.phi_change)
+    else:
+        lo_phi, hi_phi = req.phi_change_bounds
+        lbW[N, 0], ubW[N, 0] = req.phi_start + lo_phi, req.phi_start + hi_phi
+    return nlp.flat(lbW), nlp.flat(ubW), (lo_phi, hi_phi)
+
+
+def parameters(req: PlanRequest, w_dev: float, w_energy: float, w_da: float,
+               penalty: tuple[float, float, np.ndarray, np.ndarray] | None = None
+               ) -> np.ndarray:
+    """The parameter vector of ``req``: start, goal, weights, fixed ``dphi`` and, for the
+    penalty mode, ``(w_sens, rho, lo, hi)`` (infinite bounds become :data:`OPEN_BOUND`)."""
+    dphi = 0.0 if req.phi_change is None else float(req.phi_change)
+    p = [np.array([req.phi_start]), np.array(req.start), np.array(req.goal),
+         np.array([w_dev, w_energy, w_da, dphi])]
+    if penalty is not None:
+        w_sens, rho, lo, hi = penalty
+        p += [np.array([w_sens, rho]), np.clip(lo, -OPEN_BOUND, OPEN_BOUND),
+              np.clip(hi, -OPEN_BOUND, OPEN_BOUND)]
+    return np.concatenate(p).astype(float)
+
+
+def run_solver(nlp: MultipleShootingNLP, name: str, x0: np.ndarray, p: np.ndarray,
+               lbx: np.ndarray, ubx: np.ndarray, seconds: float) -> SolveOutcome:
+    """Run solver ``name`` of ``nlp`` from ``x0`` for at most about ``seconds`` (IPOPT: the
+    deadline callback; fatrop: its iteration cap).
+
+    Raises
+    ------
+    NumericalError
+        The solver raised (CasADi's exceptions are not the library's).
+    """
+    solver = dict(nlp.solvers)[name]
+    t0 = time.perf_counter()
+    nlp.callback.stop_at = t0 + seconds
+    try:
+        sol = solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+        stats = solver.stats()
+    except Exception as exc:  # noqa: BLE001 - CasADi raises RuntimeError on evaluation errors
+        raise NumericalError(f"the {name} solver raised: {exc}",
+                             diagnostics={"solver": name}) from exc
+    finally:
+        nlp.callback.stop_at = math.inf
+    status = str(stats.get("return_status", "unknown"))
+    kind = classify(status, bool(stats.get("success")))
+    x = np.asarray(sol["x"], float).ravel()
+    return SolveOutcome(solver=name, kind=kind, status=status,
+                        iterations=int(stats.get("iter_count", -1)),
+                        seconds=time.perf_counter() - t0,
+                        x=x if np.all(np.isfinite(x)) else None)
+
+
+def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
+                  phi_end: float, grid: np.ndarray) -> tuple[np.ndarray, list[float], Any]:
+    """Newton steps on the EXACT model that move the NLP's rates onto the goal.
+
+    The NLP integrates with RK4, so the original model under its rates ends 1e-8 to 1e-5 rad
+    from the goal. Each step integrates the original model (cascade quadrature, normalised
+    time: the model is driftless, so ``T`` does not change the path), and applies the
+    minimum-norm change of the rates that cancels the end error to first order, with the
+    Jacobian of the NLP's RK4 model (close to the exact one: the error falls by orders of
+    magnitude per step). ``phi``'s end is held at the NLP's value (its row is exact).
+
+    Parameters
+    ----------
+    grid : ndarray
+        Normalised times where the returned replay holds the path.
+
+    Returns
+    -------
+    rates : ndarray (N, 2)
+    errors : list of float
+        ``max |th(T) - goal|`` of the exact model before each step and after the last.
+    replay : Replay
+        The exact model under the returned rates on ``grid`` (normalised time).
+    """
+    N = rates.shape[0]
+    breaks = np.linspace(0.0, 1.0, N + 1)
+    q0 = req.q_start()
+    target = np.concatenate([[phi_end], req.goal])
+    U = rates.copy()
+    errors: list[float] = []
+    best: tuple[float, np.ndarray, Any] | None = None
+    for k in range(MAX_CORRECTIONS + 1):
+        sched = ActuatorSchedule(breaks=breaks, rates=U)
+        rep = integrate_cascade(req.robot, sched.u, q0, 1.0, grid, breaks,
+                                fallback=sched.u_scalar)
+        if not rep.success:
+            break
+        r = rep.final - target
+        errors.append(float(np.max(np.abs(r[1:]))))
+        if best is None or errors[-1] < best[0]:
+            best = (errors[-1], U, rep)
+        if errors[-1] <= CORRECTION_TARGET or k == MAX_CORRECTIONS:
+            break
+        J = np.asarray(nlp.end_jacobian(q0, U.ravel()))
+        # the minimum-norm step by least squares: J J^T can be singular in double precision
+        # (nearly parallel rows) while J itself is fine
+        step = np.linalg.lstsq(J, r, rcond=None)[0]
+        U = U - step.reshape(N, 2)
+    if best is None:  # the first integration failed: the caller's verification reports it
+        return U, errors, rep
+    return best[1], errors, best[2]  # a step that made things worse is not kept
+
+
+__all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "DeadlineCallback", "INFEASIBLE",
+           "IPOPT_OPTIONS", "LADDER", "MARGIN", "MultipleShootingNLP", "REGION_MODES", "SUCCESS",
+           "SolveOutcome", "TIMEOUT", "Transcription", "classify", "correct_rates", "error_for",
+           "fatrop_options", "ipopt_options", "multiple_shooting_nlp", "nlp_for", "node_bounds", "rungs",
+           "objective_weights", "parameters", "run_solver", "sensitivity_frobenius",
+           "variable_bounds"]
