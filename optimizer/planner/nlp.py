@@ -121,7 +121,7 @@ TIMEOUT = ("User_Requested_Stop", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_
 #: Return statuses that mean "no point satisfies the constraints" (IPOPT's local certificate).
 INFEASIBLE = ("Infeasible_Problem_Detected",)
 #: The Newton correction stops once the exact model ends this close to the goal (rad)...
-CORRECTION_TARGET = 1e-10
+CORRECTION_TARGET = 1e-9
 #: ... or after this many steps.
 MAX_CORRECTIONS = 4
 #: A bound of a joint the region leaves open (th_n without joint bounds), for the penalty's
