@@ -208,6 +208,8 @@
     if (gains.length) {
       if (gains.length !== n - 1) throw new Error("Give all gains and exponents, or none (default robot).");
       req.robot = { gains: gains, exponents: exponents };
+    } else {
+      req.robot = {};  // the default robot of n joints: the service wants it said for n != 3
     }
     if ($("duration").value.trim() !== "") req.duration = readNumber("duration", "Duration T");
     if (req.objective === "weighted") {
