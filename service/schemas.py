@@ -253,6 +253,16 @@ class SweepResponse(BaseModel):
     robot: RobotInfo
 
 
+class SweepFigureRequest(BaseModel):
+    """``POST /v1/figures/from_sweep``: a sweep answer to draw, and the planned dphi to mark."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    sweep: SweepResponse = Field(..., description="The answer of POST /v1/sweeps, unchanged.")
+    planned_phi_change: Optional[PhiAngle] = Field(  # type: ignore[valid-type]
+        None, description="A plan's dphi (rad), drawn as a dashed line.")
+
+
 class TransformedPoint(BaseModel):
     """One mapped point."""
 
