@@ -257,6 +257,30 @@ def test_worked_example_in_the_browser(browser_context, explorer_server, tmp_pat
     tab.close()
 
 
+def test_the_default_method_plans_once_and_finds_the_windows_by_sweeping(browser_context,
+                                                                         explorer_server):
+    tab = Page(browser_context, explorer_server)
+    p = tab.page
+    assert p.input_value("#method") == "auto"
+    for i in (1, 2, 3):
+        p.fill(f"#start-{i}", "10")
+        p.fill(f"#goal-{i}", "30")
+    tab.api_calls.clear()
+    tab.plan()
+    p.wait_for_selector("#plan-out:not([hidden])", timeout=60_000)
+    tab.wait_for_figures()
+    p.wait_for_selector("#sweep-note:not([hidden])", timeout=10_000)
+    assert tab.calls_to("/v1/plans") == 1, tab.api_calls
+    # auto's plan reports no family windows: a coarse sweep finds them, a fine one draws them
+    assert tab.calls_to("/v1/sweeps") == 2, tab.api_calls
+    assert "33.20 .. 35.26 deg (from a sweep" in tab.text("#feasible")
+    assert "t_p = 1" in tab.text("#sweep-best") and tab.text("#ind-t_p") == "1"
+    low, high = (number(x) for x in tab.text("#sweep-range").split("..")[:2])
+    assert low < 33.20 and high > 35.26 and high - low < 10, tab.text("#sweep-range")
+    assert tab.errors == []
+    tab.close()
+
+
 def test_errors_are_readable_messages(browser_context, explorer_server):
     tab = Page(browser_context, explorer_server)
     p = tab.page

@@ -262,12 +262,13 @@
 
   /** The sweep answer for the figure: over the plan's feasible windows; a plan that reports
    *  none (its method did not search them) gets them from a coarse sweep first. */
-  async function sweepFor(req, plan) {
+  async function sweepFor(run, req, plan) {
     let windows = plan.feasible_phi_changes || [];
     if (!windows.length) {
       const coarse = await postJSON("v1/sweeps", Object.assign({}, req, {
         phi_change_range: [-Math.PI, Math.PI], points: 721, intervals: true }));
       windows = coarse.data.feasible_phi_changes || [];
+      if (run === state.run) showWindows(windows, plan, " (from a sweep; this method does not search them)");
     }
     const s = sweepSpan(plan.phi_change, windows);
     const answer = await postJSON("v1/sweeps", Object.assign({}, req, {
@@ -336,6 +337,27 @@
     }
   }
 
+  /** The feasible dphi windows; ``source`` says where they come from when not from the plan. */
+  function showWindows(windows, plan, source) {
+    const items = windows.map((p) => {
+      const li = document.createElement("li");
+      li.textContent = `${fmtDeg(p[0], 2)} .. ${fmtDeg(p[1], 2)} deg${source}`;
+      if (plan.phi_change >= p[0] - 1e-12 && plan.phi_change <= p[1] + 1e-12) {
+        li.classList.add("chosen");
+        li.title = "contains the planned dphi";
+      }
+      return li;
+    });
+    if (!items.length) {
+      const li = document.createElement("li");
+      li.className = "muted";
+      li.textContent = source ? "none: no member of the polynomial family is singularity-free"
+        : "none reported (not searched by this method)";
+      items.push(li);
+    }
+    $("feasible").replaceChildren(...items);
+  }
+
   function showPlan(plan, text) {
     $("placeholder").hidden = true;
     $("plan-out").hidden = false;
@@ -349,23 +371,7 @@
     $("ind-margin").textContent = fmtDeg(ind.margin, 2);
     $("ind-terminal_error").textContent = fmtExp((plan.validation || {}).terminal_error);
 
-    const list = $("feasible");
-    const items = (plan.feasible_phi_changes || []).map((p) => {
-      const li = document.createElement("li");
-      li.textContent = `${fmtDeg(p[0], 2)} .. ${fmtDeg(p[1], 2)} deg`;
-      if (plan.phi_change >= p[0] - 1e-12 && plan.phi_change <= p[1] + 1e-12) {
-        li.classList.add("chosen");
-        li.title = "contains the planned dphi";
-      }
-      return li;
-    });
-    if (!items.length) {
-      const li = document.createElement("li");
-      li.className = "muted";
-      li.textContent = "none reported (not searched by this method)";
-      items.push(li);
-    }
-    list.replaceChildren(...items);
+    showWindows(plan.feasible_phi_changes || [], plan, "");
 
     const url = URL.createObjectURL(new Blob([text], { type: "application/json" }));
     state.urls.push(url);
@@ -435,7 +441,7 @@
     showPlan(plan, answer.text);
     reveal();
     // every figure is drawn from an answer the page has: the plan's, and a sweep's
-    const sweep = sweepFor(req, plan).then((data) => {
+    const sweep = sweepFor(run, req, plan).then((data) => {
       if (run === state.run) showSweepNote(data, plan);
       return { path: "v1/figures/from_sweep", body: { sweep: data, planned_phi_change: plan.phi_change } };
     });
