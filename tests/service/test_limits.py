@@ -1,7 +1,7 @@
 """Every request limit, through HTTP: one value past it is a 4xx problem naming the field and the
 limit, the value at it is accepted. The app runs with *tightened* settings, which shows that each
-limit is a setting; the environment names (``PLANNER_*``) and README's ``### Limits`` table are
-checked too."""
+limit is a setting; the environment names (``PLANNER_*``) and the ``## Limits`` table of
+docs/settings.md are checked too."""
 
 from __future__ import annotations
 
@@ -227,9 +227,9 @@ def test_the_openapi_document_follows_the_limits(tight):
     assert doc["components"]["schemas"]["RandomStarts"]["properties"]["count"]["maximum"] == 4
 
 
-def test_readme_limits_table_lists_every_limit():
-    readme = (ROOT / "README.md").read_text(encoding="utf-8")
-    section = readme.split("### Limits", 1)[1].split("\n### ", 1)[0]
+def test_docs_limits_table_lists_every_limit():
+    page = (ROOT / "docs" / "settings.md").read_text(encoding="utf-8")
+    section = page.split("\n## Limits", 1)[1].split("\n## ", 1)[0]
     documented = {m.lower() for m in re.findall(r"`PLANNER_([A-Z_]+)`", section)}
     limits = {name for name in LIMIT_SETTINGS if name not in ("workers", "retry_after")}
     assert limits <= documented, limits - documented
