@@ -17,6 +17,7 @@ import json
 import os
 import re
 import shutil
+import socket
 import subprocess
 import sys
 import time
@@ -68,9 +69,13 @@ def nginx_path() -> str:
     return str(found)
 
 
-def site_config(upstream_port: int, listen_port: int) -> str:
-    """The committed server config with the upstream and the listen address for this machine."""
+def site_config(upstream_port: int, listen_port: int, read_timeout: str | None = None) -> str:
+    """The committed server config with the upstream and the listen address for this machine
+    (and, to provoke a 504 quickly, a shorter upstream read timeout)."""
     text = CONF.read_text(encoding="utf-8")
+    if read_timeout is not None:
+        text, n = re.subn(r"proxy_read_timeout \d+s;", f"proxy_read_timeout {read_timeout};", text)
+        assert n == 1, "deploy/nginx.conf changed shape: adapt the test"
     text, upstreams = re.subn(r"server planner:8000;", f"server 127.0.0.1:{upstream_port};",
                               text)
     text, listens = re.subn(r"listen 80;", f"listen 127.0.0.1:{listen_port};", text)
@@ -79,12 +84,14 @@ def site_config(upstream_port: int, listen_port: int) -> str:
 
 
 @contextlib.contextmanager
-def nginx_front(directory: Path, upstream_port: int) -> Iterator[int]:
+def nginx_front(directory: Path, upstream_port: int,
+                read_timeout: str | None = None) -> Iterator[int]:
     """nginx (foreground) with the site config in front of 127.0.0.1:``upstream_port``."""
     exe = nginx_path()
     port = free_port()
     directory.mkdir(parents=True, exist_ok=True)
-    (directory / "site.conf").write_text(site_config(upstream_port, port), encoding="utf-8")
+    (directory / "site.conf").write_text(site_config(upstream_port, port, read_timeout),
+                                         encoding="utf-8")
     temp = "".join(f"{kind}_temp_path {directory / kind};\n"
                    for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"))
     # the site file is included in the http block, as the nginx image does with conf.d/*.conf
@@ -217,6 +224,18 @@ def test_nothing_behind_is_a_502_problem(front_of_nothing):
                                    json.dumps(WORKED).encode(),
                                    {"Content-Type": "application/json"})
     problem(status, headers, raw, 502, "overloaded")
+
+
+def test_an_upstream_too_slow_is_a_504_problem(tmp_path):
+    # a "replica" that accepts connections and never answers
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)
+        with nginx_front(tmp_path / "nginx-slow", silent.getsockname()[1], "1s") as port:
+            status, headers, raw = request(port, "GET", "/v1/robots/default")
+    doc = problem(status, headers, raw, 504, "timeout")
+    assert "180 s" in doc["detail"]  # the committed timeout, which the test shortened
+    no_version(headers)
 
 
 def test_every_error_nginx_makes_has_a_problem_page():
