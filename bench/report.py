@@ -266,7 +266,7 @@ This page is written by the benchmark: a full run of `python -m bench` replaces 
 every sample goes to `bench/results/`, which is not versioned). It holds the latest run only.
 
     .venv/bin/pip install -e '.[bench]'        # httpx, psutil, pyinstrument
-    .venv/bin/python -m bench                  # full run: about 10 min on 2 cores; rewrites this page
+    .venv/bin/python -m bench                  # full run (10 min on 2 cores): rewrites this page
     .venv/bin/python -m bench --quick          # fewer repeats, 3 s per HTTP level (page untouched)
     .venv/bin/python -m bench --help           # choose cases, methods, repeats, --report PATH
     .venv/bin/python bench/profile_plan.py     # profile of the hot path (any --case, --method)

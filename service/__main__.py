@@ -54,7 +54,7 @@ def _port(text: str) -> int:
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    """The command line: ``--host`` and ``--port`` override ``PLANNER_HOST`` and ``PLANNER_PORT``."""
+    """The command line: ``--host``, ``--port`` override ``PLANNER_HOST``, ``PLANNER_PORT``."""
     parser = argparse.ArgumentParser(
         prog="python -m service",
         description="Run the planning service (uvicorn and a pool of solver workers). Every "
