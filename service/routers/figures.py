@@ -38,7 +38,7 @@ from starlette.responses import Response
 from ..dispatch import check_plan, run_job
 from ..formats import FORMATS
 from ..problems import ServiceProblem
-from ..schemas import PlanResponse, Schemas, SweepFigureRequest
+from ..schemas import MIN_JOINTS, PlanResponse, Schemas, SweepFigureRequest
 from . import ERROR_RESPONSES
 
 #: Seconds a figure job may take beyond the request's ``time_limit`` (the drawing itself).
@@ -175,6 +175,15 @@ def build_router(S: Schemas) -> APIRouter:
     async def figure_from_plan(kind: Literal["joint_angles", "chained_state"],
                                body: PlanResponse, request: Request,
                                format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+        settings = request.app.state.settings
+        # bounds of the drawing's cost: the answers the service itself gives stay within them
+        n, rows = body.robot.n, len(body.path.t)
+        if not MIN_JOINTS <= n <= settings.max_joints:
+            raise ServiceProblem("invalid_request", f"robot.n = {n} must lie in [{MIN_JOINTS}, "
+                                 f"{settings.max_joints}]", field="robot.n")
+        if not 2 <= rows <= settings.max_samples:
+            raise ServiceProblem("invalid_request", f"path.t has {rows} samples; a plan answer "
+                                 f"has 2..{settings.max_samples}", field="path.t")
         return await _drawn(request, kind, body.model_dump(), format)
 
     @router.post("/figures/from_sweep", response_class=Response, responses=IMAGE_RESPONSES,
@@ -186,6 +195,11 @@ def build_router(S: Schemas) -> APIRouter:
                              "dashed.")
     async def figure_from_sweep(body: SweepFigureRequest, request: Request,
                                 format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+        points = len(body.sweep.phi_change)
+        most = request.app.state.settings.max_sweep_points
+        if not 2 <= points <= most:
+            raise ServiceProblem("invalid_request", f"sweep.phi_change has {points} points; a "
+                                 f"sweep answer has 2..{most}", field="sweep.phi_change")
         return await _drawn(request, "sweep", body.model_dump(), format)
 
     return router

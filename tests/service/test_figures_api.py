@@ -166,3 +166,8 @@ def test_an_answer_that_cannot_be_drawn_is_invalid_request(client):
     body = assert_problem(client.post("/v1/figures/from_sweep", json={"sweep": plan}), 422,
                           "invalid_request")
     assert body["field"].startswith("sweep.")
+    # the drawing's cost is bounded before a worker is taken
+    big = {**plan, "robot": {**plan["robot"], "n": 40}}
+    body = assert_problem(client.post("/v1/figures/from_plan/chained_state", json=big), 422,
+                          "invalid_request")
+    assert body["field"] == "robot.n" and "[3, 8]" in body["detail"]
