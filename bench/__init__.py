@@ -1,6 +1,6 @@
-"""Benchmarks of the planner against the direct multiple-shooting baseline (project issue 6).
+"""Benchmarks of the planner against the direct multiple-shooting baseline.
 
-Run ``.venv/bin/python -m bench`` (see :mod:`bench.__main__` and README ``## Benchmarks``).
+Run ``.venv/bin/python -m bench`` (see :mod:`bench.__main__` and docs/benchmarks.md).
 
 Modules
 -------

@@ -1,4 +1,5 @@
-"""``python -m bench``: the benchmark of issue 6 -- prints a Markdown report and writes JSON.
+"""``python -m bench``: the benchmark -- prints a Markdown report, writes JSON and (full runs)
+rewrites ``docs/benchmarks.md``.
 
 Usage::
 
@@ -7,7 +8,7 @@ Usage::
     .venv/bin/python -m bench --quick --cases 1 --no-http --joints 3   # smoke test
     .venv/bin/python -m bench --out bench/results/mine.json
 
-See README ``## Benchmarks`` for what is measured.
+See ``docs/benchmarks.md`` for what is measured.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
+#: The results page a full run rewrites.
+PAGE = ROOT / "docs" / "benchmarks.md"
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
@@ -42,6 +45,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="short run: at most 3 repeats, 3 s per HTTP level, one cold start")
     p.add_argument("--out", type=Path, default=None,
                    help="JSON output (default bench/results/<UTC timestamp>.json)")
+    p.add_argument("--report", type=Path, default=None,
+                   help=f"Markdown page of the results (default: {PAGE.relative_to(ROOT)} for a "
+                        "full run, none for --quick)")
     p.add_argument("--cases", type=int, default=None, help="run only the first N cases")
     p.add_argument("--case", action="append", default=None, metavar="NAME",
                    help="run only this case (repeatable); names: "
@@ -178,6 +184,11 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(report.full_report(results))
     print(f"\nJSON written to {out}")
+    page = args.report if args.report is not None else (None if args.quick else PAGE)
+    if page is not None:
+        page.parent.mkdir(parents=True, exist_ok=True)
+        page.write_text(report.results_page(_clean(results)), encoding="utf-8")
+        print(f"Results page written to {page}")
     return 0
 
 

@@ -1,11 +1,12 @@
-"""Tables (Markdown, printed and pasted into the README) and the targets of issue 6."""
+"""The benchmark's report: Markdown tables, the targets, and the page ``docs/benchmarks.md``
+(:func:`results_page`), which every full run of ``python -m bench`` rewrites."""
 
 from __future__ import annotations
 
 import math
 from typing import Any, Iterable
 
-#: Targets of issue 6.
+#: The performance targets the report checks.
 PAPER_SPEEDUP = 20.0
 BEYOND_SPEEDUP = 2.0
 HTTP_THROUGHPUT = 500.0
@@ -128,7 +129,7 @@ def _better_or_equal(a: Any, b: Any, rel: float = 1e-9) -> bool:
 
 
 def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
-    """Every target of issue 6 with what was measured and whether it was met.
+    """Every target with what was measured and whether it was met.
 
     Returns
     -------
@@ -234,8 +235,8 @@ def targets_table(targets: list[dict[str, Any]]) -> str:
 def full_report(results: dict[str, Any]) -> str:
     """Everything, as Markdown."""
     meta = results.get("meta", {})
-    parts = [f"Run {meta.get('timestamp')} ({'quick' if meta.get('quick') else 'full'}), commit "
-             f"{meta.get('commit')}, {meta.get('cpus')} CPUs, load average at start "
+    parts = [f"Run {meta.get('timestamp')} ({'quick' if meta.get('quick') else 'full'}), "
+             f"{meta.get('cpus')} CPUs, load average at start "
              f"{meta.get('loadavg_start')}, wall time {_f(meta.get('wall_time'), '.0f')} s.",
              "### In-process: planner methods and the baseline (T = 1 s)",
              case_table(results.get("cases", []))]
@@ -255,3 +256,48 @@ def full_report(results: dict[str, Any]) -> str:
         parts += ["### How cost grows", scaling_tables(results["scaling"])]
     parts += ["### Targets", targets_table(results.get("targets", []))]
     return "\n\n".join(parts)
+
+
+#: What the page says before the results (how to run, what is measured).
+PAGE_INTRO = """\
+# Benchmarks
+
+This page is written by the benchmark: a full run of `python -m bench` replaces it (the JSON with
+every sample goes to `bench/results/`, which is not versioned). It holds the latest run only.
+
+    .venv/bin/pip install -e '.[bench]'        # httpx, psutil, pyinstrument
+    .venv/bin/python -m bench                  # full run (10 min on 2 cores): rewrites this page
+    .venv/bin/python -m bench --quick          # fewer repeats, 3 s per HTTP level (page untouched)
+    .venv/bin/python -m bench --help           # choose cases, methods, repeats, --report PATH
+    .venv/bin/python bench/profile_plan.py     # profile of the hot path (any --case, --method)
+
+## What is measured
+
+* **Cases** (`bench/cases.py`, T = 1 s): paper-type goals that the polynomial family reaches
+  (`p3_*`, `n4_window`), and goals beyond it, with joints moving in opposite directions or no
+  singularity-free dphi of the family (`opp3_*`, `n4_small`, `n5_small`), which only `penalty`,
+  `shooting` and `auto` can plan.
+* **In-process wall time**: one warm-up call, then up to 7 timed repeats (median [min-max]) of
+  the whole `plan(PlanRequest)` call, verification included. The baseline
+  (`bench/baselines/multiple_shooting.py`: 50 intervals x 4 RK4 steps, IPOPT) is timed as build
+  and solve separately; *speed-up* = the baseline's solve median / the method's median.
+* **Re-integration** (`bench/reintegrate.py`, its own right-hand side of the original model,
+  DOP853, rtol 1e-10): terminal error, d_a of joint 1, the largest joint-space distance from
+  the straight segment start -> goal, reversals of phi and th1, and the energy
+  int u1^2 + u2^2 dt, for the planner and the baseline alike.
+* **HTTP** (`bench/http_load.py`): `python -m service` on a loopback port with default settings;
+  cold start to `/readyz`; closed-loop clients (1, 8, 32) posting plans from a start drawn anew
+  for every request; throughput, p50/p99 latency, memory of every process.
+* **Cost growth** (`bench/scaling.py`): plan time against `samples`, and the chained-form maps,
+  the region scan and a plan for n = 3..8.
+
+The machine is shared: compare ratios within one run rather than absolute times.
+
+## Results
+
+"""
+
+
+def results_page(results: dict[str, Any]) -> str:
+    """``docs/benchmarks.md``: how to run, what is measured, and this run's tables."""
+    return PAGE_INTRO + full_report(results) + "\n"

@@ -9,7 +9,9 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$VENV/bin/python" -m pip install -q --upgrade pip
 fi
 STAMP="$VENV/.installed-$1"
-if [ ! -f "$STAMP" ] || [ "$ROOT/pyproject.toml" -nt "$STAMP" ]; then
+current() { [ -f "$1" ] && ! [ "$ROOT/pyproject.toml" -nt "$1" ]; }
+# the test install (the project plus its test extras) holds everything the service needs
+if ! current "$STAMP" && ! { [ "$1" = "serve" ] && current "$VENV/.installed-test"; }; then
   if [ "$1" = "test" ]; then EXTRA="[test]"; else EXTRA=""; fi
   "$VENV/bin/python" -m pip install -q -e "$ROOT$EXTRA"
   touch "$STAMP"

@@ -7,9 +7,11 @@ app load here: the service is ready about as soon as the slower of the two is do
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import signal
+from collections.abc import Sequence
 from types import FrameType
 
 
@@ -44,8 +46,34 @@ def start_forkserver() -> None:
         pass
 
 
-def main() -> None:
+def _port(text: str) -> int:
+    port = int(text) if text.isdigit() else 0
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number in 1..65535")
+    return port
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """The command line: ``--host``, ``--port`` override ``PLANNER_HOST``, ``PLANNER_PORT``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m service",
+        description="Run the planning service (uvicorn and a pool of solver workers). Every "
+                    "setting is an environment variable PLANNER_*, see docs/settings.md; "
+                    "the options below override theirs.")
+    parser.add_argument("--host", help="listen address (PLANNER_HOST, default 0.0.0.0)")
+    parser.add_argument("--port", type=_port,
+                        help="listen port, 1..65535 (PLANNER_PORT, default 8000)")
+    return parser.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
     """Read the settings from the environment, set up JSON logs and serve ``service.main:app``."""
+    args = parse_args(argv)
+    # the app (service.main:app, imported by uvicorn) reads its settings from the environment
+    if args.host is not None:
+        os.environ["PLANNER_HOST"] = args.host
+    if args.port is not None:
+        os.environ["PLANNER_PORT"] = str(args.port)
     signal.signal(signal.SIGTERM, _exit_cleanly)
     start_forkserver()
     import uvicorn

@@ -461,12 +461,13 @@ def _intervals_from_flags(ds: np.ndarray, ok: np.ndarray) -> list[tuple[float, f
     return out
 
 
-def sweep(sweep: Mapping[str, Any], fmt: str = "png") -> bytes:
+def sweep(sweep: Mapping[str, Any], fmt: str = "png", planned: float | None = None) -> bytes:
     """d_a (deg), t_p and ||J_R(T)||_F against dphi (deg), three stacked axes sharing x.
 
     Shaded green: the singularity-free ``dphi`` intervals (``feasible_phi_changes``; from the
     ``feasible`` flags when those were not computed). The star marks the grid's best member by
-    the paper's §4 rule (fewest t_p, then smallest d_a).
+    the paper's §4 rule (fewest t_p, then smallest d_a); ``planned`` (rad), a plan's dphi, is
+    drawn as a dashed line.
     """
     if not isinstance(sweep, Mapping) or not isinstance(sweep.get("phi_change"),
                                                       (list, tuple, np.ndarray)):
@@ -524,6 +525,9 @@ def sweep(sweep: Mapping[str, Any], fmt: str = "png") -> bytes:
         ax_s.set_ylabel("||J_R(T)||_F [-]")
         ax_s.set_xlabel("phi change dphi [deg]   (= b0 \u00b7 T)")
         ax_s.set_xlim(x.min(), x.max())
+        if planned is not None:
+            for ax in axes:
+                ax.axvline(math.degrees(planned), color="black", ls="--", lw=1.0, zorder=4)
         best = None
         if np.isfinite(t_p).any() and np.isfinite(d_a).any():
             cand = [i for i in range(ds.size) if np.isfinite(t_p[i]) and np.isfinite(d_a[i])]
@@ -549,6 +553,9 @@ def sweep(sweep: Mapping[str, Any], fmt: str = "png") -> bytes:
                                   ms=12, ls="none",
                                   label=f"best on grid (fewest\nt_p, then smallest d_a):\n"
                                         f"dphi = {x[best]:.2f}\u00b0, t_p = {int(t_p[best])}"))
+        if planned is not None:
+            handles.append(Line2D([], [], color="black", ls="--", lw=1.0,
+                                  label=f"planned dphi =\n{math.degrees(planned):.2f}\u00b0"))
         _legend_right(ax_da, handles)
         _legend_right(ax_tp, [Line2D([], [], marker="s", color="tab:purple", ms=4, ls="none",
                                      label="t_p (reversals\nof joint 1)")])
@@ -571,7 +578,8 @@ def render(kind: str, data: Mapping[str, Any], fmt: str) -> tuple[bytes, str]:
     data : dict
         A plan response (``joint_angles``, ``chained_state``; optionally wrapped as
         ``{"plan": ..., "constraint_points": [...]}``), ``{"plan": ..., "robustness": ...}``
-        (``robustness``) or a sweep response (``sweep``).
+        (``robustness``) or a sweep response (``sweep``; optionally wrapped as
+        ``{"sweep": ..., "planned_phi_change": dphi}``).
     fmt : {"png", "svg"}
 
     Raises
@@ -593,6 +601,9 @@ def render(kind: str, data: Mapping[str, Any], fmt: str) -> tuple[bytes, str]:
         if "plan" not in data or "robustness" not in data:
             raise ValueError("robustness figures need {'plan': ..., 'robustness': ...}")
         out = robustness(data["plan"], data["robustness"], f)
+    elif isinstance(data.get("sweep"), Mapping):  # {"sweep": ..., "planned_phi_change": ...}
+        planned = data.get("planned_phi_change")
+        out = sweep(data["sweep"], f, None if planned is None else float(planned))
     else:
         out = sweep(data, f)
     return out, FORMATS[f]

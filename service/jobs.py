@@ -22,7 +22,7 @@ import numpy as np
 
 from optimizer import analysis
 from optimizer.chained_form import chained_form
-from optimizer.errors import PlannerError
+from optimizer.errors import InvalidRequestError, PlannerError
 from optimizer.model import Robot
 from optimizer.planner.context import Deadline
 from optimizer.planner.plan import plan
@@ -191,3 +191,22 @@ def job_figure(payload: Payload) -> bytes:
 
 
 JOBS["figure"] = job_figure
+
+
+def job_figure_of_answer(payload: Payload) -> bytes:
+    """``POST /v1/figures/from_plan/*``, ``/v1/figures/from_sweep``: draw an answer the client
+    already has (``data``: a plan or sweep answer), without computing it again.
+
+    The data come from the client: what cannot be drawn is the client's error
+    (``invalid_request``), not the solver's.
+    """
+    from . import figures as _figures
+    try:
+        image, _media_type = _figures.render(payload["figure"], payload["data"],
+                                             payload["format"])
+    except (ValueError, TypeError, KeyError, IndexError, OverflowError) as exc:
+        raise InvalidRequestError(f"the answer cannot be drawn: {exc}") from None
+    return image
+
+
+JOBS["figure_of_answer"] = job_figure_of_answer

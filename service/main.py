@@ -26,7 +26,7 @@ from starlette.responses import Response
 from . import __version__
 from .auth import CHALLENGE, UNAUTHORIZED_DETAIL, authorized, encode_keys
 from .dispatch import request_id
-from .fastpath import FastPlanRoute
+from .fastpath import FastPlanRoute, is_json
 from .metrics import Metrics
 from .middleware import RequestContextMiddleware
 from .problems import PROBLEM_MEDIA_TYPE, SafeJSONResponse, ServiceProblem
@@ -43,7 +43,8 @@ convert to chained form.
 
 * JSON bodies, snake_case fields, **radians and seconds** everywhere.
 * Failures are `application/problem+json` documents with a machine-readable `code`:
-  `invalid_request` (422; 413 for an over-large body), `infeasible` (422),
+  `invalid_request` (422; 413 for an over-large body; 400 for a body that is not JSON; 415
+  for a body sent without `Content-Type: application/json`), `infeasible` (422),
   `numerical_failure` (422: a solver failed numerically, the path failed verification on the
   original model, or a solver process ended unexpectedly; the service never answers 500),
   `timeout` (504), `overloaded` (503 with `Retry-After`), `unauthorized` (401).
@@ -156,12 +157,20 @@ def _add_error_handlers(app: FastAPI) -> None:
     async def on_validation(request: Request, exc: RequestValidationError) -> Response:
         errors = [_validation_error(e) for e in exc.errors()]
         first = errors[0] if errors else {"field": None, "message": "invalid request"}
-        detail = "; ".join(f"{e['field']}: {e['message']}" if e["field"] else e["message"]
-                           for e in errors[:5])
+        detail = "; ".join(e["message"] if not e["field"] or e["message"].startswith(e["field"])
+                           else f"{e['field']}: {e['message']}" for e in errors[:5])
         if len(errors) > 5:
             detail += f"; and {len(errors) - 5} more"
         # a body that is not JSON at all is a 400, like one that is not UTF-8 (FastAPI's own)
         status = 400 if any(e["type"] == "json_invalid" for e in errors) else None
+        if request.method == "POST" and not is_json(request.headers.get("content-type")) and \
+                await request.body():
+            # FastAPI does not parse such a body as JSON; its errors would speak of a dictionary
+            status, first = 415, {"field": None}
+            detail = (f"the body was sent with Content-Type: "
+                      f"{request.headers.get('content-type') or '(none)'}; send it as JSON "
+                      f"with the header Content-Type: application/json")
+            errors = [{"field": None, "message": detail, "type": "content_type"}]
         return ServiceProblem("invalid_request", detail, field=first["field"], status=status,
                               diagnostics={"errors": errors[:50]}).response(request_id(request))
 
@@ -184,6 +193,14 @@ def _validation_error(err: dict[str, Any]) -> dict[str, Any]:
         else:
             field += ("." if field else "") + str(part)
     msg = str(err.get("msg", "invalid value")).removeprefix("Value error, ")
+    ctx = err.get("ctx") or {}
+    named = ctx.get("field")
+    if isinstance(named, str):  # a check of several values names the element at fault
+        last = loc[-1] if loc else None
+        if isinstance(last, str) and named.split("[")[0] == last:
+            field = field[:-len(last)] + named
+        else:
+            field = (field + "." if field else "") + named
     if err.get("type") == "extra_forbidden":
         msg = "unknown field"
     if err.get("type") == "json_invalid":  # the location is a character position, not a field

@@ -8,7 +8,8 @@ when known, ``diagnostics`` and the ``request_id``. Status codes per code:
 code                status meaning
 =================== ====== ==========================================================
 invalid_request     422    the request is wrong (413 when the body is too large, 400
-                           when it is not JSON at all)
+                           when it is not JSON at all, 415 when it was sent without
+                           ``Content-Type: application/json``)
 infeasible          422    no singularity-free path under the request's method/bounds
 numerical_failure   422    a solver failed numerically, the path failed verification,
                            or a solver process ended unexpectedly (never 500)

@@ -19,6 +19,7 @@ from typing import Annotated, Any, Literal, Optional
 
 from pydantic import (BaseModel, ConfigDict, Field, Strict, ValidationInfo, field_validator,
                       model_validator)
+from pydantic_core import PydanticCustomError
 
 from optimizer.planner.registry import METHODS, method_names
 from optimizer.problem import DEFAULT_OBJECTIVE, OBJECTIVES
@@ -49,6 +50,53 @@ def num(lo: float | None = None, hi: float | None = None, *, gt: float | None = 
 
 
 JointAngle = num(-2 * PI, 2 * PI, description="Joint angle (rad).")
+#: The default robot's number of joints (``robot`` omitted).
+DEFAULT_JOINTS = 3
+#: JSON Schema of ``start`` and ``goal``: th1 and th2 lie in (0, pi/2) whatever n is (n >= 3;
+#: joints 1..n-1 must, the last one is free within [-2 pi, 2 pi]); the validator checks the rest.
+_OPEN_QUARTER = {"type": "number", "exclusiveMinimum": 0.0, "exclusiveMaximum": PI / 2}
+ANGLES_SCHEMA: dict[str, Any] = {
+    "prefixItems": [_OPEN_QUARTER, _OPEN_QUARTER],
+    "items": {"type": "number", "minimum": -2 * PI, "maximum": 2 * PI},
+}
+
+
+def _deg(x: float) -> str:
+    return f"{math.degrees(x):.1f} deg"
+
+
+def joint_angle_error(name: str, values: list[float]) -> PydanticCustomError | None:
+    """Why ``values`` (``start`` or ``goal``, rad) cannot be joint angles, or None.
+
+    Joints 1..n-1 must lie in (0, pi/2), where the chained form exists; the last joint is free
+    within [-2 pi, 2 pi]. The error names the first offending element (``ctx["field"]``) and
+    says what to send instead; values that all lie in (pi/2, 90] were almost certainly meant as
+    degrees, and the error says so.
+    """
+    n = len(values)
+    if n and all(PI / 2 < x <= 90.0 for x in values):
+        shown = ", ".join(f"{x:g}" for x in values)
+        fixed = ", ".join(f"{math.radians(x):.6g}" for x in values)
+        return PydanticCustomError(
+            "joint_angle_degrees",
+            "{field} = [{shown}] looks like degrees; angles are in radians: convert with "
+            "radians(), i.e. [{fixed}]",
+            {"field": name, "shown": shown, "fixed": fixed})
+    bad = [i for i, x in enumerate(values)
+           if not (0.0 < x < PI / 2 if i < n - 1 else -2 * PI <= x <= 2 * PI)]
+    if not bad:
+        return None
+    i, x = bad[0], values[bad[0]]
+    if i < n - 1:
+        where = "(0, pi/2) rad = (0, 90) deg"
+    else:
+        where = f"[-2 pi, 2 pi] rad = [-360, 360] deg (th{n}, the last joint, is free there)"
+    more = "" if len(bad) == 1 else " (also " + ", ".join(f"{name}[{j}]" for j in bad[1:]) + ")"
+    return PydanticCustomError(
+        "joint_angle_range",
+        "{field} = {value} rad ({degrees}) is outside {where}; angles are in radians{more}",
+        {"field": f"{name}[{i}]", "value": f"{x:g}", "degrees": _deg(x), "where": where,
+         "more": more})
 PhiAngle = num(-4 * PI, 4 * PI, description="Change of phi (rad).")
 Gain = num(hi=1e3, gt=0.0, description="Transmission gain K_i (> 0).")
 Exponent = Annotated[int, Strict(), Field(ge=1, le=12, description="Exponent m_i (1..12).")]
@@ -238,6 +286,16 @@ class SweepResponse(BaseModel):
     robot: RobotInfo
 
 
+class SweepFigureRequest(BaseModel):
+    """``POST /v1/figures/from_sweep``: a sweep answer to draw, and the planned dphi to mark."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    sweep: SweepResponse = Field(..., description="The answer of POST /v1/sweeps, unchanged.")
+    planned_phi_change: Optional[PhiAngle] = Field(  # type: ignore[valid-type]
+        None, description="A plan's dphi (rad), drawn as a dashed line.")
+
+
 class TransformedPoint(BaseModel):
     """One mapped point."""
 
@@ -395,16 +453,18 @@ def build_schemas(limits: Limits) -> Schemas:
              "objective": "tp_then_da", "samples": 51}]})
 
         robot: Optional[RobotSpec] = Field(
-            None, description="Robot constants; default: the prototype for 3 joints, the "
-                              "assumed default for other n.")
-        start: list[JointAngle] = Field(  # type: ignore[valid-type]
+            None, description="Robot constants. Omitted: the 3-joint prototype (start and goal "
+                              "must then have 3 angles); for another n give gains and "
+                              "exponents, or {} for the assumed default constants of n joints.")
+        start: list[Number] = Field(  # type: ignore[valid-type]
             ..., min_length=MIN_JOINTS, max_length=L.max_joints,
             description=f"Start joint angles th1..thn (rad), n in [{MIN_JOINTS}, "
-                        f"{L.max_joints}].",
-            examples=[WORKED_START])
-        goal: list[JointAngle] = Field(  # type: ignore[valid-type]
+                        f"{L.max_joints}]: th1..th(n-1) in (0, pi/2), thn in [-2 pi, 2 pi].",
+            examples=[WORKED_START], json_schema_extra=ANGLES_SCHEMA)
+        goal: list[Number] = Field(  # type: ignore[valid-type]
             ..., min_length=MIN_JOINTS, max_length=L.max_joints,
-            description="Goal joint angles th1..thn (rad).", examples=[WORKED_GOAL])
+            description="Goal joint angles th1..thn (rad), same ranges as start.",
+            examples=[WORKED_GOAL], json_schema_extra=ANGLES_SCHEMA)
         phi_start: num(-1e3, 1e3, description="Initial phi (rad).") = 0.0  # type: ignore[valid-type]
         phi_change: Optional[PhiAngle] = Field(  # type: ignore[valid-type]
             None, description="Fixes dphi = phi(T) - phi(0) (rad); omitted: searched within "
@@ -446,6 +506,30 @@ def build_schemas(limits: Limits) -> Schemas:
                 list[JointAngle], Field(min_length=2, max_length=2)]]]] = Field(
             None, max_length=L.max_joints,
             description="Per joint [lo, hi] (rad) or null; inside the region (0, pi/2).")
+
+        @field_validator("start", "goal")
+        @classmethod
+        def _angles(cls, values: list[float], info: ValidationInfo) -> list[float]:
+            error = joint_angle_error(str(info.field_name), values)
+            if error is not None:
+                raise error
+            return values
+
+        @model_validator(mode="after")
+        def _joint_count(self) -> Any:
+            n = len(self.start)
+            if len(self.goal) != n:
+                raise PydanticCustomError(
+                    "joint_count", "goal has {got} angles but start has {n}: give one angle "
+                    "per joint in both", {"field": "goal", "got": len(self.goal), "n": n})
+            if self.robot is None and n != DEFAULT_JOINTS:
+                raise PydanticCustomError(
+                    "joint_count", "start has {n} angles but the default robot has "
+                    "{default} joints: send {default} angles, or give robot (gains and "
+                    "exponents, n - 1 each, or {empty} for the assumed default constants of "
+                    "{n} joints)", {"field": "start", "n": n, "default": DEFAULT_JOINTS,
+                                    "empty": "{}"})
+            return self
 
         def to_library(self) -> dict[str, Any]:
             """The dict :meth:`optimizer.problem.PlanRequest.from_dict` takes."""

@@ -30,12 +30,29 @@ FINITE_KEYS = ("terminal_error_rad", "d_a_deg", "joint_space_dev_deg", "energy",
 @pytest.fixture(scope="module")
 def results(tmp_path_factory: pytest.TempPathFactory) -> dict:
     out = tmp_path_factory.mktemp("bench") / "smoke.json"
+    page = out.with_name("benchmarks.md")
     proc = subprocess.run(
         [sys.executable, "-m", "bench", "--quick", "--cases", "1", "--no-http", "--joints", "3",
-         "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=240)
+         "--out", str(out), "--report", str(page)], cwd=ROOT, capture_output=True, text=True,
+        timeout=240)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "### Targets" in proc.stdout
-    return json.loads(out.read_text())
+    data = json.loads(out.read_text())
+    data["page"] = page.read_text(encoding="utf-8")
+    return data
+
+
+def test_results_page_holds_this_run_only(results: dict) -> None:
+    page = results["page"]
+    assert page.startswith("# Benchmarks\n")
+    assert "## Results" in page and "### Targets" in page
+    assert results["cases"][0]["case"] in page
+    assert results["meta"]["timestamp"] in page
+    # no history: no commit hashes or issue numbers, one run
+    commit = results["meta"]["commit"].split("+")[0]
+    assert commit == "unknown" or commit not in page
+    assert "issue" not in page.lower()
+    assert page.count("Run 20") == 1
 
 
 def _finite_metrics(r: dict) -> None:

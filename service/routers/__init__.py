@@ -13,6 +13,8 @@ ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
                                            "request has no valid X-API-Key."},
     413: {"model": Problem, "description": "invalid_request: the body is larger than the "
                                            "service accepts."},
+    415: {"model": Problem, "description": "invalid_request: the body was sent without "
+                                           "Content-Type: application/json."},
     422: {"model": Problem, "description": "invalid_request (schema or library validation), "
                                            "infeasible (no singularity-free path), or "
                                            "numerical_failure (a solver failed, the path failed "

@@ -11,6 +11,18 @@ route                          body                   figure (:mod:`service.figu
 ``/v1/figures/robustness``     robustness request     nominal path against perturbed runs
 =============================  =====================  ==========================================
 
+and two that draw an answer the client already has, without computing it again (the plan
+explorer uses them: one plan per click):
+
+=========================================  ===========================  ========================
+route                                      body                         figure
+=========================================  ===========================  ========================
+``/v1/figures/from_plan/{kind}``           a plan answer                joint_angles or
+                                                                        chained_state
+``/v1/figures/from_sweep``                 ``{"sweep": answer,          sweep, the planned dphi
+                                           "planned_phi_change"}``      dashed
+=========================================  ===========================  ========================
+
 The worker plans (or sweeps, or replays) exactly as the JSON route would, then renders the
 figure with matplotlib in the same process (the ``figure`` job of :mod:`service.jobs`), so the
 event loop never draws. The format is the ``format`` query parameter, else the ``Accept``
@@ -26,7 +38,7 @@ from starlette.responses import Response
 from ..dispatch import check_plan, run_job
 from ..formats import FORMATS
 from ..problems import ServiceProblem
-from ..schemas import Schemas
+from ..schemas import MIN_JOINTS, PlanResponse, Schemas, SweepFigureRequest
 from . import ERROR_RESPONSES
 
 #: Seconds a figure job may take beyond the request's ``time_limit`` (the drawing itself).
@@ -154,4 +166,52 @@ def build_router(S: Schemas) -> APIRouter:
                                  diagnostics={"max_total_samples": most})
         return await _figure(request, "robustness", payload, body.time_limit, format)
 
+    @router.post("/figures/from_plan/{kind}", response_class=Response,
+                 responses=IMAGE_RESPONSES, summary="Figure of a plan answer you already have",
+                 description="Draws the answer of `POST /v1/plans` (sent back unchanged) "
+                             "without planning again: `joint_angles` (th1..thn and phi against "
+                             "time, deg) or `chained_state` (z2..z_{n+1} with the singular "
+                             "regions shaded). Angles are drawn in degrees (labelled).")
+    async def figure_from_plan(kind: Literal["joint_angles", "chained_state"],
+                               body: PlanResponse, request: Request,
+                               format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+        settings = request.app.state.settings
+        # bounds of the drawing's cost: the answers the service itself gives stay within them
+        n, rows = body.robot.n, len(body.path.t)
+        if not MIN_JOINTS <= n <= settings.max_joints:
+            raise ServiceProblem("invalid_request", f"robot.n = {n} must lie in [{MIN_JOINTS}, "
+                                 f"{settings.max_joints}]", field="robot.n")
+        if not 2 <= rows <= settings.max_samples:
+            raise ServiceProblem("invalid_request", f"path.t has {rows} samples; a plan answer "
+                                 f"has 2..{settings.max_samples}", field="path.t")
+        return await _drawn(request, kind, body.model_dump(), format)
+
+    @router.post("/figures/from_sweep", response_class=Response, responses=IMAGE_RESPONSES,
+                 summary="Figure of a sweep answer you already have",
+                 description="Draws the answer of `POST /v1/sweeps` (sent back unchanged) "
+                             "without sweeping again: d_a (deg), t_p and ||J_R(T)||_F against "
+                             "dphi (deg), the singularity-free intervals shaded, the grid's "
+                             "best member starred and `planned_phi_change` (a plan's dphi) "
+                             "dashed.")
+    async def figure_from_sweep(body: SweepFigureRequest, request: Request,
+                                format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+        points = len(body.sweep.phi_change)
+        most = request.app.state.settings.max_sweep_points
+        if not 2 <= points <= most:
+            raise ServiceProblem("invalid_request", f"sweep.phi_change has {points} points; a "
+                                 f"sweep answer has 2..{most}", field="sweep.phi_change")
+        return await _drawn(request, "sweep", body.model_dump(), format)
+
     return router
+
+
+async def _drawn(request: Request, kind: str, data: dict[str, Any],
+                 fmt: Optional[str]) -> Response:
+    """Draw ``data`` (an answer the client sent) as figure ``kind`` in a worker."""
+    chosen = negotiate(fmt, request.headers.get("accept"))
+    image = await run_job(request, "figure_of_answer",
+                          {"figure": kind, "format": chosen, "data": data}, RENDER_SECONDS,
+                          method=kind)
+    return Response(image, media_type=FORMATS[chosen],
+                    headers={"Content-Disposition": f'inline; filename="{kind}.{chosen}"',
+                             "Vary": "Accept"})

@@ -23,11 +23,16 @@ def client() -> Iterator[TestClient]:
 
 @pytest.fixture(scope="session")
 def live_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    """``python -m service`` on a free loopback port with one worker."""
+    """``python -m service --host 127.0.0.1 --port <free>`` with one worker.
+
+    The options are given on the command line (they override the environment's, set here to
+    another address) so that every test using this server also checks that they take effect.
+    """
     port = free_port()
     log = tmp_path_factory.mktemp("live") / "server.log"
-    env = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "1"}
-    with server_process([sys.executable, "-m", "service"], env, port, log) as base:
+    env = {"PLANNER_HOST": "0.0.0.0", "PLANNER_PORT": str(free_port()), "PLANNER_WORKERS": "1"}
+    argv = [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port)]
+    with server_process(argv, env, port, log) as base:
         yield base
 
 

@@ -24,6 +24,7 @@ import subprocess
 import sys
 from pathlib import Path
 from typing import Any, Iterator
+from urllib.parse import urlsplit
 
 import pytest
 
@@ -138,6 +139,8 @@ class Page:
     def __init__(self, context: Any, base: str) -> None:
         self.page = context.new_page()
         self.errors: list[str] = []
+        self.api_calls: list[tuple[str, str]] = []  # (method, path) of every /v1 request
+        self.page.on("request", self._record)
         self.page.on("console", lambda m: self.errors.append(m.text) if m.type == "error"
                      else None)
         self.page.on("pageerror", lambda e: self.errors.append(str(e)))
@@ -145,6 +148,14 @@ class Page:
         assert response is not None and response.status == 200
         assert response.headers["content-type"].startswith("text/html")
         self.page.wait_for_selector("#plan-form[data-defaults]", timeout=20_000)
+
+    def _record(self, request: Any) -> None:
+        path = urlsplit(request.url).path
+        if path.startswith("/v1/"):
+            self.api_calls.append((request.method, path))
+
+    def calls_to(self, path: str) -> int:
+        return sum(1 for method, p in self.api_calls if method == "POST" and p == path)
 
     def fill_worked_example(self) -> None:
         p = self.page
@@ -190,9 +201,24 @@ def test_worked_example_in_the_browser(browser_context, explorer_server, tmp_pat
     assert p.input_value("#objective") == "tp_then_da"
 
     tab.fill_worked_example()
+    tab.api_calls.clear()
     tab.plan()
     p.wait_for_selector("#plan-out:not([hidden])", timeout=30_000)
     tab.wait_for_figures()
+
+    # one plan per click; the figures are drawn from that answer (and a sweep's), not re-planned
+    assert tab.calls_to("/v1/plans") == 1, tab.api_calls
+    drawn = sorted(path for method, path in tab.api_calls if path.startswith("/v1/figures/"))
+    assert drawn == ["/v1/figures/from_plan/chained_state", "/v1/figures/from_plan/joint_angles",
+                     "/v1/figures/from_sweep"], tab.api_calls
+    # the sweep resolves the feasible window: its best grid member is the planned dphi
+    p.wait_for_selector("#sweep-note:not([hidden])", timeout=10_000)
+    best, planned = number(tab.text("#sweep-best")), number(tab.text("#sweep-planned"))
+    assert planned == pytest.approx(34.57, abs=0.01)
+    assert best == pytest.approx(planned, abs=0.03), tab.text("#sweep-note")
+    assert "t_p = 1" in tab.text("#sweep-best")
+    low, high = (number(x) for x in tab.text("#sweep-range").split("..")[:2])
+    assert low < 33.20 and high > 35.26 and high - low < 10, tab.text("#sweep-range")
 
     assert tab.text("#out-method") == "polynomial"
     assert number(tab.text("#out-dphi")) == pytest.approx(34.57, abs=0.01)
@@ -231,6 +257,30 @@ def test_worked_example_in_the_browser(browser_context, explorer_server, tmp_pat
     tab.close()
 
 
+def test_the_default_method_plans_once_and_finds_the_windows_by_sweeping(browser_context,
+                                                                         explorer_server):
+    tab = Page(browser_context, explorer_server)
+    p = tab.page
+    assert p.input_value("#method") == "auto"
+    for i in (1, 2, 3):
+        p.fill(f"#start-{i}", "10")
+        p.fill(f"#goal-{i}", "30")
+    tab.api_calls.clear()
+    tab.plan()
+    p.wait_for_selector("#plan-out:not([hidden])", timeout=60_000)
+    tab.wait_for_figures()
+    p.wait_for_selector("#sweep-note:not([hidden])", timeout=10_000)
+    assert tab.calls_to("/v1/plans") == 1, tab.api_calls
+    # auto's plan reports no family windows: a coarse sweep finds them, a fine one draws them
+    assert tab.calls_to("/v1/sweeps") == 2, tab.api_calls
+    assert "33.20 .. 35.26 deg (from a sweep" in tab.text("#feasible")
+    assert "t_p = 1" in tab.text("#sweep-best") and tab.text("#ind-t_p") == "1"
+    low, high = (number(x) for x in tab.text("#sweep-range").split("..")[:2])
+    assert low < 33.20 and high > 35.26 and high - low < 10, tab.text("#sweep-range")
+    assert tab.errors == []
+    tab.close()
+
+
 def test_errors_are_readable_messages(browser_context, explorer_server):
     tab = Page(browser_context, explorer_server)
     p = tab.page
@@ -256,6 +306,16 @@ def test_errors_are_readable_messages(browser_context, explorer_server):
     p.wait_for_function("() => document.getElementById('error').textContent.includes("
                         "'Invalid request (422)')", timeout=15_000)
     assert "duration" in tab.text("#error")
+    # an angle outside the region: named as the page names it, in degrees
+    p.fill("#duration", "")
+    p.fill("#start-1", "100")
+    tab.plan()
+    p.wait_for_function("() => document.getElementById('error').textContent.includes("
+                        "'Invalid request (422)')", timeout=15_000)
+    message = tab.text("#error")
+    assert "start of th1 = 100.00°" in message or "start of th1 = 100.0°" in message, message
+    assert "0°..90°" in message and "[field: start of th1]" in message, message
+    assert "start[0]" not in message and "rad" not in message, message
     assert not [e for e in tab.errors if "422" not in e]  # only the refused requests
     tab.close()
 

@@ -127,3 +127,47 @@ def test_figures_are_documented_in_openapi(client):
         assert [p["name"] for p in op["parameters"]] == ["format"]
     assert doc["paths"]["/v1/figures/sweep"]["post"]["requestBody"]["content"][
         "application/json"]["schema"]["$ref"].endswith("/SweepRequest")
+
+
+# ------------------------------------------------------------------ figures of answers
+@pytest.mark.parametrize("kind", ["joint_angles", "chained_state"])
+def test_a_plan_answer_is_drawn_without_planning_again(client, kind):
+    plan = client.post("/v1/plans", json=BODIES[kind]).json()
+    svg = client.post(f"/v1/figures/from_plan/{kind}", params={"format": "svg"}, json=plan)
+    assert svg.status_code == 200, svg.text
+    text = svg_texts(svg.content)
+    for label in LABELS[kind]:
+        assert label in text, (label, text)
+    # drawn from the answer sent: its method and dphi are in the title
+    assert f"{plan['method']} plan: dphi = {plan['phi_change'] / DEG:.3f}" in text
+    png = client.post(f"/v1/figures/from_plan/{kind}", json=plan)
+    assert png.status_code == 200 and png_size(png.content)[0] >= 400
+
+
+def test_a_sweep_answer_is_drawn_with_the_planned_dphi(client):
+    sweep = client.post("/v1/sweeps", json=BODIES["sweep"]).json()
+    r = client.post("/v1/figures/from_sweep", params={"format": "svg"},
+                    json={"sweep": sweep, "planned_phi_change": 34.57 * DEG})
+    assert r.status_code == 200, r.text
+    text = svg_texts(r.content)
+    assert "planned dphi" in text and "34.57" in text
+    assert f"{len(sweep['phi_change'])} points" in text
+
+
+def test_an_answer_that_cannot_be_drawn_is_invalid_request(client):
+    plan = client.post("/v1/plans", json=BODIES["joint_angles"]).json()
+    cut = {**plan, "path": {**plan["path"], "t": plan["path"]["t"][:3]}}
+    body = assert_problem(client.post("/v1/figures/from_plan/joint_angles", json=cut), 422,
+                          "invalid_request")
+    assert "path.t" in body["detail"]
+    body = assert_problem(client.post("/v1/figures/from_plan/sweep", json=plan), 422,
+                          "invalid_request")
+    assert body["field"] == "kind"
+    body = assert_problem(client.post("/v1/figures/from_sweep", json={"sweep": plan}), 422,
+                          "invalid_request")
+    assert body["field"].startswith("sweep.")
+    # the drawing's cost is bounded before a worker is taken
+    big = {**plan, "robot": {**plan["robot"], "n": 40}}
+    body = assert_problem(client.post("/v1/figures/from_plan/chained_state", json=big), 422,
+                          "invalid_request")
+    assert body["field"] == "robot.n" and "[3, 8]" in body["detail"]

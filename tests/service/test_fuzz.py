@@ -20,7 +20,7 @@ A case passes when
   answered as clean 422 ``numerical_failure`` problems, so only the log reveals them).
 
 Cases per operation: ``FUZZ_EXAMPLES`` (default 40 in CI, i.e. a few hundred cases in total;
-``FUZZ_EXAMPLES=5000`` is the long run documented in README ``### Security``; ``FUZZ_SEED``
+``FUZZ_EXAMPLES=5000`` is the long run documented in docs/security.md; ``FUZZ_SEED``
 changes the seed) for the fuzzing phase, plus the explicit-example and coverage phases. The
 last test checks the total and the server log.
 """

@@ -1,7 +1,7 @@
 """Every request limit, through HTTP: one value past it is a 4xx problem naming the field and the
 limit, the value at it is accepted. The app runs with *tightened* settings, which shows that each
-limit is a setting; the environment names (``PLANNER_*``) and README's ``### Limits`` table are
-checked too."""
+limit is a setting; the environment names (``PLANNER_*``) and the ``## Limits`` table of
+docs/settings.md are checked too."""
 
 from __future__ import annotations
 
@@ -111,11 +111,14 @@ OVER = [
     ("string_number", "/v1/plans", {**CHEAP, "samples": "5"}, 422, "samples",
      "valid integer"),
     ("start_outside_region", "/v1/plans", {**CHEAP, "start": [0.2, 1.6, 0.2]}, 422,
-     "start[1]", "outside (0, 1.5708) rad"),
+     "start[1]", "1.6 rad (91.7 deg) is outside (0, pi/2) rad = (0, 90) deg"),
     ("goal_on_singularity", "/v1/plans", {**CHEAP, "goal": [0.0, 0.5, 0.5]}, 422, "goal[0]",
-     "outside (0, 1.5708) rad"),
-    ("angle_beyond_two_pi", "/v1/plans", {**CHEAP, "start": [7.0, 0.2, 0.2]}, 422,
-     "start[0]", "less than or equal to 6.28"),
+     "outside (0, pi/2) rad"),
+    ("last_angle_beyond_two_pi", "/v1/plans", {**CHEAP, "start": [0.2, 0.2, 7.0]}, 422,
+     "start[2]", "outside [-2 pi, 2 pi] rad"),
+    ("start_outside_joint_bound", "/v1/plans",
+     {**CHEAP, "joint_bounds": [None, None, [0.3, 1.0]]}, 422, "start[2]",
+     "outside (0.3, 1) rad"),
     ("duration_long", "/v1/plans", {**CHEAP, "duration": 100.5}, 422, "duration",
      "less than or equal to 100"),
     ("duration_short", "/v1/plans", {**CHEAP, "duration": 0.0005}, 422, "duration",
@@ -224,9 +227,9 @@ def test_the_openapi_document_follows_the_limits(tight):
     assert doc["components"]["schemas"]["RandomStarts"]["properties"]["count"]["maximum"] == 4
 
 
-def test_readme_limits_table_lists_every_limit():
-    readme = (ROOT / "README.md").read_text(encoding="utf-8")
-    section = readme.split("### Limits", 1)[1].split("\n### ", 1)[0]
+def test_docs_limits_table_lists_every_limit():
+    page = (ROOT / "docs" / "settings.md").read_text(encoding="utf-8")
+    section = page.split("\n## Limits", 1)[1].split("\n## ", 1)[0]
     documented = {m.lower() for m in re.findall(r"`PLANNER_([A-Z_]+)`", section)}
     limits = {name for name in LIMIT_SETTINGS if name not in ("workers", "retry_after")}
     assert limits <= documented, limits - documented

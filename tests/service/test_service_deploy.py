@@ -57,6 +57,23 @@ def test_compose_schema_is_not_vacuous():
     assert list(validator.iter_errors(bad))
 
 
+def _seconds(duration: str) -> float:
+    """A Compose duration (``1m30s``, ``40s``, ``500ms``) in seconds."""
+    units = {"h": 3600.0, "m": 60.0, "s": 1.0, "ms": 1e-3, "us": 1e-6}
+    parts = re.findall(r"(\d+(?:\.\d+)?)(ms|us|h|m|s)", str(duration))
+    assert parts and "".join(a + b for a, b in parts) == str(duration), duration
+    return sum(float(a) * units[b] for a, b in parts)
+
+
+def test_docker_waits_longer_than_the_graceful_shutdown():
+    from service.settings import Settings
+
+    planner = compose()["services"]["planner"]
+    timeout = float(planner["environment"].get("PLANNER_SHUTDOWN_TIMEOUT",
+                                               Settings.model_fields["shutdown_timeout"].default))
+    assert _seconds(planner["stop_grace_period"]) >= timeout + 5
+
+
 def test_compose_runs_replicas_behind_a_load_balancer():
     doc = compose()
     planner, lb = doc["services"]["planner"], doc["services"]["lb"]

@@ -123,7 +123,7 @@ def test_a_worker_that_dies_is_replaced_and_the_request_answered():
     and not a hang) and the next request is served by a replacement."""
     with running_app(workers=1, queue_size=4) as c:
         (pid,) = c.app.state.pool.pids()
-        slow = {"start": [10 * DEG] * 8, "goal": [30 * DEG] * 8,
+        slow = {"robot": {}, "start": [10 * DEG] * 8, "goal": [30 * DEG] * 8,
                 "phi_change_range": [-12.0, 12.0], "points": 2001, "time_limit": 30}
         with ThreadPoolExecutor(max_workers=1) as ex:
             pending = ex.submit(c.post, "/v1/sweeps", json=slow)

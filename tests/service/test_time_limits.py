@@ -105,7 +105,8 @@ def test_the_librarys_own_deadline_is_answered_at_once_without_a_kill(one_worker
     _idle(one_worker)
     before = one_worker.get("/readyz").json()["restarts"]
     t0 = time.perf_counter()
-    r = one_worker.post("/v1/sweeps", json={"start": [10 * DEG] * 8, "goal": [30 * DEG] * 8,
+    r = one_worker.post("/v1/sweeps", json={"robot": {}, "start": [10 * DEG] * 8,
+                                             "goal": [30 * DEG] * 8,
                                              "phi_change_range": [-12.0, 12.0], "points": 2001,
                                              "time_limit": 0.2})
     elapsed = time.perf_counter() - t0

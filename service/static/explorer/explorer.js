@@ -9,7 +9,11 @@
 (function () {
   const DEG = Math.PI / 180;
   const FIGURES = ["joint_angles", "chained_state", "sweep"];
-  const SWEEP_POINTS = 121;
+  // The sweep figure: at least SWEEP_MIN_POINTS, and at least SWEEP_PER_WINDOW across the
+  // narrowest feasible window, within the service's default limit of sweep points.
+  const SWEEP_MIN_POINTS = 201;
+  const SWEEP_MAX_POINTS = 2001;
+  const SWEEP_PER_WINDOW = 40;
   const DEFAULT_START_DEG = 10;
   const DEFAULT_GOAL_DEG = 30;
 
@@ -17,7 +21,7 @@
   const state = {
     run: 0,             // id of the latest Plan press; answers of older presses are ignored
     planRequest: null,  // the last plan request sent (radians)
-    figureBodies: {},   // figure kind -> request body used for it
+    figures: {},        // figure kind -> {path, body}: the answer it is drawn from
     urls: [],           // object URLs to revoke on the next run
   };
 
@@ -66,9 +70,9 @@
     return { text: text, data: JSON.parse(text) };
   }
 
-  async function postFigure(kind, body, format) {
+  async function postFigure(path, body, format) {
     const mime = format === "svg" ? "image/svg+xml" : "image/png";
-    const resp = await call(`v1/figures/${kind}?format=${format}`, {
+    const resp = await call(`${path}?format=${format}`, {
       method: "POST",
       headers: apiHeaders({ "Content-Type": "application/json", "Accept": mime }),
       body: JSON.stringify(body),
@@ -76,12 +80,25 @@
     return resp.blob();
   }
 
+  /** The service's words in the page's terms: joints th1..thn for start[i]/goal[i], and
+   *  degrees for angles (the page takes degrees and sends radians). */
+  function pageTerms(text) {
+    const deg = (rad) => `${(Number(rad) / DEG).toFixed(2)}°`;
+    return String(text)
+      .replace(/\b(start|goal)\[(\d+)\]/g, (m, which, i) => `${which} of th${Number(i) + 1}`)
+      .replace(/-?\d[\d.e+-]* rad \((-?[\d.]+) deg\)/g, "$1°")
+      .replace(/\(0, pi\/2\) rad = \(0, 90\) deg/g, "the open range 0°..90°")
+      .replace(/\[-2 pi, 2 pi\] rad = \[-360, 360\] deg/g, "-360°..360°")
+      .replace(/\((-?\d[\d.e+-]*), (-?\d[\d.e+-]*)\) rad/g, (m, a, b) => `(${deg(a)}, ${deg(b)})`)
+      .replace(/; angles are in radians/g, "");
+  }
+
   /** A readable sentence for any failure (the problem document's detail when there is one). */
   function describe(err) {
     if (err instanceof ApiError) {
       const p = err.problem;
-      let msg = p ? `${p.title || "Error"} (${err.status}): ${p.detail || ""}` : `Error ${err.message}`;
-      if (p && p.field) msg += ` [field: ${p.field}]`;
+      let msg = p ? `${p.title || "Error"} (${err.status}): ${pageTerms(p.detail || "")}` : `Error ${err.message}`;
+      if (p && p.field) msg += ` [field: ${pageTerms(p.field)}]`;
       if (err.status === 401) {
         msg += " Enter a valid key in the API key field (Access) and try again.";
       } else if (err.status === 503) {
@@ -208,6 +225,8 @@
     if (gains.length) {
       if (gains.length !== n - 1) throw new Error("Give all gains and exponents, or none (default robot).");
       req.robot = { gains: gains, exponents: exponents };
+    } else {
+      req.robot = {};  // the default robot of n joints: the service wants it said for n != 3
     }
     if ($("duration").value.trim() !== "") req.duration = readNumber("duration", "Duration T");
     if (req.objective === "weighted") {
@@ -219,24 +238,63 @@
     return req;
   }
 
-  /** A sweep over the plan's feasible dphi range (padded), else around the planned dphi. */
-  function sweepRequest(req, plan) {
-    const iv = plan.feasible_phi_changes || [];
-    let lo, hi;
-    if (iv.length) {
-      lo = Math.min(...iv.map((p) => p[0]));
-      hi = Math.max(...iv.map((p) => p[1]));
-      const pad = Math.max(0.25 * (hi - lo), 0.5 * DEG);
-      lo -= pad;
-      hi += pad;
-    } else {
-      lo = plan.phi_change - 20 * DEG;
-      hi = plan.phi_change + 20 * DEG;
+  /** The dphi range and number of points of the sweep figure: around the feasible windows,
+   *  fine enough that SWEEP_PER_WINDOW points fall into the narrowest of them. When the windows
+   *  lie too far apart for that, the window of the planned dphi alone (or the nearest one). */
+  function sweepSpan(phi, windows) {
+    if (!windows.length) return { lo: phi - 20 * DEG, hi: phi + 20 * DEG, points: SWEEP_MIN_POINTS };
+    const span = (ws) => {
+      const lo = Math.min(...ws.map((w) => w[0])), hi = Math.max(...ws.map((w) => w[1]));
+      const narrowest = Math.max(Math.min(...ws.map((w) => w[1] - w[0])), 1e-7);
+      const pad = Math.max(0.25 * (hi - lo), 0.5 * narrowest, 0.01 * DEG);
+      const points = Math.ceil((hi - lo + 2 * pad) / (narrowest / SWEEP_PER_WINDOW)) + 1;
+      return { lo: lo - pad, hi: hi + pad, points: Math.max(points, SWEEP_MIN_POINTS) };
+    };
+    let s = span(windows);
+    if (s.points > SWEEP_MAX_POINTS) {
+      const dist = (w) => Math.max(w[0] - phi, phi - w[1], 0);
+      const own = windows.reduce((a, b) => (dist(b) < dist(a) ? b : a));
+      s = span([own]);
     }
     const lim = 4 * Math.PI - 1e-9;
-    lo = Math.max(lo, -lim);
-    hi = Math.min(hi, lim);
-    return Object.assign({}, req, { phi_change_range: [lo, hi], points: SWEEP_POINTS });
+    return { lo: Math.max(s.lo, -lim), hi: Math.min(s.hi, lim), points: Math.min(s.points, SWEEP_MAX_POINTS) };
+  }
+
+  /** The sweep answer for the figure: over the plan's feasible windows; a plan that reports
+   *  none (its method did not search them) gets them from a coarse sweep first. */
+  async function sweepFor(run, req, plan) {
+    let windows = plan.feasible_phi_changes || [];
+    if (!windows.length) {
+      const coarse = await postJSON("v1/sweeps", Object.assign({}, req, {
+        phi_change_range: [-Math.PI, Math.PI], points: 721, intervals: true }));
+      windows = coarse.data.feasible_phi_changes || [];
+      if (run === state.run) showWindows(windows, plan, " (from a sweep; this method does not search them)");
+    }
+    const s = sweepSpan(plan.phi_change, windows);
+    const answer = await postJSON("v1/sweeps", Object.assign({}, req, {
+      phi_change_range: [s.lo, s.hi], points: s.points, intervals: true }));
+    return answer.data;
+  }
+
+  /** The grid's best member by the figure's rule (fewest t_p, then smallest d_a), or -1. */
+  function bestOnGrid(sweep) {
+    let best = -1;
+    sweep.phi_change.forEach((x, i) => {
+      const tp = sweep.t_p[i], da = sweep.d_a[i];
+      if (tp === null || da === null) return;
+      if (best < 0 || tp < sweep.t_p[best] || (tp === sweep.t_p[best] && da < sweep.d_a[best])) best = i;
+    });
+    return best;
+  }
+
+  function showSweepNote(sweep, plan) {
+    const xs = sweep.phi_change, n = xs.length;
+    const step = n > 1 ? (xs[n - 1] - xs[0]) / (n - 1) : 0;
+    const best = bestOnGrid(sweep);
+    $("sweep-range").textContent = `${fmtDeg(xs[0], 2)} .. ${fmtDeg(xs[n - 1], 2)} deg, ${n} points (step ${fmtDeg(step, 4)} deg)`;
+    $("sweep-best").textContent = best < 0 ? "none" : `${fmtDeg(xs[best], 3)} deg (t_p = ${sweep.t_p[best]})`;
+    $("sweep-planned").textContent = `${fmtDeg(plan.phi_change, 3)} deg`;
+    $("sweep-note").hidden = false;
   }
 
   // ------------------------------------------------------------------ output
@@ -269,12 +327,35 @@
     for (const url of state.urls) URL.revokeObjectURL(url);
     state.urls = [];
     $("plan-out").hidden = true;
+    $("sweep-note").hidden = true;
+    state.figures = {};
     for (const kind of FIGURES) {
       const img = $(`fig-${kind}`);
       img.removeAttribute("src");
       img.closest("figure").classList.remove("loaded", "failed");
       $(`fig-status-${kind}`).textContent = "";
     }
+  }
+
+  /** The feasible dphi windows; ``source`` says where they come from when not from the plan. */
+  function showWindows(windows, plan, source) {
+    const items = windows.map((p) => {
+      const li = document.createElement("li");
+      li.textContent = `${fmtDeg(p[0], 2)} .. ${fmtDeg(p[1], 2)} deg${source}`;
+      if (plan.phi_change >= p[0] - 1e-12 && plan.phi_change <= p[1] + 1e-12) {
+        li.classList.add("chosen");
+        li.title = "contains the planned dphi";
+      }
+      return li;
+    });
+    if (!items.length) {
+      const li = document.createElement("li");
+      li.className = "muted";
+      li.textContent = source ? "none: no member of the polynomial family is singularity-free"
+        : "none reported (not searched by this method)";
+      items.push(li);
+    }
+    $("feasible").replaceChildren(...items);
   }
 
   function showPlan(plan, text) {
@@ -290,23 +371,7 @@
     $("ind-margin").textContent = fmtDeg(ind.margin, 2);
     $("ind-terminal_error").textContent = fmtExp((plan.validation || {}).terminal_error);
 
-    const list = $("feasible");
-    const items = (plan.feasible_phi_changes || []).map((p) => {
-      const li = document.createElement("li");
-      li.textContent = `${fmtDeg(p[0], 2)} .. ${fmtDeg(p[1], 2)} deg`;
-      if (plan.phi_change >= p[0] - 1e-12 && plan.phi_change <= p[1] + 1e-12) {
-        li.classList.add("chosen");
-        li.title = "contains the planned dphi";
-      }
-      return li;
-    });
-    if (!items.length) {
-      const li = document.createElement("li");
-      li.className = "muted";
-      li.textContent = "none reported (not searched by this method)";
-      items.push(li);
-    }
-    list.replaceChildren(...items);
+    showWindows(plan.feasible_phi_changes || [], plan, "");
 
     const url = URL.createObjectURL(new Blob([text], { type: "application/json" }));
     state.urls.push(url);
@@ -315,13 +380,17 @@
     link.download = `plan-${plan.method}.json`;
   }
 
-  async function showFigure(run, kind, body) {
+  /** Draw figure ``kind`` from an answer: ``source`` is a promise of {path, body}. */
+  async function showFigure(run, kind, source) {
     const status = $(`fig-status-${kind}`);
     const img = $(`fig-${kind}`);
     const figure = img.closest("figure");
     status.textContent = "rendering…";
     try {
-      const blob = await postFigure(kind, body, "png");
+      const fig = await source;
+      if (run !== state.run) return;
+      state.figures[kind] = fig;
+      const blob = await postFigure(fig.path, fig.body, "png");
       if (run !== state.run) return;
       const url = URL.createObjectURL(blob);
       state.urls.push(url);
@@ -371,19 +440,28 @@
     state.planRequest = req;
     showPlan(plan, answer.text);
     reveal();
-    state.figureBodies = { joint_angles: req, chained_state: req, sweep: sweepRequest(req, plan) };
+    // every figure is drawn from an answer the page has: the plan's, and a sweep's
+    const sweep = sweepFor(run, req, plan).then((data) => {
+      if (run === state.run) showSweepNote(data, plan);
+      return { path: "v1/figures/from_sweep", body: { sweep: data, planned_phi_change: plan.phi_change } };
+    });
+    const sources = {
+      joint_angles: Promise.resolve({ path: "v1/figures/from_plan/joint_angles", body: plan }),
+      chained_state: Promise.resolve({ path: "v1/figures/from_plan/chained_state", body: plan }),
+      sweep: sweep,
+    };
     setStatus("Rendering figures…", true);
-    await Promise.all(FIGURES.map((k) => showFigure(run, k, state.figureBodies[k])));
+    await Promise.all(FIGURES.map((k) => showFigure(run, k, sources[k])));
     if (run === state.run) setStatus(`Planned in ${fmtNum((plan.timing || {}).total, 2)} s.`, false);
   }
 
   async function downloadSVG(kind) {
-    const body = state.figureBodies[kind];
-    if (!body) return;
+    const fig = state.figures[kind];
+    if (!fig) return;
     const status = $(`fig-status-${kind}`);
     status.textContent = "rendering SVG…";
     try {
-      const blob = await postFigure(kind, body, "svg");
+      const blob = await postFigure(fig.path, fig.body, "svg");
       const url = URL.createObjectURL(blob);
       const a = document.createElement("a");
       a.href = url;
