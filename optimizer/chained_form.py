@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from .dynamics import vector_field
 from .model import Robot
 
 #: Boundary tolerance on w_k = cos(th_{k-1})^{m_k}: a point with w_k within this of 0 or 1 is
@@ -426,11 +427,9 @@ class SymbolicChainedForm:
         q = ca.SX.sym("q", n + 1)
         th: list[ca.SX] = [q[0]] + [q[i] for i in range(1, n + 1)]  # th[i] = theta_i, i >= 1
 
-        def g1_entry(j: int) -> ca.SX:  # d th_j / d u1 for j >= 2
-            return gains[j - 2] * ca.cos(th[j - 1]) ** exponents[j - 2]
-
-        g1 = ca.vertcat(1, 0, *[g1_entry(j) for j in range(2, n + 1)])
-        g2 = ca.vertcat(0, 1, *([0] * (n - 1)))
+        # the input vector fields of the model, from its one definition (optimizer.dynamics)
+        g1 = ca.vertcat(*vector_field(gains, exponents, q, 1, 0, cos=ca.cos))
+        g2 = ca.vertcat(*vector_field(gains, exponents, q, 0, 1, cos=ca.cos))
         zs: dict[int, ca.SX] = {n + 1: th[n]}
         a_expr: dict[int, ca.SX] = {}
         b_expr: dict[int, ca.SX] = {}
@@ -440,7 +439,7 @@ class SymbolicChainedForm:
             a_expr[k] = gains[k - 2] * ca.jacobian(zk1, th[k])
             b = ca.SX(0)
             for j in range(k + 1, n):  # z_{k+1} depends on th_k..th_{n-1}
-                b = b + ca.jacobian(zk1, th[j]) * g1_entry(j)
+                b = b + ca.jacobian(zk1, th[j]) * g1[j]
             b_expr[k] = b
         z = ca.vertcat(q[0], *[zs[k] for k in range(2, n + 2)])
         self.n = n

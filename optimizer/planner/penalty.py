@@ -211,9 +211,9 @@ def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0]
     starts = _starts(req, nlp, lbw, ubw, phi_range, warm_start)
     nlp.load_native()
     solvers = [s for s in SOLVERS if s in dict(nlp.solvers)]
-    if rate_signs is not None and rate_signs[1] != 0.0:
-        # both actuators held monotone may be infeasible: fatrop's iteration cap bounds the
-        # cost of finding out
+    if rate_signs is not None:
+        # rates of fixed signs may be infeasible: fatrop's iteration cap bounds the cost of
+        # finding out (the free rungs follow)
         solvers = solvers[:1]
     tried: list[dict[str, Any]] = []
     for solver in solvers:
