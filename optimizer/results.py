@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -13,6 +13,9 @@ from .indicators import Indicators
 from .model import Robot
 from .steering import ChainedPath, InputSchedule
 from .verify import Verification
+
+if TYPE_CHECKING:  # execution.py builds SampledPath: a runtime import would be circular
+    from .execution import Execution
 
 
 @dataclass(frozen=True)
@@ -65,11 +68,18 @@ class Plan:
     margin : float
         Region margin of the continuous path (rad, full criterion).
     path : SampledPath
+        The handed-out, executable path (:mod:`optimizer.execution`): its ``u`` under its
+        rule (linear interpolation, or zero-order hold on ``controller_period``) drives the
+        original model to the goal; ``q`` and ``z`` are that replay's states.
     verification : Verification
+        The proof from the exact input segments.
     timing : dict of str to float
         Seconds per stage.
     diagnostics : dict
         Extra facts (which start won, solver status, ...).
+    execution : Execution or None
+        The check of the handed-out forms (``validation.executed``) and the JointTrajectory
+        form when asked for.
     """
 
     robot: Robot
@@ -85,6 +95,7 @@ class Plan:
     verification: Verification
     timing: dict[str, float] = field(default_factory=dict)
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    execution: "Execution | None" = None
 
     @property
     def b0(self) -> float | None:
@@ -104,7 +115,7 @@ class Plan:
         """
         ind = self.indicators
         ver = self.verification
-        out = {
+        out: dict[str, Any] = {
             "status": "success",
             "method": self.method,
             "robot": self.robot.as_dict(),
@@ -151,6 +162,12 @@ class Plan:
             "timing": dict(self.timing),
             "diagnostics": dict(self.diagnostics),
         }
+        exe = self.execution
+        if exe is not None:
+            out["path"]["rule"] = exe.check.rule
+            out["validation"].update(exe.validation())
+            if exe.joint_trajectory is not None:
+                out["joint_trajectory"] = exe.joint_trajectory
         return json_safe(out) if plain else out
 
 

@@ -35,12 +35,13 @@ from typing import Any, Callable
 import numpy as np
 
 from ..chained_form import chained_form
+from ..execution import execute
 from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, PlannerError,
                       SolverTimeoutError)
 from ..indicators import compute_indicators
 from ..problem import PlanRequest
 from ..region import Region
-from ..results import Plan, SampledPath
+from ..results import Plan
 from ..steering import ChainedPath, InputSchedule
 from ..verify import PlannedInputs, verify_plan
 from .family import SEARCH_SAMPLES, PolynomialFamily
@@ -165,10 +166,7 @@ def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
     if not inv.valid[:ns].all():
         raise InfeasibleError("the sampled path leaves the singularity-free region",
                               diagnostics={"margin": chk.margin})
-    z = z_all[:ns]
     q = inv.q[:ns]
-    v = inputs.v(t)
-    u = cf.u_from_v(q, v)
     dphi = inputs.phi_change
     # no inputs on the dense grid: the sampled energy is replaced by the integrated one below
     ind = compute_indicators(td, inv.q[ns:], None)
@@ -184,10 +182,14 @@ def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
             f"(terminal error {ver.terminal_error:.3g} rad, singular={ver.singular})",
             diagnostics={"terminal_error": ver.terminal_error, "singular": ver.singular,
                          "method": method})
+    # issue 16: the handed-out path is the form a controller executes, corrected for its rule
+    # and verified by it (optimizer.execution)
+    exe = execute(req, planned.u, planned.breaks, T, req.phi_start + dphi)
+    timing["execution"] = exe.seconds
     return Plan(robot=robot, method=method, phi_change=float(dphi), duration=T, inputs=inputs,
                 chained=chained, feasible_phi_changes=feasible, indicators=ind,
-                margin=float(chk.margin), path=SampledPath(t=t, q=q, z=z, u=u, v=v),
-                verification=ver, timing=timing, diagnostics=diagnostics)
+                margin=float(chk.margin), path=exe.path, verification=ver, timing=timing,
+                diagnostics=diagnostics, execution=exe)
 
 
 def _duration(req: PlanRequest, cf: Any, chained: ChainedPath) -> float:

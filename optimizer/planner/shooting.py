@@ -76,12 +76,12 @@ import numpy as np
 
 from .. import native
 from ..actuation import ActuatorSchedule
-from ..chained_form import chained_form
+from ..execution import execute
 from ..errors import InfeasibleError, InvalidRequestError, NumericalError, SolverTimeoutError
 from ..indicators import compute_indicators
 from ..problem import PlanRequest
 from ..region import Region
-from ..results import Plan, SampledPath
+from ..results import Plan
 from ..verify import CASCADE_TOL, Verification, integrate_cascade
 from .family import SEARCH_SAMPLES as INDICATOR_SAMPLES  # the other methods' indicator grid
 from .penalty import MAX_TIME_LIMIT, TIMEOUT, _DeadlineCallback
@@ -478,7 +478,6 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
         The true path does not reach the goal.
     """
     robot = req.robot
-    cf = chained_form(robot)
     T = schedule.duration
     q0 = req.q_start()
     t = np.linspace(0.0, T, int(req.samples))
@@ -507,11 +506,6 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
             f"(terminal error {terminal:.3g} rad)",
             diagnostics={"terminal_error": terminal, "method": method})
     t1 = time.perf_counter()
-    u = schedule.u(t)
-    # v = (u1, L_g1 z2 u1 + L_g2 z2 u2) along the path (eq 5); z by the forward map (eq 4)
-    al, be = cf.input_coefficients(q)
-    v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
-    z = cf.to_chained(q)
     # the replay ran in normalised time: int |u|^2 dt = int |U|^2 dtau / T
     energy = rep.energy / T
     ind = dataclasses.replace(compute_indicators(td, qd, None), energy=energy)
@@ -522,10 +516,14 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
                        rtol=CASCADE_TOL, atol=CASCADE_TOL, energy=energy,
                        integrator=rep.integrator, error_estimate=rep.error_estimate)
     timing["sampling"] = time.perf_counter() - t1
+    # issue 16: the handed-out path is the form a controller executes, corrected for its rule
+    # and verified by it (optimizer.execution); the breaks in seconds are exact in it
+    exe = execute(req, schedule.u, schedule.breaks, T, float(final[0]))
+    timing["execution"] = exe.seconds
     return Plan(robot=robot, method=method, phi_change=dphi, duration=T, inputs=schedule,
                 chained=None, feasible_phi_changes=[], indicators=ind, margin=margin,
-                path=SampledPath(t=t, q=q, z=z, u=u, v=v), verification=ver, timing=timing,
-                diagnostics=diagnostics)
+                path=exe.path, verification=ver, timing=timing, diagnostics=diagnostics,
+                execution=exe)
 
 
 def correct_rates(req: PlanRequest, nlp: ShootingNLP, rates: np.ndarray,
