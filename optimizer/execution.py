@@ -56,7 +56,7 @@ from .model import Robot
 from .problem import MAX_SAMPLES, PlanRequest
 from .region import Region
 from .results import SampledPath
-from .verify import CASCADE_NAME, Replay, integrate_cascade
+from .verify import CASCADE_NAME, Replay, integrate, integrate_cascade
 
 #: The correction stops once the executed form ends this close to the goal (rad)...
 CORRECTION_TARGET = 1e-10
@@ -293,7 +293,9 @@ def _grid(form: Form) -> np.ndarray:
 
 
 def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np.ndarray,
-            region: Region, t_out: np.ndarray) -> tuple[np.ndarray, np.ndarray, ExecutionCheck]:
+            region: Region, t_out: np.ndarray,
+            limits: tuple[float | None, float | None] = (None, None)
+            ) -> tuple[np.ndarray, np.ndarray, ExecutionCheck]:
     """Correct the parameters of ``form`` until the original model under it ends at ``target``.
 
     Parameters
@@ -306,6 +308,10 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
         For the margin.
     t_out : ndarray
         Times at which the states are returned.
+    limits : (float or None, float or None)
+        Bounds of ``|u1|, |u2|`` when the parameters are rates (the linear and the held
+        forms): the start is clipped to them and a step changes a rate in proportion to its
+        headroom (none at the bound), so the corrected rates stay within them.
 
     Returns
     -------
@@ -324,6 +330,10 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
     sw = np.zeros(rows)
     sw[free] = 1.0 / np.sqrt(gram[free])             # least L2 norm of the change of u
     p = p0.copy()
+    lim = np.array([np.inf if x is None else float(x) for x in limits])
+    bounded = np.isfinite(lim)
+    if bounded.any():
+        p = np.clip(p, -lim, lim)
     best: tuple[float, np.ndarray, Replay] | None = None
     initial = math.inf
     steps = 0
@@ -342,9 +352,13 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
         if err <= CORRECTION_TARGET or k == MAX_CORRECTIONS:
             break
         J = _jacobian(robot, form, p, rep.q[:ng], rows)          # (n+1, rows, 2)
-        Js = (J * sw[None, :, None]).reshape(J.shape[0], -1)
+        scale = np.repeat(sw[:, None], 2, axis=1)
+        if bounded.any():
+            head = np.clip((lim - np.abs(p)) / np.where(bounded, lim, 1.0), 0.0, 1.0)
+            scale = scale * np.where(bounded, head, 1.0)
+        Js = (J * scale[None]).reshape(J.shape[0], -1)
         y = np.linalg.lstsq(Js, r, rcond=1e-12)[0]
-        p = p - (y.reshape(rows, 2) * sw[:, None])
+        p = p - y.reshape(rows, 2) * scale
     if best is None:
         raise NumericalError(f"the {form.rule} form could not be integrated: {rep.message}",
                              diagnostics={"rule": form.rule})
@@ -356,6 +370,7 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
         rule=form.rule, terminal_error=float(np.max(np.abs(rep.final[1:] - target[1:]))),
         phi_error=abs(float(rep.final[0] - target[0])), margin=margin,
         singular=bool(rep.singular), initial_terminal_error=initial, corrections=steps,
+        errors=tuple(errors),
         error_estimate=rep.error_estimate, integrator=rep.integrator or CASCADE_NAME,
         final=tuple(float(x) for x in rep.final))
     return p, rep.q[ng:], check
@@ -415,20 +430,44 @@ def _one_sided(u_exact: Uexact, times: np.ndarray, before: np.ndarray, T: float,
     return np.asarray(u_exact(tt), float)
 
 
-def _averages(u_exact: Uexact, times: np.ndarray, breaks: np.ndarray) -> np.ndarray:
-    """Mean of the exact inputs over each ``[t_k, t_{k+1}]`` (Gauss-Legendre on the pieces
-    between grid points and breaks); the last row repeats the last interval's."""
-    cuts = np.unique(np.concatenate([times, np.asarray(breaks, float)]))
+def _projection(form: Form, u_exact: Uexact, rows: int, breaks: np.ndarray) -> np.ndarray:
+    """The L2 projection of the exact inputs onto the form's functions (the best start of the
+    correction: a linear interpolant through the exact values misses peaks, this one matches
+    the inputs' integrals against every basis function). Gauss-Legendre on the pieces between
+    the form's knots and the plan's breaks; the Gram matrix is banded (neighbouring rows)."""
+    from scipy.linalg import solve_banded
+
+    cuts = np.unique(np.concatenate([form.knots, np.asarray(breaks, float)]))
+    cuts = cuts[(cuts >= 0.0) & (cuts <= form.T)]
     g, w = _gauss(5)
     h = np.diff(cuts)
     tt = (cuts[:-1, None] + h[:, None] * g).ravel()
     vals = np.asarray(u_exact(tt), float).reshape(h.size, g.size, 2)
-    piece = np.einsum("kgc,g->kc", vals, w) * h[:, None]          # integral per piece
-    owner = np.clip(np.searchsorted(times, cuts[:-1], side="right") - 1, 0, times.size - 2)
-    sums = np.zeros((times.size - 1, 2))
-    np.add.at(sums, owner, piece)
-    avg = sums / np.diff(times)[:, None]
-    return np.vstack([avg, avg[-1:]])
+    k = np.clip(np.searchsorted(form.knots, tt, side="right") - 1, 0, form.knots.size - 2)
+    hk = np.diff(form.knots)[k]
+    B = (form.shapes((tt - form.knots[k]) / hk) * form.scale[k]).reshape(h.size, g.size, -1)
+    rhs = np.zeros((rows, 2))
+    np.add.at(rhs, form.idx[k.reshape(h.size, g.size)[:, 0]],
+              np.einsum("kgr,kgc,g,k->krc", B, vals, w, h))
+    # the Gram matrix of the basis on the form's own intervals (exact: Gauss on polynomials)
+    gk, wk = _gauss(GAUSS + 1)
+    S = form.shapes(gk)                                           # (G, R)
+    hh = np.diff(form.knots)
+    local = np.einsum("gr,gs,g->rs", S, S, wk)                    # (R, R)
+    R = form.idx.shape[1]
+    ab = np.zeros((3, rows))                                      # bands: upper, diagonal, lower
+    for r in range(R):
+        for c in range(R):
+            off = form.idx[:, c] - form.idx[:, r]
+            val = hh * form.scale[:, r] * form.scale[:, c] * local[r, c]
+            for band, d in ((0, 1), (1, 0), (2, -1)):
+                sel = off == d
+                np.add.at(ab[band], form.idx[sel, c], val[sel])
+    used = ab[1] > 0.0
+    ab[1, ~used] = 1.0                                            # rows no interval uses
+    out = solve_banded((1, 1), ab, rhs)
+    out[~used] = out[np.maximum(np.nonzero(~used)[0] - 1, 0)]
+    return out
 
 
 # ---------------------------------------------------------------------- the plan's forms
@@ -463,16 +502,17 @@ class Execution:
         return out
 
 
-def _require(check: ExecutionCheck, what: str) -> None:
+def _require(check: ExecutionCheck, what: str, field: str | None, hint: str) -> None:
+    """Raise when the form, executed by its rule, leaves the region or misses the goal."""
     if check.singular or not check.margin > 0.0:
         raise InfeasibleError(
             f"the {what} leaves the singularity-free region when executed by its rule "
-            f"({check.rule}; margin {check.margin:.3g} rad)",
+            f"({check.rule}; margin {check.margin:.3g} rad){hint}", field=field,
             diagnostics={"execution": check.as_dict()})
     if not check.terminal_error <= EXECUTION_TOLERANCE:
         raise NumericalError(
             f"the {what} does not reach the goal when executed by its rule ({check.rule}; "
-            f"terminal error {check.terminal_error:.3g} rad)",
+            f"terminal error {check.terminal_error:.3g} rad){hint}", field=field,
             diagnostics={"execution": check.as_dict()})
 
 
@@ -532,15 +572,27 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
     breaks = np.asarray(breaks, float)
     check_period(req, T)
     if req.controller_period is None:
-        times, before = linear_times(T, req.samples, breaks)
+        times, _ = linear_times(T, req.samples, breaks)
         form = linear_form(times)
-        p0 = _one_sided(u_exact, times, before, T, breaks)
     else:
         times = period_times(T, float(req.controller_period), breaks)
         form = zoh_form(times)
-        p0 = _averages(u_exact, times, breaks)
-    u, q, check = correct(robot, form, p0, q0, target, region, times)
-    _require(check, "handed-out path")
+    p0 = _projection(form, u_exact, times.size, breaks)
+    limits = (req.max_u1, req.max_u2)
+    u, q, check = correct(robot, form, p0, q0, target, region, times, limits)
+    for c, lim in enumerate(limits):
+        if lim is not None and float(np.max(np.abs(u[:, c]))) > lim * (1.0 + 1e-9):
+            raise InfeasibleError(
+                f"the handed-out rates exceed max_u{c + 1} = {lim:g} rad/s "
+                f"({float(np.max(np.abs(u[:, c]))):.6g} rad/s) after their correction: more "
+                "samples, or a longer duration", field=f"max_u{c + 1}",
+                diagnostics={"execution": check.as_dict()})
+    if req.controller_period is None:
+        _require(check, f"path of {req.samples} samples", "samples",
+                 ": too few samples to hold this plan, ask for more")
+    else:
+        _require(check, f"path on the controller period {req.controller_period:g} s",
+                 "controller_period", ": the period is too long for this plan")
     if form.rule == "zoh":
         u[-1] = u[-2]
     al, be = cf.input_coefficients(q)
@@ -549,7 +601,9 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
     jt = jt_check = None
     if req.joint_trajectory:
         jt, jt_check = joint_trajectory(robot, region, form, path, q0, target)
-        _require(jt_check, "JointTrajectory form")
+        _require(jt_check, "JointTrajectory form", "joint_trajectory",
+                 ": its points are too sparse for this plan (more samples, or a shorter "
+                 "controller_period)")
     return Execution(path=path, check=check, joint_trajectory=jt, joint_trajectory_check=jt_check,
                      seconds=time.perf_counter() - t_start)
 
@@ -599,3 +653,48 @@ def joint_trajectory(robot: Robot, region: Region, form: Form, path: SampledPath
            "interpolation": "cubic Hermite between consecutive points (positions and "
                             "velocities), as joint_trajectory_controller"}
     return out, check
+
+
+class HandedOutInputs:
+    """The rates a plan hands out, executed by their rule, as the open-loop replays take them
+    (:func:`optimizer.verify.integrate` and :func:`optimizer.verify.integrate_cascade`).
+
+    Parameters
+    ----------
+    path : SampledPath
+        A plan's ``path``.
+    rule : {"linear", "zoh"}
+    """
+
+    def __init__(self, path: SampledPath, rule: str) -> None:
+        if rule == "linear":
+            self.form = linear_form(np.asarray(path.t, float))
+        elif rule == "zoh":
+            self.form = zoh_form(np.asarray(path.t, float))
+        else:
+            raise ValueError(f"rule must be 'linear' or 'zoh', not {rule!r}")
+        self.p = np.asarray(path.u, float)
+        self.T = self.form.T
+        self.breaks = self.form.knots
+
+    def u(self, t: np.ndarray) -> np.ndarray:
+        """Rates at many times, shape (M, 2)."""
+        return self.form.u(self.p, t)
+
+    def u_scalar(self, t: float, _q: np.ndarray | None = None) -> np.ndarray:
+        """Rates at one time (the integrators' callback)."""
+        return self.form.u(self.p, np.array([t]))[0]
+
+    def replay(self, robot: Robot, q0: np.ndarray, t_eval: np.ndarray) -> Replay:
+        """The original model under these rates from ``q0`` (a perturbed start, say).
+
+        Cascade quadrature between the knots (exact for these piecewise polynomials up to
+        ~1e-13 rad); a run that meets the region's boundary is integrated again by DOP853,
+        which stops there (the replays report where a run became singular).
+        """
+        rep = integrate_cascade(robot, self.u, q0, self.T, t_eval, self.breaks,
+                                nodes=REPLAY_NODES, initial_panels=1,
+                                max_panels=4 * self.breaks.size + 2048)
+        if rep.success and not rep.singular:
+            return rep
+        return integrate(robot, self.u_scalar, q0, self.T, t_eval)

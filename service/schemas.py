@@ -26,6 +26,8 @@ PI = math.pi
 MAX_JOINTS = LIBRARY_MAX_JOINTS
 MIN_JOINTS = LIBRARY_MIN_JOINTS
 MIN_DURATION = LIBRARY_MIN_DURATION
+#: Shortest controller_period (s).
+MIN_CONTROLLER_PERIOD = 1e-4
 
 # ---------------------------------------------------------------------- scalar types
 #: A finite JSON number (ints accepted, strings/booleans/NaN/Infinity refused).
@@ -124,9 +126,20 @@ class Indicators(BaseModel):
 
 
 class PlanPath(BaseModel):
-    """The sampled path: one row per time sample."""
+    """The executable path: one row per time sample (see docs/execution.md).
 
-    t: list[float] = Field(..., description="Times (s).")
+    ``rule`` says how a controller executes ``u``: ``linear`` (linear interpolation between
+    consecutive samples; every time where the inputs jump is in ``t`` twice, with the value
+    before and then after the jump) or ``zoh`` (with ``controller_period``: ``u[k]`` held on
+    ``[t_k, t_{k+1})``, the last row repeats the last interval's rate). Executed by that rule,
+    ``u`` drives the original model to the goal (``validation.executed``); ``q`` and ``z`` are
+    the states of that execution.
+    """
+
+    rule: Optional[Literal["linear", "zoh"]] = Field(
+        None, description="How u is executed between samples: linear or zoh.")
+    t: list[float] = Field(..., description="Times (s); nondecreasing, a jump's time twice "
+                                            "(rule linear).")
     q: list[list[Optional[float]]] = Field(..., description="Rows [phi, th1..thn] (rad).")
     z: list[list[Optional[float]]] = Field(..., description="Chained state rows [z1..z_{n+1}].")
     u: list[list[Optional[float]]] = Field(..., description="Actuator rates [u1, u2] (rad/s).")
@@ -151,6 +164,60 @@ class Validation(BaseModel):
                                                               "DOP853.")
     rtol: Optional[float] = None
     atol: Optional[float] = None
+    executed: Optional["ExecutedValidation"] = Field(
+        None, description="The original model executed from what the answer hands out: "
+                          "path.u by path.rule.")
+    joint_trajectory: Optional["ExecutedValidation"] = Field(
+        None, description="The same for the joint_trajectory form (cubic Hermite), when "
+                          "asked for.")
+
+
+class ExecutedValidation(BaseModel):
+    """The original model integrated under a handed-out form, by its documented rule."""
+
+    rule: Literal["linear", "zoh", "cubic_hermite"]
+    terminal_error: Optional[float] = Field(None, description="max |th(T) - goal| (rad).")
+    phi_error: Optional[float] = Field(None, description="|phi(T) - the plan's phi(T)| (rad).")
+    margin: Optional[float] = Field(None, description="Smallest distance of th1..thn to the "
+                                                      "region's bounds (rad), at the samples "
+                                                      "and three points inside every interval.")
+    singular: bool = Field(..., description="A joint left (0, pi/2).")
+    initial_terminal_error: Optional[float] = Field(
+        None, description="Terminal error of the exact inputs merely sampled by the rule, "
+                          "before the correction (rad).")
+    corrections: int = Field(..., description="Correction steps taken.")
+    error_estimate: Optional[float] = Field(None, description="Estimated error of the "
+                                                              "integration (rad).")
+    integrator: str
+    final: list[Optional[float]] = Field(..., description="Final state [phi, th1..thn] (rad).")
+
+
+Validation.model_rebuild()
+
+
+class TimeFromStart(BaseModel):
+    """``builtin_interfaces/Duration``."""
+
+    sec: int
+    nanosec: int = Field(..., ge=0, lt=10 ** 9)
+
+
+class JointTrajectoryPoint(BaseModel):
+    """``trajectory_msgs/JointTrajectoryPoint`` (the fields used)."""
+
+    positions: list[float] = Field(..., description="[phi, th1] (rad).")
+    velocities: list[float] = Field(..., description="[u1, u2] (rad/s).")
+    time_from_start: TimeFromStart
+
+
+class JointTrajectory(BaseModel):
+    """The plan for position-controlled actuators in the shape of ROS 2
+    ``trajectory_msgs/msg/JointTrajectory`` (no header): executed by cubic Hermite
+    interpolation between consecutive points, as ``joint_trajectory_controller`` does."""
+
+    joint_names: list[str] = Field(..., description='["phi", "th1"].')
+    points: list[JointTrajectoryPoint]
+    interpolation: str
 
 
 class PlanResponse(BaseModel):
@@ -170,6 +237,8 @@ class PlanResponse(BaseModel):
     indicators: Indicators
     path: PlanPath
     validation: Validation
+    joint_trajectory: Optional[JointTrajectory] = Field(
+        None, description="With joint_trajectory: true in the request.")
     timing: dict[str, Optional[float]] = Field(..., description="Seconds per stage.")
     diagnostics: dict[str, Any] = Field(..., description="Extra facts about the solve.")
 
@@ -420,6 +489,34 @@ def build_schemas(limits: Limits) -> Schemas:
                                                description="Degree of v1 (penalty method).")
         v2_degree: Optional[StrictInt] = Field(None, ge=0, le=12,
                                                description="Degree of v2 (penalty method).")
+        controller_period: Optional[num(MIN_CONTROLLER_PERIOD, L.max_duration / 2)] = Field(  # type: ignore[valid-type]
+            None, description="Period (s) of a controller that holds each rate for one period: "
+                              "path.t is then k * period (the last point T; a last interval "
+                              "shorter when T is not a multiple), path.u the rates to hold "
+                              "(rule zoh), planned for that hold; samples is then ignored. At "
+                              "most half the duration, and at most max_samples points.")
+        joint_trajectory: bool = Field(
+            False, description="Also return the plan as a ROS trajectory_msgs/JointTrajectory "
+                               "(positions [phi, th1], velocities [u1, u2]; cubic Hermite "
+                               "between points).")
+
+        @model_validator(mode="after")
+        def _period_fits(self) -> "PlanRequest":
+            period = self.controller_period
+            if period is None:
+                return self
+            limited = self.max_u1 is not None or self.max_u2 is not None
+            duration = self.duration if self.duration is not None else (
+                None if limited else 1.0)
+            if duration is not None:
+                if period > 0.5 * duration:
+                    raise ValueError(f"controller_period = {period} s must be at most half "
+                                     f"the duration ({duration} s)")
+                if math.ceil(duration / period * (1 - 1e-12)) + 1 > L.max_samples:
+                    raise ValueError(f"controller_period = {period} s gives more than "
+                                     f"max_samples = {L.max_samples} samples over "
+                                     f"{duration} s")
+            return self
 
         def to_library(self) -> dict[str, Any]:
             """The dict :meth:`optimizer.problem.PlanRequest.from_dict` takes."""
