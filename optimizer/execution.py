@@ -645,7 +645,10 @@ def joint_trajectory(robot: Robot, region: Region, form: Form, path: SampledPath
     p, q, check = correct(robot, hform, p0, q0, target, region, times)
     m = times.size
     pos, vel = p[:m], p[m:]
+    # no accelerations: with positions and velocities only, joint_trajectory_controller
+    # interpolates cubically, the rule verified here
     points = [{"positions": [float(a), float(b)], "velocities": [float(c), float(d)],
+               "accelerations": [], "effort": [],
                "time_from_start": {"sec": int(x // 1_000_000_000),
                                    "nanosec": int(x % 1_000_000_000)}}
               for (a, b), (c, d), x in zip(pos.tolist(), vel.tolist(), ns.tolist())]

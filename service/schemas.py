@@ -207,6 +207,10 @@ class JointTrajectoryPoint(BaseModel):
 
     positions: list[float] = Field(..., description="[phi, th1] (rad).")
     velocities: list[float] = Field(..., description="[u1, u2] (rad/s).")
+    accelerations: list[float] = Field(default_factory=list,
+                                       description="Empty: the controller then interpolates "
+                                                   "cubically, the rule verified.")
+    effort: list[float] = Field(default_factory=list, description="Empty.")
     time_from_start: TimeFromStart
 
 
