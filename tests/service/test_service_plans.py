@@ -121,7 +121,7 @@ def test_batch_answers_in_order(client):
         {**WORKED, "samples": 11},
         {"start": [10 * DEG, 20 * DEG, 30 * DEG], "goal": [40 * DEG, 25 * DEG, 15 * DEG],
          "method": "polynomial"},
-        {**WORKED, "phi_change": 34.0 * DEG, "samples": 21},
+        {**WORKED, "phi_change": 34.0 * DEG, "samples": 5},
         {**WORKED, "start": [100 * DEG, 10 * DEG, 10 * DEG]},
     ]
     r = client.post("/v1/plans/batch", json={"requests": requests})
