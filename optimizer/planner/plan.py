@@ -182,8 +182,8 @@ def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
             f"(terminal error {ver.terminal_error:.3g} rad, singular={ver.singular})",
             diagnostics={"terminal_error": ver.terminal_error, "singular": ver.singular,
                          "method": method})
-    # issue 16: the handed-out path is the form a controller executes, corrected for its rule
-    # and verified by it (optimizer.execution)
+    # the handed-out path is what a controller executes: corrected for its rule and verified
+    # by it (optimizer.execution)
     exe = execute(req, planned.u, planned.breaks, T, req.phi_start + dphi)
     timing["execution"] = exe.seconds
     return Plan(robot=robot, method=method, phi_change=float(dphi), duration=T, inputs=inputs,

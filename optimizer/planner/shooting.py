@@ -516,8 +516,8 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
                        rtol=CASCADE_TOL, atol=CASCADE_TOL, energy=energy,
                        integrator=rep.integrator, error_estimate=rep.error_estimate)
     timing["sampling"] = time.perf_counter() - t1
-    # issue 16: the handed-out path is the form a controller executes, corrected for its rule
-    # and verified by it (optimizer.execution); the breaks in seconds are exact in it
+    # the handed-out path is what a controller executes: corrected for its rule and verified
+    # by it (optimizer.execution), the breaks in seconds exact in its times
     exe = execute(req, schedule.u, schedule.breaks, T, float(final[0]))
     timing["execution"] = exe.seconds
     return Plan(robot=robot, method=method, phi_change=dphi, duration=T, inputs=schedule,
