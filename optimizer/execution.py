@@ -403,21 +403,17 @@ def _snap(times: np.ndarray, breaks: np.ndarray, tol: float) -> np.ndarray:
     return out
 
 
-def linear_times(T: float, samples: int, breaks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Times of the linear form: ``samples`` evenly spaced, samples within a quarter of the
-    spacing of an inner break moved onto it, and every inner break twice. Also which rows are the first
-    copy of a break (they carry the value before the jump)."""
+def linear_times(T: float, samples: int, breaks: np.ndarray) -> np.ndarray:
+    """Times of the linear form: ``samples`` evenly spaced, those within a quarter of the
+    spacing of an inner break moved onto it, and every inner break twice (the first copy
+    carries the value before the jump, the second the value after)."""
     inner = np.asarray(breaks, float)[1:-1]
     # a sample closer to a break than a quarter of the spacing moves onto it: no sliver
     # intervals next to a break, and a break that falls on a sample (up to rounding) is exact
     t = _snap(np.linspace(0.0, T, int(samples)), inner, 0.25 * T / (int(samples) - 1))
     t[0], t[-1] = 0.0, T
     t = np.unique(np.concatenate([t, inner]))
-    extra = np.searchsorted(t, inner)
-    times = np.insert(t, extra, inner)               # the first copy before each break
-    before = np.zeros(times.size, bool)
-    before[extra + np.arange(extra.size)] = True
-    return times, before
+    return np.insert(t, np.searchsorted(t, inner), inner)
 
 
 def period_times(T: float, period: float, breaks: np.ndarray) -> np.ndarray:
@@ -429,17 +425,6 @@ def period_times(T: float, period: float, breaks: np.ndarray) -> np.ndarray:
     t = t[t < T * (1.0 - SNAP)]
     t = np.append(t, T)
     return _snap(t, np.asarray(breaks, float)[1:-1], SNAP * T)
-
-
-def _one_sided(u_exact: Uexact, times: np.ndarray, before: np.ndarray, T: float,
-               breaks: np.ndarray) -> np.ndarray:
-    """The exact inputs at ``times``: just before a break for the rows marked ``before``, just
-    after it otherwise (a hair inside the piece, so that no rounding picks the wrong one)."""
-    gaps = np.diff(np.asarray(breaks, float))
-    eps = min(SNAP * T, 0.25 * float(gaps.min())) if gaps.size else SNAP * T
-    tt = np.where(before, times - eps, times + eps)
-    tt = np.clip(tt, 0.0, T)
-    return np.asarray(u_exact(tt), float)
 
 
 def _projection(form: Form, u_exact: Uexact, rows: int, breaks: np.ndarray) -> np.ndarray:
@@ -584,7 +569,7 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
     breaks = np.asarray(breaks, float)
     check_period(req, T)
     if req.controller_period is None:
-        times, _ = linear_times(T, req.samples, breaks)
+        times = linear_times(T, req.samples, breaks)
         form = linear_form(times)
     else:
         times = period_times(T, float(req.controller_period), breaks)

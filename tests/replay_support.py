@@ -24,7 +24,10 @@ def _rhs(robot: Robot, u_of_t):
     return f
 
 
-def reachable_goals(n: int, count: int, seed: int) -> list[tuple[tuple[float, ...], tuple[float, ...]]]:
+Goal = tuple[tuple[float, ...], tuple[float, ...]]
+
+
+def reachable_goals(n: int, count: int, seed: int) -> list[Goal]:
     """Start inside the region, goal = the true model's end under random smooth inputs with
     ``u1 > 0`` (every joint th2..thn then moves one way: the polynomial family applies)."""
     rng = np.random.default_rng(seed)
@@ -41,20 +44,23 @@ def reachable_goals(n: int, count: int, seed: int) -> list[tuple[tuple[float, ..
         sol = solve_ivp(_rhs(robot, u), (0.0, 1.0), np.concatenate([[0.0], start]),
                         rtol=1e-10, atol=1e-12, dense_output=True)
         th = sol.sol(np.linspace(0.0, 1.0, 401))[1:]
-        if th.min() > 0.15 and th.max() < HALF_PI - 0.15 and np.all(np.abs(th[:, -1] - start) > 0.05):
+        inside = th.min() > 0.15 and th.max() < HALF_PI - 0.15
+        if inside and np.all(np.abs(th[:, -1] - start) > 0.05):
             out.append((tuple(start), tuple(th[:, -1])))
     return out
 
 
 
 
-def replay_linear(robot: Robot, t: np.ndarray, u: np.ndarray, q0: np.ndarray) -> tuple[np.ndarray, float]:
+def replay_linear(robot: Robot, t: np.ndarray, u: np.ndarray,
+                  q0: np.ndarray) -> tuple[np.ndarray, float]:
     """The original model under linear interpolation of ``u`` over ``t`` (repeated times:
     jumps), piece by piece. Returns the final state and the smallest region margin seen."""
     return _replay(robot, t, q0, lambda k, s: (1.0 - s) * u[k] + s * u[k + 1])
 
 
-def replay_zoh(robot: Robot, t: np.ndarray, u: np.ndarray, q0: np.ndarray) -> tuple[np.ndarray, float]:
+def replay_zoh(robot: Robot, t: np.ndarray, u: np.ndarray,
+               q0: np.ndarray) -> tuple[np.ndarray, float]:
     """The original model with ``u[k]`` held on ``[t_k, t_{k+1})``."""
     return _replay(robot, t, q0, lambda k, s: u[k])
 
