@@ -504,13 +504,15 @@ def build_schemas(limits: Limits) -> Schemas:
                                "(positions [phi, th1], velocities [u1, u2]; cubic Hermite "
                                "between points).")
 
-        @model_validator(mode="after")
-        def _period_fits(self) -> "PlanRequest":
-            period = self.controller_period
+        @field_validator("controller_period")
+        @classmethod
+        def _period_fits(cls, period: Optional[float],
+                         info: ValidationInfo) -> Optional[float]:
             if period is None:
-                return self
-            limited = self.max_u1 is not None or self.max_u2 is not None
-            duration = self.duration if self.duration is not None else (
+                return period
+            d = info.data
+            limited = d.get("max_u1") is not None or d.get("max_u2") is not None
+            duration = d.get("duration") if d.get("duration") is not None else (
                 None if limited else 1.0)
             if duration is not None:
                 if period > 0.5 * duration:
@@ -520,7 +522,16 @@ def build_schemas(limits: Limits) -> Schemas:
                     raise ValueError(f"controller_period = {period} s gives more than "
                                      f"max_samples = {L.max_samples} samples over "
                                      f"{duration} s")
-            return self
+            return period
+
+        @property
+        def rows(self) -> int:
+            """Path rows the answer will have, about: ``samples``, or the controller
+            period's grid over the duration (1 s by default; input breaks add a few)."""
+            if self.controller_period is None:
+                return self.samples
+            duration = self.duration if self.duration is not None else 1.0
+            return math.ceil(duration / self.controller_period * (1 - 1e-12)) + 1
 
         def to_library(self) -> dict[str, Any]:
             """The dict :meth:`optimizer.problem.PlanRequest.from_dict` takes."""
@@ -606,8 +617,8 @@ def build_schemas(limits: Limits) -> Schemas:
         def _answer_size(cls, include_paths: bool, info: ValidationInfo) -> bool:
             plan, starts, rnd = (info.data.get(k) for k in ("plan", "starts", "random"))
             runs = len(starts) if starts is not None else (rnd.count if rnd is not None else 0)
-            if include_paths and plan is not None and runs * plan.samples > L.max_total_samples:
-                raise ValueError(f"runs x plan.samples = {runs * plan.samples} exceeds "
+            if include_paths and plan is not None and runs * plan.rows > L.max_total_samples:
+                raise ValueError(f"runs x plan path rows = {runs * plan.rows} exceeds "
                                  f"max_total_samples = {L.max_total_samples} path rows")
             return include_paths
 
@@ -639,7 +650,7 @@ def build_schemas(limits: Limits) -> Schemas:
         @field_validator("requests")
         @classmethod
         def _total(cls, requests: list[Any]) -> list[Any]:
-            total = sum(r.samples for r in requests)
+            total = sum(r.rows for r in requests)
             if total > L.max_total_samples:
                 raise ValueError(f"the requests ask for {total} samples in all; at most "
                                  f"max_total_samples = {L.max_total_samples}")
