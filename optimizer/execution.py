@@ -31,7 +31,7 @@ Every form is linear in its parameters ``p`` (sample values, or positions and ve
 exact rates onto their functions (point samples of a sharp rate peak, near a joint at the
 region's edge, miss its integral: the projection keeps it; measured end errors of the
 projection alone: 1e-16 to 1e-5 rad for the linear form at 201 samples, 1e-6 to 1e-3 rad for
-a 10 ms hold, against 1e-3 to 6e-2 rad for plain samples). Gauss-Newton steps of least L2
+a 10 ms hold, against up to 2e-2 and 6e-2 rad for plain samples). Gauss-Newton steps of least L2
 norm (the diagonal of the basis' Gram matrix weighs the parameters; a rate with a limit
 changes in proportion to its headroom) then cancel the end error of the original model: the
 residual from :func:`~optimizer.verify.integrate_cascade` (Chebyshev quadrature on panels
