@@ -216,7 +216,8 @@ class ExecutionCheck:
     singular : bool
         A joint left (0, pi/2) during the integration.
     initial_terminal_error : float
-        The same error before any correction (the plain samples of the exact inputs).
+        The same error before any correction (from the start: the L2 projection of the exact
+        rates; for the JointTrajectory form, the executable path's points).
     corrections : int
         Correction steps taken.
     errors : tuple of float
