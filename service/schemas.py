@@ -183,8 +183,9 @@ class ExecutedValidation(BaseModel):
                                                       "and three points inside every interval.")
     singular: bool = Field(..., description="A joint left (0, pi/2).")
     initial_terminal_error: Optional[float] = Field(
-        None, description="Terminal error of the exact inputs merely sampled by the rule, "
-                          "before the correction (rad).")
+        None, description="Terminal error before the correction (rad): of the L2 projection "
+                          "of the exact rates onto the rule's functions, or for the "
+                          "JointTrajectory form of the path's points.")
     corrections: int = Field(..., description="Correction steps taken.")
     error_estimate: Optional[float] = Field(None, description="Estimated error of the "
                                                               "integration (rad).")
