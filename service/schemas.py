@@ -606,7 +606,9 @@ def build_schemas(limits: Limits) -> Schemas:
                         f"{L.max_robustness_runs}.")
         random: Optional[RandomStarts] = Field(None, description="Random perturbed starts.")
         replay: Literal["u", "v"] = Field(
-            "u", description="Replay the actuator inputs u or the chained inputs v.")
+            "u", description="u: the handed-out actuator rates path.u, executed by path.rule; "
+                             "v: the chained inputs v through the input map at the actual "
+                             "state.")
         include_paths: bool = Field(
             False, description=f"Return each run's path rows (runs x plan.samples at most "
                                f"{L.max_total_samples}).")
