@@ -13,6 +13,7 @@ import numpy as np
 
 from .chained_form import chained_form
 from .errors import InvalidRequestError
+from .execution import HandedOutInputs
 from .indicators import compute_indicators, sensitivity_frobenius
 from .model import Robot
 from .planner.family import PolynomialFamily
@@ -142,6 +143,9 @@ def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float],
     starts : ndarray (R, n)
         Joint angles ``th_1..th_n`` of each run's start (``phi`` starts at the plan's).
     mode : {"u", "v"}
+        ``u``: the handed-out rates ``path.u`` executed by their rule (``path.rule``: what a
+        controller runs); ``v``: the plan's chained inputs pushed through eq 5 at the actual
+        state.
     goal : sequence of float
         The nominal goal ``th_1..th_n``.
     time_limit : float, optional
@@ -153,12 +157,16 @@ def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float],
     if mode not in ("u", "v"):
         raise InvalidRequestError("replay must be 'u' or 'v'", field="replay")
     cf = chained_form(plan.robot)
-    if plan.chained is None:  # actuator-rate plan (shooting): the rates are the plan itself
-        if mode == "v":
-            raise InvalidRequestError(
-                f"replay 'v' needs chained inputs; method {plan.method!r} plans actuator rates "
-                "(use replay 'u')", field="replay")
-        inputs: Any = plan.inputs
+    if plan.chained is None and mode == "v":  # actuator-rate plan (shooting)
+        raise InvalidRequestError(
+            f"replay 'v' needs chained inputs; method {plan.method!r} plans actuator rates "
+            "(use replay 'u')", field="replay")
+    inputs: Any
+    if mode == "u" and plan.execution is not None:
+        # what a controller runs: the handed-out rates under their rule (optimizer.execution)
+        inputs = HandedOutInputs(plan.path, plan.execution.check.rule)
+    elif plan.chained is None:
+        inputs = plan.inputs
     else:
         inputs = PlannedInputs(cf, plan.chained)
     t = plan.path.t
@@ -173,7 +181,10 @@ def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float],
             raise InvalidRequestError(f"each start must have n = {plan.robot.n} finite angles",
                                       field="starts")
         q0 = np.concatenate([[phi0], s])
-        rep = replay(plan.robot, inputs, q0, mode, t)
+        if isinstance(inputs, HandedOutInputs):
+            rep = inputs.replay(plan.robot, q0, t)
+        else:
+            rep = replay(plan.robot, inputs, q0, mode, t)
         if rep.singular:
             ind = None
         else:

@@ -28,6 +28,8 @@ MAX_CONSTRAINT_POINTS = 8
 MAX_DURATION = 1e4
 MIN_DURATION = 1e-3
 MAX_TIME_LIMIT = 600.0
+#: Shortest controller period (s).
+MIN_CONTROLLER_PERIOD = 1e-4
 
 
 @dataclass(frozen=True)
@@ -72,6 +74,13 @@ class PlanRequest:
     max_u1, max_u2 : float or None
         Actuator rate limits (rad/s).
     joint_bounds : tuple of (lo, hi) or None
+    controller_period : float or None
+        Period (s) of a controller that holds each rate for one period: the returned path is
+        then on the grid ``k * period`` (the last point ``T``) under zero-order hold, planned
+        for it (:mod:`optimizer.execution`). ``None``: ``samples`` evenly spaced times plus the
+        input breaks twice, linear interpolation.
+    joint_trajectory : bool
+        Also return the ROS ``trajectory_msgs/JointTrajectory`` form (cubic Hermite).
     """
 
     start: tuple[float, ...]
@@ -91,6 +100,8 @@ class PlanRequest:
     max_u1: float | None = None
     max_u2: float | None = None
     joint_bounds: tuple[tuple[float, float] | None, ...] | None = None
+    controller_period: float | None = None
+    joint_trajectory: bool = False
 
     def __post_init__(self) -> None:
         n = self.robot.n
@@ -163,6 +174,27 @@ class PlanRequest:
         if self.joint_bounds is not None:
             from .region import Region  # validates shape and that bounds lie in the region
             Region(self.robot, "full", self.joint_bounds)
+        if self.controller_period is not None:
+            _finite(self.controller_period, "controller_period")
+            period = float(self.controller_period)
+            if not MIN_CONTROLLER_PERIOD <= period <= MAX_DURATION / 2:
+                raise InvalidRequestError(
+                    f"controller_period = {period} s must lie in [{MIN_CONTROLLER_PERIOD}, "
+                    f"{MAX_DURATION / 2:g}] s", field="controller_period")
+            if self.duration is not None:
+                if period > 0.5 * self.duration:
+                    raise InvalidRequestError(
+                        f"controller_period = {period} s must be at most half the duration "
+                        f"({self.duration} s)", field="controller_period")
+                if math.ceil(self.duration / period * (1 - 1e-12)) + 1 > MAX_SAMPLES:
+                    raise InvalidRequestError(
+                        f"controller_period = {period} s gives more than {MAX_SAMPLES} "
+                        f"samples over the duration {self.duration} s",
+                        field="controller_period")
+            object.__setattr__(self, "controller_period", period)
+        if not isinstance(self.joint_trajectory, bool):
+            raise InvalidRequestError("joint_trajectory must be true or false",
+                                      field="joint_trajectory")
 
     @property
     def n(self) -> int:
@@ -244,7 +276,8 @@ class PlanRequest:
                                       for b in d["joint_bounds"])
         for k in ("start", "goal"):
             d[k] = tuple(d[k])
-        for k in ("method", "objective", "singularity", "samples", "time_limit", "phi_start"):
+        for k in ("method", "objective", "singularity", "samples", "time_limit", "phi_start",
+                  "joint_trajectory"):
             if k in d and d[k] is None:
                 d.pop(k)
         return cls(**d)

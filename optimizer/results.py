@@ -9,35 +9,13 @@ from typing import Any
 import numpy as np
 
 from .actuation import ActuatorSchedule
+from .execution import Execution
 from .indicators import Indicators
 from .model import Robot
+from .paths import SampledPath
 from .steering import ChainedPath, InputSchedule
 from .verify import Verification
 
-
-@dataclass(frozen=True)
-class SampledPath:
-    """Time samples of a plan.
-
-    Attributes
-    ----------
-    t : ndarray (N,)
-        s.
-    q : ndarray (N, n+1)
-        ``[phi, th1..thn]``, rad.
-    z : ndarray (N, n+1)
-        Chained state.
-    u : ndarray (N, 2)
-        Actuator rates ``[u1, u2]``, rad/s.
-    v : ndarray (N, 2)
-        Chained inputs ``[v1, v2]``.
-    """
-
-    t: np.ndarray
-    q: np.ndarray
-    z: np.ndarray
-    u: np.ndarray
-    v: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -65,11 +43,18 @@ class Plan:
     margin : float
         Region margin of the continuous path (rad, full criterion).
     path : SampledPath
+        The handed-out, executable path (:mod:`optimizer.execution`): its ``u`` under its
+        rule (linear interpolation, or zero-order hold on ``controller_period``) drives the
+        original model to the goal; ``q`` and ``z`` are that replay's states.
     verification : Verification
+        The proof from the exact input segments.
     timing : dict of str to float
         Seconds per stage.
     diagnostics : dict
         Extra facts (which start won, solver status, ...).
+    execution : Execution or None
+        The check of the handed-out forms (``validation.executed``) and the JointTrajectory
+        form when asked for.
     """
 
     robot: Robot
@@ -85,6 +70,7 @@ class Plan:
     verification: Verification
     timing: dict[str, float] = field(default_factory=dict)
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    execution: Execution | None = None
 
     @property
     def b0(self) -> float | None:
@@ -104,7 +90,7 @@ class Plan:
         """
         ind = self.indicators
         ver = self.verification
-        out = {
+        out: dict[str, Any] = {
             "status": "success",
             "method": self.method,
             "robot": self.robot.as_dict(),
@@ -153,6 +139,12 @@ class Plan:
             "timing": dict(self.timing),
             "diagnostics": dict(self.diagnostics),
         }
+        exe = self.execution
+        if exe is not None:
+            out["path"]["rule"] = exe.check.rule
+            out["validation"].update(exe.validation())
+            if exe.joint_trajectory is not None:
+                out["joint_trajectory"] = exe.joint_trajectory
         return json_safe(out) if plain else out
 
 

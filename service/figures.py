@@ -149,6 +149,8 @@ class _PlanData:
         if self.z is not None and self.z.shape != self.q.shape:
             raise ValueError(f"path.z has shape {self.z.shape}, expected {self.q.shape}")
         self.method = str(plan.get("method", "plan"))
+        # how path.u is executed (docs/execution.md); path.q are that execution's states
+        self.rule = path.get("rule")
         self.phi_change = plan.get("phi_change")
         if self.phi_change is None:
             self.phi_change = float(self.q[-1, 0] - self.q[0, 0])
@@ -176,7 +178,8 @@ class _PlanData:
         return (f"{self.method} plan: dphi = {_fdeg(self.phi_change)}, "
                 f"d_a = {_fdeg(self.d_a)}, "
                 f"t_p = {self.t_p if self.t_p is not None else 'n/a'}, "
-                f"T = {_fmt_num(self.duration, '.4g', ' s')}")
+                f"T = {_fmt_num(self.duration, '.4g', ' s')}"
+                + (f", executed path ({self.rule})" if self.rule else ""))
 
 
 def _mark_breaks(ax: Any, breaks: Iterable[float]) -> None:
@@ -422,7 +425,7 @@ def robustness(plan: Mapping[str, Any], robustness: Mapping[str, Any], fmt: str 
         fig.supylabel("joint angle [deg]", fontsize=10)
         n_sing = sum(1 for r in runs if r[2])
         mode = summary.get("replay")
-        replay = {"u": "u-replay (motors replay u1, u2)",
+        replay = {"u": "u-replay (motors run the handed-out u1, u2 by their rule)",
                   "v": "v-replay (chained inputs v1, v2)"}.get(str(mode), "open-loop replay")
         e_max = summary.get("terminal_error_max")
         da_max = summary.get("d_a_max")

@@ -35,6 +35,8 @@ PI = math.pi
 MAX_JOINTS = LIBRARY_MAX_JOINTS
 MIN_JOINTS = LIBRARY_MIN_JOINTS
 MIN_DURATION = LIBRARY_MIN_DURATION
+#: Shortest controller_period (s).
+MIN_CONTROLLER_PERIOD = 1e-4
 
 # ---------------------------------------------------------------------- scalar types
 #: A finite JSON number (ints accepted, strings/booleans/NaN/Infinity refused).
@@ -205,9 +207,20 @@ class Indicators(BaseModel):
 
 
 class PlanPath(BaseModel):
-    """The sampled path: one row per time sample."""
+    """The executable path: one row per time sample (see docs/execution.md).
 
-    t: list[float] = Field(..., description="Times (s).")
+    ``rule`` says how a controller executes ``u``: ``linear`` (linear interpolation between
+    consecutive samples; every time where the inputs jump is in ``t`` twice, with the value
+    before and then after the jump) or ``zoh`` (with ``controller_period``: ``u[k]`` held on
+    ``[t_k, t_{k+1})``, the last row repeats the last interval's rate). Executed by that rule,
+    ``u`` drives the original model to the goal (``validation.executed``); ``q`` and ``z`` are
+    the states of that execution.
+    """
+
+    rule: Optional[Literal["linear", "zoh"]] = Field(
+        None, description="How u is executed between samples: linear or zoh.")
+    t: list[float] = Field(..., description="Times (s); nondecreasing, a jump's time twice "
+                                            "(rule linear).")
     q: list[list[Optional[float]]] = Field(..., description="Rows [phi, th1..thn] (rad).")
     z: list[list[Optional[float]]] = Field(..., description="Chained state rows [z1..z_{n+1}].")
     u: list[list[Optional[float]]] = Field(..., description="Actuator rates [u1, u2] (rad/s).")
@@ -232,6 +245,65 @@ class Validation(BaseModel):
                                                               "DOP853.")
     rtol: Optional[float] = None
     atol: Optional[float] = None
+    executed: Optional["ExecutedValidation"] = Field(
+        None, description="The original model executed from what the answer hands out: "
+                          "path.u by path.rule.")
+    joint_trajectory: Optional["ExecutedValidation"] = Field(
+        None, description="The same for the joint_trajectory form (cubic Hermite), when "
+                          "asked for.")
+
+
+class ExecutedValidation(BaseModel):
+    """The original model integrated under a handed-out form, by its documented rule."""
+
+    rule: Literal["linear", "zoh", "cubic_hermite"]
+    terminal_error: Optional[float] = Field(None, description="max |th(T) - goal| (rad).")
+    phi_error: Optional[float] = Field(None, description="|phi(T) - the plan's phi(T)| (rad).")
+    margin: Optional[float] = Field(None, description="Smallest distance of th1..thn to the "
+                                                      "region's bounds (rad), at the samples "
+                                                      "and three points inside every interval.")
+    singular: bool = Field(..., description="A joint left (0, pi/2).")
+    initial_terminal_error: Optional[float] = Field(
+        None, description="Terminal error before the correction (rad): of the L2 projection "
+                          "of the exact rates onto the rule's functions, or for the "
+                          "JointTrajectory form of the path's points.")
+    corrections: int = Field(..., description="Correction steps taken.")
+    error_estimate: Optional[float] = Field(None, description="Estimated error of the "
+                                                              "integration (rad).")
+    integrator: str
+    final: list[Optional[float]] = Field(..., description="Final state [phi, th1..thn] (rad).")
+
+
+Validation.model_rebuild()
+
+
+class TimeFromStart(BaseModel):
+    """``builtin_interfaces/Duration``."""
+
+    sec: int
+    nanosec: int = Field(..., ge=0, lt=10 ** 9)
+
+
+class JointTrajectoryPoint(BaseModel):
+    """``trajectory_msgs/JointTrajectoryPoint`` (the fields used)."""
+
+    positions: list[float] = Field(..., description="[phi, th1] (rad).")
+    velocities: list[float] = Field(..., description="[u1, u2] (rad/s).")
+    accelerations: list[float] = Field(default_factory=list,
+                                       description="Empty: the controller then interpolates "
+                                                   "cubically, the rule verified.")
+    effort: list[float] = Field(default_factory=list, description="Empty.")
+    time_from_start: TimeFromStart
+
+
+class JointTrajectory(BaseModel):
+    """The plan for position-controlled actuators in the shape of ROS 2
+    ``trajectory_msgs/msg/JointTrajectory`` (no header): executed by cubic Hermite
+    interpolation between consecutive points, as ``joint_trajectory_controller`` does."""
+
+    joint_names: list[str] = Field(..., description='["phi", "th1"].')
+    points: list[JointTrajectoryPoint]
+    interpolation: str
 
 
 class PlanResponse(BaseModel):
@@ -251,6 +323,8 @@ class PlanResponse(BaseModel):
     indicators: Indicators
     path: PlanPath
     validation: Validation
+    joint_trajectory: Optional[JointTrajectory] = Field(
+        None, description="With joint_trajectory: true in the request.")
     timing: dict[str, Optional[float]] = Field(..., description="Seconds per stage.")
     diagnostics: dict[str, Any] = Field(..., description="Extra facts about the solve.")
 
@@ -506,6 +580,45 @@ def build_schemas(limits: Limits) -> Schemas:
                 list[JointAngle], Field(min_length=2, max_length=2)]]]] = Field(
             None, max_length=L.max_joints,
             description="Per joint [lo, hi] (rad) or null; inside the region (0, pi/2).")
+        controller_period: Optional[num(MIN_CONTROLLER_PERIOD, L.max_duration / 2)] = Field(  # type: ignore[valid-type]
+            None, description="Period (s) of a controller that holds each rate for one period: "
+                              "path.t is then k * period (the last point T; a last interval "
+                              "shorter when T is not a multiple), path.u the rates to hold "
+                              "(rule zoh), planned for that hold; samples is then ignored. At "
+                              "most half the duration, and at most max_samples points.")
+        joint_trajectory: bool = Field(
+            False, description="Also return the plan as a ROS trajectory_msgs/JointTrajectory "
+                               "(positions [phi, th1], velocities [u1, u2]; cubic Hermite "
+                               "between points).")
+
+        @field_validator("controller_period")
+        @classmethod
+        def _period_fits(cls, period: Optional[float],
+                         info: ValidationInfo) -> Optional[float]:
+            if period is None:
+                return period
+            d = info.data
+            limited = d.get("max_u1") is not None or d.get("max_u2") is not None
+            duration = d.get("duration") if d.get("duration") is not None else (
+                None if limited else 1.0)
+            if duration is not None:
+                if period > 0.5 * duration:
+                    raise ValueError(f"controller_period = {period} s must be at most half "
+                                     f"the duration ({duration} s)")
+                if math.ceil(duration / period * (1 - 1e-12)) + 1 > L.max_samples:
+                    raise ValueError(f"controller_period = {period} s gives more than "
+                                     f"max_samples = {L.max_samples} samples over "
+                                     f"{duration} s")
+            return period
+
+        @property
+        def rows(self) -> int:
+            """Path rows the answer will have, about: ``samples``, or the controller
+            period's grid over the duration (1 s by default; input breaks add a few)."""
+            if self.controller_period is None:
+                return self.samples
+            duration = self.duration if self.duration is not None else 1.0
+            return math.ceil(duration / self.controller_period * (1 - 1e-12)) + 1
 
         @field_validator("start", "goal")
         @classmethod
@@ -603,7 +716,9 @@ def build_schemas(limits: Limits) -> Schemas:
                         f"{L.max_robustness_runs}.")
         random: Optional[RandomStarts] = Field(None, description="Random perturbed starts.")
         replay: Literal["u", "v"] = Field(
-            "u", description="Replay the actuator inputs u or the chained inputs v.")
+            "u", description="u: the handed-out actuator rates path.u, executed by path.rule; "
+                             "v: the chained inputs v through the input map at the actual "
+                             "state.")
         include_paths: bool = Field(
             False, description=f"Return each run's path rows (runs x plan.samples at most "
                                f"{L.max_total_samples}).")
@@ -615,8 +730,8 @@ def build_schemas(limits: Limits) -> Schemas:
         def _answer_size(cls, include_paths: bool, info: ValidationInfo) -> bool:
             plan, starts, rnd = (info.data.get(k) for k in ("plan", "starts", "random"))
             runs = len(starts) if starts is not None else (rnd.count if rnd is not None else 0)
-            if include_paths and plan is not None and runs * plan.samples > L.max_total_samples:
-                raise ValueError(f"runs x plan.samples = {runs * plan.samples} exceeds "
+            if include_paths and plan is not None and runs * plan.rows > L.max_total_samples:
+                raise ValueError(f"runs x plan path rows = {runs * plan.rows} exceeds "
                                  f"max_total_samples = {L.max_total_samples} path rows")
             return include_paths
 
@@ -648,7 +763,7 @@ def build_schemas(limits: Limits) -> Schemas:
         @field_validator("requests")
         @classmethod
         def _total(cls, requests: list[Any]) -> list[Any]:
-            total = sum(r.samples for r in requests)
+            total = sum(r.rows for r in requests)
             if total > L.max_total_samples:
                 raise ValueError(f"the requests ask for {total} samples in all; at most "
                                  f"max_total_samples = {L.max_total_samples}")

@@ -26,13 +26,14 @@ import numpy as np
 from ..actuation import ActuatorSchedule
 from ..chained_form import chained_form
 from ..errors import InfeasibleError, NumericalError
+from ..execution import execute
 from ..indicators import compute_indicators
 from ..problem import PlanRequest
-from ..results import Plan, SampledPath
+from ..results import Plan
 from ..steering import ChainedPath, InputSchedule
 from ..verify import CASCADE_TOL, PlannedInputs, Verification, verify_plan
 from .family import SEARCH_SAMPLES
-from .rules import TERMINAL_TOLERANCE, joint_limits, make_region
+from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region, make_region
 
 #: Points of the dense grid the indicators are measured on (the searches' own density, so
 #: that t_p and d_a agree with what was optimised).
@@ -91,10 +92,7 @@ def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
     if not inv.valid[:ns].all():
         raise InfeasibleError("the sampled path leaves the singularity-free region",
                               diagnostics={"margin": chk.margin})
-    z = z_all[:ns]
     q = inv.q[:ns]
-    v = inputs.v(t)
-    u = cf.u_from_v(q, v)
     dphi = inputs.phi_change
     # th_n takes no part in the region checked above; with a constant v1 it is monotone
     # (th_n' = z_n v1 with z_n > 0 inside), so its extremes are its ends, and the dense grid
@@ -120,10 +118,15 @@ def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
             f"(terminal error {ver.terminal_error:.3g} rad, singular={ver.singular})",
             diagnostics={"terminal_error": ver.terminal_error, "singular": ver.singular,
                          "method": method})
+    # the handed-out path is what a controller executes: corrected for its rule and verified
+    # by it (optimizer.execution)
+    exe = execute(req, planned.u, planned.breaks, T, req.phi_start + dphi,
+                  limits_region(req))
+    timing["execution"] = exe.seconds
     return Plan(robot=robot, method=method, phi_change=float(dphi), duration=T, inputs=inputs,
                 chained=chained, feasible_phi_changes=feasible, indicators=ind,
-                margin=float(chk.margin), path=SampledPath(t=t, q=q, z=z, u=u, v=v),
-                verification=ver, timing=timing, diagnostics=diagnostics)
+                margin=float(chk.margin), path=exe.path, verification=ver, timing=timing,
+                diagnostics=diagnostics, execution=exe)
 
 
 def _duration(req: PlanRequest, cf: Any, chained: ChainedPath) -> float:
@@ -195,11 +198,6 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
             f"(terminal error {terminal:.3g} rad)",
             diagnostics={"terminal_error": terminal, "method": method})
     t1 = time.perf_counter()
-    u = schedule.u(t)
-    # v = (u1, L_g1 z2 u1 + L_g2 z2 u2) along the path (eq 5); z by the forward map (eq 4)
-    al, be = cf.input_coefficients(q)
-    v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
-    z = cf.to_chained(q)
     # the replay ran in normalised time: int |u|^2 dt = int |U|^2 dtau / T
     energy = rep.energy / T
     ind = dataclasses.replace(compute_indicators(td, qd, None), energy=energy)
@@ -210,7 +208,11 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
                        rtol=CASCADE_TOL, atol=CASCADE_TOL, energy=energy,
                        integrator=rep.integrator, error_estimate=rep.error_estimate)
     timing["sampling"] = time.perf_counter() - t1
+    # the handed-out path is what a controller executes: corrected for its rule and verified
+    # by it (optimizer.execution), the breaks in seconds exact in its times
+    exe = execute(req, schedule.u, schedule.breaks, T, float(final[0]), limits_region(req))
+    timing["execution"] = exe.seconds
     return Plan(robot=robot, method=method, phi_change=dphi, duration=T, inputs=schedule,
                 chained=None, feasible_phi_changes=[], indicators=ind, margin=margin,
-                path=SampledPath(t=t, q=q, z=z, u=u, v=v), verification=ver, timing=timing,
-                diagnostics=diagnostics)
+                path=exe.path, verification=ver, timing=timing, diagnostics=diagnostics,
+                execution=exe)

@@ -67,7 +67,7 @@ from .nlp import LADDER, MultipleShootingNLP, Transcription, nlp_for, node_bound
 from .base import Capabilities, Method
 from .context import PlanContext
 from .finish import finish_actuator_plan, output_grid
-from .rules import joint_limits
+from .rules import joint_limits, limits_region
 
 #: The penalty weight of the first solve from every start. On the benchmark's ten goals the
 #: first solve under 10 ended inside the region on nine (opp3_b needed 100); starting at 100 or
@@ -123,9 +123,7 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
 def penalised_region(req: PlanRequest) -> Region:
     """The region the penalty keeps the nodes in: every joint within its limits
     (:func:`~.rules.joint_limits`, ``th_n`` included)."""
-    lo, hi = joint_limits(req)
-    return Region(req.robot, "full", [(float(a), float(b)) if np.isfinite(a) or np.isfinite(b)
-                                      else None for a, b in zip(lo, hi)])
+    return limits_region(req)
 
 
 def sensitivity_weight(req: PlanRequest) -> float:

@@ -40,6 +40,13 @@ def joint_limits(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+def limits_region(req: PlanRequest) -> Region:
+    """The full region with every joint held to its limits (:func:`joint_limits`)."""
+    lo, hi = joint_limits(req)
+    return Region(req.robot, "full", [(float(a), float(b)) if np.isfinite(a) or np.isfinite(b)
+                                      else None for a, b in zip(lo, hi)])
+
+
 def check_endpoints(req: PlanRequest, region: Region) -> None:
     """Start and goal must be inside the (full) region: there the transform exists."""
     region.check_point_q(np.array((0.0,) + req.start), "start")

@@ -76,7 +76,7 @@ from ..chained_form import chained_form
 from ..errors import InfeasibleError, InvalidRequestError, NumericalError, SolverTimeoutError
 from ..indicators import compute_indicators
 from ..problem import PlanRequest
-from ..results import Plan, SampledPath
+from ..results import Plan
 from ..verify import CASCADE_TOL, Verification
 from . import nlp as nlp_layer
 from .nlp import (CORRECTION_TARGET, D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, MARGIN,

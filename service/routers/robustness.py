@@ -15,9 +15,12 @@ def build_router(S: Schemas) -> APIRouter:
 
     @router.post("/robustness", response_model=RobustnessResponse, responses=ERROR_RESPONSES,
                  summary="Replay a plan open loop from perturbed starts",
-                 description="Plans `plan`, then replays its inputs (`u` or `v`) from each "
-                             "perturbed start and measures where each run ends. The top-level "
-                             "`time_limit` bounds the whole job.")
+                 description="Plans `plan`, then replays its inputs from each perturbed "
+                             "start and measures where each run ends: `u` runs the handed-out "
+                             "`path.u` by its rule (`path.rule`, what a controller executes; "
+                             "see docs/execution.md), `v` the chained inputs through the input "
+                             "map at the actual state. The top-level `time_limit` bounds the "
+                             "whole job.")
     async def create_robustness(body: S.RobustnessRequest, request: Request) -> Response:  # type: ignore[name-defined]
         payload = body.to_library()
         check_plan(payload["plan"], prefix="plan.")

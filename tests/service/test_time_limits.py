@@ -4,8 +4,9 @@ does not answer is SIGKILLed and replaced, and the next request succeeds.
 
 Three ways past the limit:
 
-* a request made to be slow: a robustness job with 200 open-loop replays (about 45 ms each, so
-  ~9 s; the replays have no deadline checks of their own) and a short ``time_limit``;
+* a request made to be slow: a robustness job with 200 open-loop v-replays (DOP853 with the
+  input map at the actual state, about 45 ms each, so ~9 s; the replays have no deadline checks
+  of their own) and a short ``time_limit``;
 * a hung worker (SIGSTOP): the pool must kill it, whatever the library does;
 * the library's own deadline check (an 8-joint sweep): answered at once, no worker killed.
 """
@@ -24,7 +25,7 @@ from svc_support import DEG, WORKED, TestClient, assert_problem, running_app
 GRACE = 0.5
 CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 5}
 SLOW = {"plan": {**WORKED, "phi_change": 34 * DEG, "samples": 51},
-        "random": {"count": 200, "spread": 0.01, "seed": 3}}
+        "random": {"count": 200, "spread": 0.01, "seed": 3}, "replay": "v"}
 
 
 @pytest.fixture(scope="module")

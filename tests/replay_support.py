@@ -1,0 +1,95 @@
+"""Independent replays of handed-out plans: scipy's DOP853 on the original model, piece by
+piece between consecutive samples, under each form's documented rule; and reachable goals."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from optimizer.model import Robot
+
+HALF_PI = 0.5 * math.pi
+RTOL = ATOL = 1e-12
+
+
+def _rhs(robot: Robot, u_of_t):
+    K = np.array(robot.gains)
+    m = np.array(robot.exponents, float)
+
+    def f(t, q):
+        u = u_of_t(t)
+        return np.concatenate([[u[0], u[1]], K * np.cos(q[1:-1]) ** m * u[0]])
+    return f
+
+
+Goal = tuple[tuple[float, ...], tuple[float, ...]]
+
+
+def reachable_goals(n: int, count: int, seed: int) -> list[Goal]:
+    """Start inside the region, goal = the true model's end under random smooth inputs with
+    ``u1 > 0`` (every joint th2..thn then moves one way: the polynomial family applies)."""
+    rng = np.random.default_rng(seed)
+    robot = Robot.default(n)
+    out = []
+    while len(out) < count:
+        start = rng.uniform(0.3, 1.2, n)
+        a = rng.uniform(0.3, 1.0)
+        b = rng.uniform(-0.8, 0.8, 3)
+
+        def u(t, a=a, b=b):
+            return np.array([a * (1.0 + 0.5 * np.sin(2 * np.pi * t)),
+                             b[0] + b[1] * np.cos(np.pi * t) + b[2] * t])
+        sol = solve_ivp(_rhs(robot, u), (0.0, 1.0), np.concatenate([[0.0], start]),
+                        rtol=1e-10, atol=1e-12, dense_output=True)
+        th = sol.sol(np.linspace(0.0, 1.0, 401))[1:]
+        inside = th.min() > 0.15 and th.max() < HALF_PI - 0.15
+        if inside and np.all(np.abs(th[:, -1] - start) > 0.05):
+            out.append((tuple(start), tuple(th[:, -1])))
+    return out
+
+
+
+
+def replay_linear(robot: Robot, t: np.ndarray, u: np.ndarray,
+                  q0: np.ndarray) -> tuple[np.ndarray, float]:
+    """The original model under linear interpolation of ``u`` over ``t`` (repeated times:
+    jumps), piece by piece. Returns the final state and the smallest region margin seen."""
+    return _replay(robot, t, q0, lambda k, s: (1.0 - s) * u[k] + s * u[k + 1])
+
+
+def replay_zoh(robot: Robot, t: np.ndarray, u: np.ndarray,
+               q0: np.ndarray) -> tuple[np.ndarray, float]:
+    """The original model with ``u[k]`` held on ``[t_k, t_{k+1})``."""
+    return _replay(robot, t, q0, lambda k, s: u[k])
+
+
+def replay_hermite(robot: Robot, t: np.ndarray, x: np.ndarray, v: np.ndarray,
+                   q0: np.ndarray) -> tuple[np.ndarray, float]:
+    """The original model driven by the derivative of the cubic Hermite interpolant of
+    positions ``x`` and velocities ``v`` at ``t`` (joint_trajectory_controller's rule)."""
+    def u(k, s):
+        h = t[k + 1] - t[k]
+        d = 6 * s * s - 6 * s
+        return ((d * x[k] - d * x[k + 1]) / h + (3 * s * s - 4 * s + 1) * v[k]
+                + (3 * s * s - 2 * s) * v[k + 1])
+    return _replay(robot, t, q0, u)
+
+
+def _replay(robot, t, q0, u_local):
+    q = np.asarray(q0, float)
+    margin = math.inf
+    for k in range(t.size - 1):
+        a, b = t[k], t[k + 1]
+        if b <= a:
+            continue  # a repeated time: the jump between its two values
+        h = b - a
+        sol = solve_ivp(_rhs(robot, lambda tt: u_local(k, (tt - a) / h)), (a, b), q,
+                        method="DOP853", rtol=RTOL, atol=ATOL, max_step=h / 4,
+                        dense_output=True)
+        assert sol.success, sol.message
+        th = sol.sol(np.linspace(a, b, 5))[1:]
+        margin = min(margin, float(np.min(np.minimum(th, HALF_PI - th))))
+        q = sol.y[:, -1]
+    return q, margin

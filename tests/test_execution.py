@@ -1,0 +1,136 @@
+"""What a controller executes reaches the goal: the handed-out forms replayed independently.
+
+Goals: reachable by construction (the true model integrated forward under random smooth inputs
+from a random start inside the region, kept when every joint stays inside). Replays: scipy's
+DOP853 on the original model, piece by piece between consecutive samples (the inputs are
+smooth there), under each form's documented rule -- nothing of the planner's integrators.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from optimizer.errors import InvalidRequestError
+from optimizer.model import Robot
+from optimizer.planner.plan import plan
+from optimizer.problem import PlanRequest
+from replay_support import reachable_goals, replay_hermite, replay_linear, replay_zoh
+
+GOALS = {n: reachable_goals(n, 1, 16 + n) for n in (3, 4, 5)}
+FAST = ["polynomial", "retimed", "constraint_points", "shooting"]
+SLOW = ["penalty", "auto"]  # seconds per plan (the penalty NLP): fewer joint counts
+LINEAR_CASES = ([(n, m) for n in (3, 4, 5) for m in FAST] + [(n, m) for n in (3, 4) for m in SLOW])
+ZOH_CASES = [(n, m) for n in (3, 4, 5) for m in FAST] + [(3, m) for m in SLOW]
+
+
+def _plan(n: int, method: str, **kw):
+    start, goal = GOALS[n][0]
+    req = PlanRequest(start=start, goal=goal, robot=Robot.default(n), method=method,
+                      time_limit=30.0, **kw)
+    return req, plan(req)
+
+
+@pytest.mark.parametrize("n, method", LINEAR_CASES)
+def test_default_samples_replay_by_linear_interpolation(n, method):
+    req, p = _plan(n, method)
+    assert p.execution is not None and p.execution.check.rule == "linear"
+    qf, margin = replay_linear(p.robot, p.path.t, p.path.u, req.q_start())
+    err = float(np.max(np.abs(qf[1:] - np.array(req.goal))))
+    assert err < 1e-4, err
+    assert margin > 0.0
+    d = p.to_dict()
+    assert d["path"]["rule"] == "linear"
+    assert d["validation"]["executed"]["terminal_error"] <= 1e-6
+    assert d["validation"]["executed"]["margin"] > 0.0
+
+
+@pytest.mark.parametrize("n, method", ZOH_CASES)
+def test_controller_period_replays_by_zero_order_hold(n, method):
+    req, p = _plan(n, method, controller_period=0.01, joint_trajectory=(method == "auto"))
+    t = p.path.t
+    assert t[0] == 0.0 and t[-1] == p.duration
+    assert np.allclose(np.diff(t)[:-1], 0.01, rtol=0, atol=1e-12)
+    qf, margin = replay_zoh(p.robot, t, p.path.u, req.q_start())
+    err = float(np.max(np.abs(qf[1:] - np.array(req.goal))))
+    assert err < 1e-6, err
+    assert margin > 0.0
+    if method == "auto":
+        _check_joint_trajectory(p, req, 1e-4)
+
+
+def _check_joint_trajectory(p, req, tol):
+    jt = p.to_dict()["joint_trajectory"]
+    assert jt["joint_names"] == ["phi", "th1"]
+    pts = jt["points"]
+    t = np.array([pt["time_from_start"]["sec"] + 1e-9 * pt["time_from_start"]["nanosec"]
+                  for pt in pts])
+    assert np.all(np.diff(t) > 0) and all(0 <= pt["time_from_start"]["nanosec"] < 10 ** 9
+                                          for pt in pts)
+    x = np.array([pt["positions"] for pt in pts])
+    v = np.array([pt["velocities"] for pt in pts])
+    assert np.allclose(x[0], req.q_start()[:2], atol=1e-12)
+    qf, margin = replay_hermite(p.robot, t, x, v, req.q_start())
+    err = float(np.max(np.abs(qf[1:] - np.array(req.goal))))
+    assert err < tol, err
+    assert margin > 0.0
+
+
+@pytest.mark.parametrize("method", ["retimed", "shooting"])
+def test_joint_trajectory_replays_by_cubic_hermite(method):
+    req, p = _plan(4, method, joint_trajectory=True)
+    _check_joint_trajectory(p, req, 1e-4)
+
+
+def test_shooting_samples_at_breaks_are_the_break_times_with_both_rates():
+    """Every rate break of a shooting plan is a sample time exactly, twice: the previous
+    interval's rate, then the new one (holding the second copy holds the new rate)."""
+    req, p = _plan(3, "shooting")
+    sched = p.inputs
+    t, u = p.path.t, p.path.u
+    for k, b in enumerate(sched.breaks[1:-1]):
+        rows = np.nonzero(t == b)[0]
+        assert rows.size == 2, (k, b)
+        # (to rounding: the samples are the L2 projection of the rates, exact for constants)
+        assert np.allclose(u[rows[0]], sched.rates[k], rtol=0, atol=1e-12)
+        assert np.allclose(u[rows[1]], sched.rates[k + 1], rtol=0, atol=1e-12)
+        # and a zero-order hold from the last copy of the break holds the new interval's rate
+        assert np.allclose(u[np.searchsorted(t, b, side="right") - 1], sched.rates[k + 1],
+                           rtol=0, atol=1e-12)
+
+
+def test_controller_period_must_fit_the_duration():
+    start, goal = GOALS[3][0]
+    for bad in (0.0, -0.01, 5e-5, 0.6, math.inf):
+        with pytest.raises(InvalidRequestError):
+            PlanRequest(start=start, goal=goal, duration=1.0, controller_period=bad)
+    with pytest.raises(InvalidRequestError):  # more samples than MAX_SAMPLES
+        PlanRequest(start=start, goal=goal, duration=5.0, controller_period=1e-4)
+
+
+def test_a_period_that_does_not_divide_the_duration_ends_with_a_shorter_interval():
+    start, goal = GOALS[3][0]
+    req = PlanRequest(start=start, goal=goal, method="polynomial", duration=1.0,
+                      controller_period=0.03)
+    p = plan(req)
+    t = p.path.t
+    assert t[-1] == 1.0 and 0 < t[-1] - t[-2] < 0.03 and t.size == 35
+    qf, margin = replay_zoh(p.robot, t, p.path.u, req.q_start())
+    assert float(np.max(np.abs(qf[1:] - np.array(req.goal)))) < 1e-6 and margin > 0
+
+
+@pytest.mark.parametrize("period", [None, 0.01])
+def test_a_reversing_shooting_plan_replays_by_its_rule(period):
+    """Joints that must move in opposite directions (phi reverses): the shooting plan's
+    handed-out rates, jumps included, reach the goal under both rules."""
+    start, goal = tuple(np.radians([10.0, 20.0, 30.0])), tuple(np.radians([40.0, 25.0, 15.0]))
+    req = PlanRequest(start=start, goal=goal, method="shooting", controller_period=period)
+    p = plan(req)
+    replay = replay_linear if period is None else replay_zoh
+    qf, margin = replay(p.robot, p.path.t, p.path.u, req.q_start())
+    err = float(np.max(np.abs(qf[1:] - np.array(goal))))
+    assert err < (1e-4 if period is None else 1e-6), err
+    assert margin > 0.0
+    assert np.any(p.path.u[:, 0] < 0) and np.any(p.path.u[:, 0] > 0)
