@@ -46,7 +46,8 @@ Gain = num(hi=1e3, gt=0.0, description="Transmission gain K_i (> 0).")
 Exponent = Annotated[int, Strict(), Field(ge=1, le=12, description="Exponent m_i (1..12).")]
 Weight = num(0.0, 1e6, description="Weight (>= 0).")
 ProblemCode = Literal["invalid_request", "infeasible", "timeout", "numerical_failure",
-                      "overloaded", "unauthorized", "not_found", "method_not_allowed"]
+                      "overloaded", "worker_lost", "shutting_down", "request_timeout",
+                      "unauthorized", "not_found", "method_not_allowed"]
 
 DEG = PI / 180.0
 WORKED_START: list[Any] = [round(10 * DEG, 9)] * 3
@@ -287,8 +288,13 @@ class Health(BaseModel):
 class Readiness(BaseModel):
     """``GET /readyz``."""
 
-    status: Literal["ready", "starting", "stopping"]
+    status: Literal["ready", "starting", "unavailable", "stopping"] = Field(
+        ..., description="ready (200) while at least one worker is live; otherwise 503: "
+                         "starting (the first workers warm up), unavailable (no worker is live; "
+                         "replacements are starting) or stopping.")
     workers: int = Field(..., description="Configured worker processes.")
+    live: int = Field(..., description="Worker processes started, warmed up and answering "
+                                       "their liveness pings.")
     idle: int
     busy: int
     waiting: int = Field(..., description="Requests waiting for a worker.")
