@@ -119,7 +119,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.add_middleware(RequestContextMiddleware, max_body_bytes=settings.max_body_bytes,
                        metrics=metrics, known_paths=lambda: known, api_keys=settings.api_keys,
-                       fast_routes=[FastPlanRoute(app.state, schemas)])
+                       fast_routes=[FastPlanRoute(app.state, schemas)],
+                       body_timeout=settings.body_timeout, send_timeout=settings.send_timeout)
     if settings.cors_origins:  # outermost: its headers are on every answer, a 401 or 413 too
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST"],

@@ -22,7 +22,8 @@ class Metrics:
     ``outcome`` is ``success`` or the problem code), ``planner_worker_restarts_total{reason}``
     gauges of the pool (``planner_workers{state}``: ``idle``, ``busy``;
     ``planner_workers_live``, ``planner_workers_configured``, ``planner_queue_waiting``) and
-    ``planner_requests_cancelled_total{reason}`` (``client_gone``, ``shutdown``).
+    ``planner_requests_cancelled_total{reason}`` (``client_gone``, ``shutdown``),
+    ``planner_connections_closed_total{reason}``.
     """
 
     content_type = CONTENT_TYPE_LATEST
@@ -49,6 +50,10 @@ class Metrics:
                                 registry=self.registry)
         self.waiting = Gauge("planner_queue_waiting", "Requests waiting for a worker.",
                              registry=self.registry)
+        self.connections_closed = Counter(
+            "planner_connections_closed", "Client connections refused or closed by the server, "
+            "by reason (limit, header_timeout, bad_request, body_timeout, send_timeout).",
+            ["reason"], registry=self.registry)
         self.cancelled = Counter("planner_requests_cancelled", "Requests given up before "
                                  "their answer, by reason.", ["reason"], registry=self.registry)
         self._pool_stats = pool_stats

@@ -524,7 +524,11 @@ def build_schemas(limits: Limits) -> Schemas:
 
         def to_library(self) -> dict[str, Any]:
             d = self.model_dump(exclude_none=True, exclude={"time_limit"})
-            d["plan"]["time_limit"] = min(self.plan.time_limit, self.time_limit)
+            # the top-level limit bounds the whole job; the plan's own, when given, may only
+            # tighten it (its default must not)
+            given = self.plan.time_limit if "time_limit" in self.plan.model_fields_set \
+                else self.time_limit
+            d["plan"]["time_limit"] = min(given, self.time_limit)
             return d
 
     class BatchRequest(RequestModel):

@@ -143,7 +143,7 @@ class Settings(BaseSettings):
     worker_ping_timeout: float = Field(default=1.0, gt=0, le=3600)
     max_connections: int = Field(default=1000, ge=1, le=1_000_000)
     header_timeout: float = Field(default=10.0, gt=0, le=3600)
-    keep_alive_timeout: float = Field(default=5.0, gt=0, le=3600)
+    keep_alive_timeout: int = Field(default=5, ge=1, le=3600)
     max_header_bytes: int = Field(default=16384, ge=1024, le=1 << 20)
     body_timeout: float = Field(default=30.0, gt=0, le=3600)
     send_timeout: float = Field(default=30.0, gt=0, le=3600)

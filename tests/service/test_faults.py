@@ -16,19 +16,24 @@ Live servers on loopback (``python -m service``), each test bounded well under a
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import signal
+import socket
+import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Any, Iterator
 
 import httpx
 import psutil
 import pytest
 
-from svc_support import (DEG, WORKED, TestClient, assert_problem, free_port, running_app,
+from service.schemas import build_schemas
+from service.settings import Limits
+from svc_support import (DEG, ROOT, WORKED, assert_problem, free_port, running_app,
                          server_process)
 
 CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 5}
@@ -67,13 +72,18 @@ def _server_pid(port: int) -> int:
     raise AssertionError("no process listens on the port")
 
 
+#: Connection bounds of the test server, tightened so that each test takes seconds.
+BOUNDS = {"PLANNER_HEADER_TIMEOUT": "1", "PLANNER_BODY_TIMEOUT": "1", "PLANNER_SEND_TIMEOUT": "2",
+          "PLANNER_MAX_CONNECTIONS": "40", "PLANNER_MAX_HEADER_BYTES": "16384"}
+
+
 @pytest.fixture(scope="module")
 def two_workers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, int]]:
     """``python -m service`` with 2 workers; yields the base URL and the server's pid."""
     port = free_port()
     log = tmp_path_factory.mktemp("faults") / "server.log"
     env = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "2",
-           "PLANNER_QUEUE_SIZE": "8", "PLANNER_LOG_LEVEL": "warning"}
+           "PLANNER_QUEUE_SIZE": "100", "PLANNER_LOG_LEVEL": "warning", **BOUNDS}
     with server_process([sys.executable, "-m", "service"], env, port, log) as base:
         yield base, _server_pid(port)
 
@@ -231,6 +241,304 @@ def test_a_request_waits_for_a_worker_at_most_queue_timeout():
         assert "retry-after" in r.headers and "no worker became free" in body["detail"]
         assert 0.5 <= elapsed < 1.5, elapsed
         t.join(timeout=60)
+
+
+# ---------------------------------------------------------------------- bounded connections
+def _raw(port: int) -> socket.socket:
+    s = socket.create_connection(("127.0.0.1", port), timeout=10)
+    return s
+
+
+def _read_all(s: socket.socket) -> bytes:
+    """Everything the server sends until it closes the connection."""
+    out = b""
+    try:
+        while chunk := s.recv(65536):
+            out += chunk
+    except ConnectionResetError:
+        pass
+    return out
+
+
+def _port(base: str) -> int:
+    return int(base.rsplit(":", 1)[1])
+
+
+def _problem_of(raw: bytes) -> tuple[int, dict[str, Any]]:
+    head, _, body = raw.partition(b"\r\n\r\n")
+    status = int(head.split(b" ", 2)[1])
+    assert b"content-type: application/problem+json" in head.lower(), head
+    return status, json.loads(body)
+
+
+def test_an_oversized_header_is_refused_431_and_malformed_http_400(two_workers):
+    base, _ = two_workers
+    r = httpx.get(base + "/healthz", headers={"X-Big": "a" * 100_000}, timeout=10)
+    body = assert_problem(r, 431, "invalid_request")
+    assert body["diagnostics"]["max_header_bytes"] == 16384
+    r = httpx.get(base + "/healthz", headers={"X-Fine": "a" * 8000}, timeout=10)
+    assert r.status_code == 200
+    # a head sent in pieces (h11's own bound)
+    with _raw(_port(base)) as s:
+        s.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
+        for _ in range(5):
+            s.sendall(b"X-Piece: " + b"b" * 4000 + b"\r\n")
+            time.sleep(0.01)
+        status, body = _problem_of(_read_all(s))
+    assert status == 431 and body["code"] == "invalid_request"
+    with _raw(_port(base)) as s:
+        s.sendall(b"NOT HTTP AT ALL\r\n\r\n")
+        status, body = _problem_of(_read_all(s))
+    assert status == 400 and body["code"] == "invalid_request"
+
+
+@pytest.mark.parametrize("sent", [b"", b"GET /healthz HTTP/1.1\r\nHost: x\r\n"],
+                         ids=["silent", "partial_head"])
+def test_a_connection_without_a_complete_head_is_closed_after_header_timeout(two_workers, sent):
+    base, _ = two_workers
+    with _raw(_port(base)) as s:
+        s.sendall(sent)
+        t0 = time.monotonic()
+        assert _read_all(s) == b""
+        elapsed = time.monotonic() - t0
+    assert 0.9 <= elapsed < 2.0, elapsed
+
+
+@pytest.mark.parametrize("trickle", [False, True], ids=["stalled", "trickled"])
+def test_a_body_that_does_not_arrive_in_time_is_answered_408(two_workers, trickle):
+    base, _ = two_workers
+    with _raw(_port(base)) as s:
+        s.sendall(b"POST /v1/plans HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                  b"Content-Length: 100\r\n\r\n{")
+        t0 = time.monotonic()
+        if trickle:  # a byte every 0.2 s: each read is quick, the whole body is not
+            s.settimeout(0.2)
+            for _ in range(20):
+                try:
+                    s.sendall(b" ")
+                    if s.recv(1, socket.MSG_PEEK):
+                        break
+                except (TimeoutError, BrokenPipeError, ConnectionResetError):
+                    continue
+            s.settimeout(10)
+        raw = _read_all(s)
+        elapsed = time.monotonic() - t0
+    status, body = _problem_of(raw)
+    assert status == 408 and body["code"] == "request_timeout", body
+    assert b"connection: close" in raw.lower()
+    assert 0.9 <= elapsed < 2.0, elapsed
+
+
+def test_connections_past_the_cap_are_answered_503_at_once(two_workers):
+    base, _ = two_workers
+    socks = [_raw(_port(base)) for _ in range(50)]  # the cap is 40
+    try:
+        time.sleep(0.3)
+        refused = []
+        for s in socks:
+            s.setblocking(False)
+            try:
+                refused.append(s.recv(65536))
+            except BlockingIOError:
+                pass
+        refused = [r for r in refused if r]  # (b"": closed, none should be yet)
+        assert len(refused) == 10, len(refused)
+        status, body = _problem_of(refused[0])
+        assert status == 503 and body["code"] == "overloaded"
+    finally:
+        for s in socks:
+            s.close()
+
+
+def test_slow_readers_are_dropped_and_server_memory_stays_bounded(two_workers):
+    """8 clients ask for a 45 MB answer each and never read it. Bound: while they stall the
+    server holds at most about one answer per stalled client (asserted: 1.5 x); once
+    ``send_timeout`` (2 s) passes without progress they are dropped and the memory is back
+    within 100 MB of where it started (it stayed for good before)."""
+    base, pid = two_workers
+    port = _port(base)
+    body = json.dumps({"requests": [{**CHEAP, "samples": 20001}] * 9}).encode()
+    with httpx.Client(base_url=base, timeout=30) as client:
+        _wait_live(client, 2)
+        # one answer read in full first: the workers' own memory grows to what such an answer
+        # takes once, whoever asks; what is measured below is what slow readers add
+        for _ in range(2):
+            r = client.post("/v1/plans/batch", content=body,
+                            headers={"Content-Type": "application/json"})
+            assert r.status_code == 200
+        answer_mb = len(r.content) / 1e6
+    server = psutil.Process(pid)
+
+    def rss_mb() -> float:
+        total = 0
+        for p in [server, *server.children(recursive=True)]:
+            try:
+                total += p.memory_info().rss
+            except psutil.NoSuchProcess:
+                pass
+        return total / 1e6
+
+    def open_clients() -> int:
+        return sum(1 for c in server.net_connections("tcp")
+                   if c.status == psutil.CONN_ESTABLISHED and c.laddr.port == port)
+
+    before = rss_mb()
+    n = 8
+    socks = []
+    for _ in range(n):
+        s = socket.socket()
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        s.connect(("127.0.0.1", port))
+        s.sendall(b"POST /v1/plans/batch HTTP/1.1\r\nHost: x\r\nContent-Type: application/json"
+                  b"\r\nContent-Length: %d\r\n\r\n" % len(body) + body)
+        socks.append(s)
+    try:
+        peak = before
+        t0 = time.monotonic()
+        while open_clients() and time.monotonic() - t0 < 40:
+            peak = max(peak, rss_mb())
+            time.sleep(0.2)
+        dropped_after = time.monotonic() - t0
+        settle = time.monotonic() + 5.0  # the last answers' buffers are let go
+        while (after := rss_mb()) - before >= 100 and time.monotonic() < settle:
+            time.sleep(0.2)
+    finally:
+        for s in socks:
+            s.close()
+    print(f"\nslow readers: {n} x {answer_mb:.1f} MB answers; server tree RSS {before:.0f} MB "
+          f"before, peak {peak:.0f}, {after:.0f} after; all dropped {dropped_after:.1f} s "
+          f"after they asked")
+    assert open_clients() == 0
+    assert peak - before < n * 1.5 * answer_mb, peak - before
+    assert after - before < 100, (before, after)
+    with httpx.Client(base_url=base, timeout=30) as client:
+        metrics = client.get("/metrics").text
+    line = next(li for li in metrics.splitlines()
+                if li.startswith('planner_connections_closed_total{reason="send_timeout"}'))
+    assert float(line.split()[-1]) >= n
+
+
+def test_a_client_that_leaves_takes_its_queued_job_with_it(two_workers):
+    base, _ = two_workers
+    with httpx.Client(base_url=base, timeout=30) as client:
+        _wait_live(client, 2)
+        busy = [threading.Thread(target=httpx.post, args=(base + "/v1/robustness",),
+                                 kwargs={"json": SLOWISH, "timeout": 60}) for _ in range(2)]
+        for t in busy:
+            t.start()
+        deadline = time.monotonic() + 20
+        while client.get("/readyz").json()["busy"] < 2:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+
+        def give_up() -> None:
+            with pytest.raises(httpx.TimeoutException):
+                httpx.post(base + "/v1/plans", json=CHEAP, timeout=0.5)
+
+        leavers = [threading.Thread(target=give_up) for _ in range(6)]
+        for t in leavers:
+            t.start()
+        time.sleep(0.3)
+        assert client.get("/readyz").json()["waiting"] == 6
+        for t in leavers:
+            t.join()
+        time.sleep(0.2)
+        ready = client.get("/readyz").json()
+        assert ready["waiting"] == 0 and ready["busy"] == 2, ready  # the jobs left the queue
+        metrics = client.get("/metrics").text
+        assert 'planner_requests_cancelled_total{reason="client_gone"} 6.0' in metrics
+        assert 'route="/v1/plans",status="499"} 6.0' in metrics
+        for t in busy:
+            t.join(timeout=60)
+
+
+# ---------------------------------------------------------------------- shutdown
+def test_a_shutdown_that_cannot_drain_answers_503_shutting_down(tmp_path):
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PLANNER_")}
+    env.update({"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "1",
+                "PLANNER_SHUTDOWN_TIMEOUT": "3", "PLANNER_LOG_LEVEL": "info"})
+    log_path = tmp_path / "server.log"
+    answers: list[httpx.Response | BaseException] = []
+
+    def send() -> None:
+        try:
+            answers.append(httpx.post(base + "/v1/robustness", json=SLOWISH, timeout=60))
+        except httpx.HTTPError as exc:
+            answers.append(exc)
+
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env,
+                                stdout=log, stderr=subprocess.STDOUT)
+        try:
+            with httpx.Client(base_url=base, timeout=10) as client:
+                deadline = time.monotonic() + 120
+                while True:
+                    assert proc.poll() is None
+                    try:
+                        if client.get("/readyz").status_code == 200:
+                            break
+                    except httpx.TransportError:
+                        pass
+                    assert time.monotonic() < deadline
+                    time.sleep(0.1)
+                senders = [threading.Thread(target=send) for _ in range(5)]  # ~8 s of work
+                for t in senders:
+                    t.start()
+                while client.get("/readyz").json()["waiting"] < 4:
+                    assert time.monotonic() < deadline
+                    time.sleep(0.01)
+            t0 = time.monotonic()
+            proc.send_signal(signal.SIGTERM)
+            for t in senders:
+                t.join(timeout=30)
+            code = proc.wait(timeout=30)
+            stopped = time.monotonic() - t0
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=10)
+    log_text = log_path.read_text(errors="replace")
+    assert all(isinstance(a, httpx.Response) for a in answers), answers
+    statuses = sorted(a.status_code for a in answers if isinstance(a, httpx.Response))
+    print(f"\nshutdown with ~8 s of work and a 3 s timeout: {statuses}, stopped in "
+          f"{stopped:.1f} s")
+    assert len(statuses) == 5 and set(statuses) <= {200, 503} and 503 in statuses, statuses
+    for a in answers:
+        assert isinstance(a, httpx.Response)
+        if a.status_code == 503:
+            assert_problem(a, 503, "shutting_down")
+            assert a.headers["retry-after"] == "1" and a.headers["connection"] == "close"
+    assert code == 0 and stopped < 6.0, log_text[-2000:]
+    assert not re.search(r'"status": ?500\b', log_text), log_text[-3000:]
+    assert "Traceback" not in log_text and "Exception in ASGI" not in log_text, log_text[-3000:]
+    assert '"status": 503' in log_text  # the access log counts them as answered
+
+
+# ---------------------------------------------------------------------- smaller items
+def test_two_different_api_keys_are_refused_by_middleware_and_route_alike():
+    with running_app(workers=1, queue_size=4, api_keys=["k1", "k2"]) as client:
+        for path, body in (("/v1/plans", CHEAP), ("/v1/sweeps", {})):
+            r = client.post(path, json=body, headers=[("X-API-Key", "k1"), ("X-API-Key", "k2")])
+            assert_problem(r, 401, "unauthorized")
+            r = client.post(path, json=body, headers=[("Authorization", "Bearer k1"),
+                                                      ("Authorization", "Bearer zz")])
+            assert_problem(r, 401, "unauthorized")
+        r = client.post("/v1/plans", json=CHEAP, headers=[("X-API-Key", "k1"),
+                                                          ("X-API-Key", "k1")])
+        assert r.status_code == 200, r.text
+
+
+def test_the_robustness_time_limit_is_not_capped_by_the_plans_default():
+    schemas = build_schemas(Limits())
+    req = schemas.RobustnessRequest.model_validate(
+        {"plan": CHEAP, "random": {"count": 2, "spread": 0.01, "seed": 1}, "time_limit": 30})
+    assert req.to_library()["plan"]["time_limit"] == 30
+    req = schemas.RobustnessRequest.model_validate(
+        {"plan": {**CHEAP, "time_limit": 5}, "random": {"count": 2, "spread": 0.01, "seed": 1},
+         "time_limit": 30})
+    assert req.to_library()["plan"]["time_limit"] == 5
 
 
 def _wait_live(client: Any, n: int, timeout: float = 30.0) -> None:
