@@ -82,10 +82,12 @@ class Settings(BaseSettings):
     header_timeout : float
         Seconds a client may take to send a request's headers (and a new connection its first
         byte) before the connection is closed.
-    keep_alive_timeout : float
+    keep_alive_timeout : int
         Seconds an idle keep-alive connection stays open (uvicorn's ``timeout_keep_alive``).
+    http : {"httptools", "h11"}
+        uvicorn's HTTP implementation (the bounds hold with either; httptools costs less CPU).
     max_header_bytes : int
-        Largest request line plus headers (h11's ``max_incomplete_event_size``); more is 431.
+        Largest request line plus headers; more is 431.
     body_timeout : float
         Seconds a request's whole body may take to arrive before 408 ``request_timeout``.
     send_timeout : float
@@ -144,6 +146,7 @@ class Settings(BaseSettings):
     max_connections: int = Field(default=1000, ge=1, le=1_000_000)
     header_timeout: float = Field(default=10.0, gt=0, le=3600)
     keep_alive_timeout: int = Field(default=5, ge=1, le=3600)
+    http: Literal["httptools", "h11"] = "httptools"
     max_header_bytes: int = Field(default=16384, ge=1024, le=1 << 20)
     body_timeout: float = Field(default=30.0, gt=0, le=3600)
     send_timeout: float = Field(default=30.0, gt=0, le=3600)

@@ -558,8 +558,12 @@ class WorkerPool:
                 raise
             log.warning("%s under a job; running it once more on another worker", exc,
                         extra={"request_id": request_id})
-        worker = await self._take()
-        return await worker.begin(message, limit, self._finished)  # type: ignore[no-any-return]
+        while True:
+            worker = await self._take()
+            # whatever killed the first may have killed this one too, its pipe's end not yet
+            # read: a process that has ended is left to its replacement
+            if worker.process.is_alive():
+                return await worker.begin(message, limit, self._finished)  # type: ignore[no-any-return]
 
     async def _take(self) -> _Worker:
         """An idle worker, waiting at most ``queue_timeout`` s (less when draining)."""
