@@ -16,7 +16,9 @@ Live servers on loopback (``python -m service``), each test bounded well under a
 
 from __future__ import annotations
 
+import errno
 import json
+import logging
 import os
 import re
 import signal
@@ -266,6 +268,30 @@ def test_a_stopped_idle_worker_is_replaced_before_it_holds_a_request():
                 pass
 
 
+def test_a_replacement_that_fails_to_start_is_retried_whatever_the_error():
+    """No descriptors left (EMFILE), three times in a row: the slot is still filled."""
+    with running_app(workers=1, queue_size=4) as client:
+        pool = client.app.state.pool
+        real, failures = pool._new_process, []
+
+        def flaky() -> Any:
+            if len(failures) < 3:
+                failures.append(1)
+                raise OSError(errno.EMFILE, "Too many open files")
+            return real()
+
+        pool._new_process = flaky
+        (old,) = pool.pids()
+        os.kill(old, signal.SIGKILL)
+        deadline = time.monotonic() + 15
+        while not (pool.stats().live == 1 and pool.pids() != [old]):
+            assert time.monotonic() < deadline, pool.stats()
+            time.sleep(0.02)
+        assert len(failures) == 3
+        r = client.post("/v1/plans", json=CHEAP)
+        assert r.status_code == 200, r.text
+
+
 def test_a_request_waits_for_a_worker_at_most_queue_timeout():
     with running_app(workers=1, queue_size=4, queue_timeout=0.5) as client:
         def slow() -> None:
@@ -496,6 +522,18 @@ def test_a_client_that_leaves_takes_its_queued_job_with_it(two_workers):
             t.join(timeout=60)
 
 
+def test_a_client_that_leaves_mid_body_is_counted_499_not_400(two_workers):
+    base, _ = two_workers
+    with _raw(_port(base)) as s:
+        s.sendall(b"POST /v1/sweeps HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                  b"Content-Length: 100\r\n\r\n{\"start\":")
+        time.sleep(0.1)
+    time.sleep(0.3)
+    metrics = httpx.get(base + "/metrics", timeout=10).text
+    assert 'route="/v1/sweeps",status="499"} 1.0' in metrics
+    assert 'route="/v1/sweeps",status="400"}' not in metrics
+
+
 # ---------------------------------------------------------------------- shutdown
 def test_a_shutdown_that_cannot_drain_answers_503_shutting_down(tmp_path):
     port = free_port()
@@ -583,6 +621,15 @@ def test_the_robustness_time_limit_is_not_capped_by_the_plans_default():
         {"plan": {**CHEAP, "time_limit": 5}, "random": {"count": 2, "spread": 0.01, "seed": 1},
          "time_limit": 30})
     assert req.to_library()["plan"]["time_limit"] == 5
+
+
+def test_the_workers_log_of_an_unexpected_failure_names_the_request(caplog):
+    from service import jobs
+    with caplog.at_level(logging.ERROR, logger="service.worker"):
+        out = jobs.run_job("transform", {"direction": "to_chained", "points": []}, "req-42")
+    assert out["ok"] is False and out["error"]["code"] == "numerical_failure"
+    (record,) = [r for r in caplog.records if "failed unexpectedly" in r.getMessage()]
+    assert record.request_id == "req-42"
 
 
 def _wait_live(client: Any, n: int, timeout: float = 30.0) -> None:
