@@ -8,7 +8,18 @@ log, and a last-resort guard that turns any unhandled exception into a problem d
   answered 401 ``unauthorized`` before its body is read.
 * Body limit: a ``Content-Length`` above ``max_body_bytes`` is refused at once (413, nothing is
   read); a body without one is read up to the limit and then refused the same way. Accepted
-  bodies are buffered (they are small) and handed on unchanged.
+  bodies are buffered (they are small) and handed on unchanged. The whole body must arrive
+  within ``body_timeout`` (uvicorn has no such timeout), else 408 ``request_timeout``; a client
+  that leaves before its body ends is not answered and is counted as status 499.
+* Clients that leave: once a ``POST``'s body is in, the middleware reads the next message
+  itself (the app's later reads share it); a disconnect before the answer starts cancels the
+  request, so that a job still waiting for a worker leaves the queue (status 499).
+* Answers: a large body is sent in chunks of :data:`SEND_CHUNK` bytes, each (and each message of
+  a streamed answer) given ``send_timeout`` to leave; a client that stops reading is then
+  dropped (the server's ``abort`` from the scope, :mod:`service.server`) instead of holding the
+  whole answer in memory for ever.
+* Cancelled by the server's shutdown (what the worker pool's drain did not answer): 503
+  ``shutting_down``, logged and counted, never a 500.
 * Fast routes (:mod:`service.fastpath`): a valid ``POST /v1/plans`` is answered here, without
   FastAPI's routing and dependency machinery; any other request (and any invalid one) goes on
   to the app.
@@ -136,22 +147,29 @@ class RequestContextMiddleware:
         abort = scope.get("extensions", {}).get("planner.abort")
         started = time.perf_counter()
         status: list[int] = []
+        streamed: list[bool] = []  # the answer comes in several messages
         outcome: list[int] = []  # a status for the metrics when no answer was sent
 
         async def send_with_id(message: Message) -> None:
             if message["type"] == "http.response.start":
                 status.append(int(message["status"]))
                 message["headers"] = [*message.get("headers", ()), *extra_headers]
-                await self._send(send, message, abort)
+                await send(message)
                 return
             body = message.get("body", b"")
+            more = message.get("more_body", False)
             if message["type"] != "http.response.body" or len(body) <= SEND_CHUNK:
-                await self._send(send, message, abort)
+                if more or streamed:
+                    streamed.append(True)
+                    await self._send(send, message, abort)
+                else:
+                    # a whole small answer in one message: it never waits for the client
+                    # (the transport takes it, its buffer being empty before it)
+                    await send(message)
                 return
             # in chunks, each given send_timeout to leave: a client that stops reading holds
             # one chunk in the transport's buffer, and is dropped, instead of the whole answer
             # for ever
-            more = message.get("more_body", False)
             for i in range(0, len(body), SEND_CHUNK):
                 last = i + SEND_CHUNK >= len(body)
                 await self._send(send, {"type": "http.response.body",
