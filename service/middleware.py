@@ -148,7 +148,7 @@ class RequestContextMiddleware:
         started = time.perf_counter()
         status: list[int] = []
         streamed: list[bool] = []  # the answer comes in several messages
-        outcome: list[int] = []  # a status for the metrics when no answer was sent
+        outcome: list[int] = []  # the status for the metrics when no whole answer was sent
 
         async def send_with_id(message: Message) -> None:
             if message["type"] == "http.response.start":
@@ -256,7 +256,7 @@ class RequestContextMiddleware:
             path = scope.get("path", "")
             method = scope.get("method", "")
             template = self.route_label(path)
-            code = status[0] if status else (outcome[0] if outcome else 0)
+            code = outcome[0] if outcome else (status[0] if status else 0)
             seconds = time.perf_counter() - started
             self.metrics.observe_request(template, method, code, seconds)
             if access_log.isEnabledFor(logging.INFO):

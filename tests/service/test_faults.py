@@ -486,6 +486,7 @@ def test_slow_readers_are_dropped_and_server_memory_stays_bounded(two_workers):
     line = next(li for li in metrics.splitlines()
                 if li.startswith('planner_connections_closed_total{reason="send_timeout"}'))
     assert float(line.split()[-1]) >= n
+    assert 'route="/v1/plans/batch",status="499"}' in metrics  # counted as not answered
 
 
 def test_a_client_that_leaves_takes_its_queued_job_with_it(two_workers):
