@@ -304,8 +304,7 @@ class RequestContextMiddleware:
         async with asyncio.timeout(self.body_timeout):  # the whole body, not each read
             while True:
                 message = await receive()
-                if message["type"] != "http.request":
-                    # a disconnect before the body ended: hand it on as it came
+                if message["type"] != "http.request":  # the client left before the end
                     return _replay([message], receive), None
                 chunk = message.get("body", b"")
                 size += len(chunk)
