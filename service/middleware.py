@@ -13,7 +13,8 @@ log, and a last-resort guard that turns any unhandled exception into a problem d
   that leaves before its body ends is not answered and is counted as status 499.
 * Clients that leave: once a ``POST``'s body is in, the middleware reads the next message
   itself (the app's later reads share it); a disconnect before the answer starts cancels the
-  request, so that a job still waiting for a worker leaves the queue (status 499).
+  request, so that a job still waiting for a worker leaves the queue, and one running is asked
+  to stop at its next deadline check (:meth:`service.workers.WorkerPool.run`; status 499).
 * Answers: a large body is sent in chunks of :data:`SEND_CHUNK` bytes, each (and each message of
   a streamed answer) given ``send_timeout`` to leave; a client that stops reading is then
   dropped (the server's ``abort`` from the scope, :mod:`service.server`) instead of holding the

@@ -43,7 +43,9 @@ runs in a separate *process*, and a solve that overruns must be killed. A
   answered before the server's own shutdown timeout cancels it.
 * A request whose client goes away does not leak its worker: the worker is returned (or
   replaced) by the pipe's protocol or the timer when the job ends, never by the request's
-  coroutine.
+  coroutine. A request cancelled while it waits leaves the queue; one cancelled while its job
+  runs sends the worker :data:`CANCEL_SIGNAL`, which makes the job's next deadline check fail
+  (:func:`optimizer.planner.plan.cancel`), so the worker is free again without a restart.
 """
 
 from __future__ import annotations
@@ -73,6 +75,9 @@ PRELOAD = ["service.preload"]
 #: The pool's liveness probe of an idle worker and its answer.
 PING = "ping"
 PONG = {"ok": True, "pong": True}
+
+#: The signal that asks a worker to drop its job (see :func:`_worker_main`).
+CANCEL_SIGNAL = signal.SIGUSR1
 
 #: Seconds between attempts to start a replacement worker: doubled after each failure up to
 #: the last value (a failed start is retried for as long as the pool is open).
@@ -117,7 +122,13 @@ def _worker_main(conn: Connection, warmup: bool, log_level: str, nice: int = 0,
     # pipe close and exits)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    from optimizer.planner import plan as _plan
+
     from . import jobs
+
+    # the server's request to drop the job in progress (its client went away): the solve ends
+    # at its next deadline check (:func:`optimizer.planner.plan.cancel`)
+    signal.signal(CANCEL_SIGNAL, lambda signum, frame: _plan.cancel())
     from .logs import configure_logging
 
     configure_logging(log_level)
@@ -153,6 +164,7 @@ def _worker_main(conn: Connection, warmup: bool, log_level: str, nice: int = 0,
         if kind == PING:
             conn.send(PONG)
             continue
+        _plan.clear_cancel()
         conn.send(jobs.run_job(kind, payload, request_id))
     conn.close()
 
@@ -292,6 +304,15 @@ class _Worker:
                 future.set_result(result)
         if on_end is not None:
             on_end(self, exc)
+
+    def interrupt(self, future: asyncio.Future[Any]) -> None:
+        """Ask the process to drop the job of ``future`` if it still runs it (the request
+        went away); its answer, a timeout, then ends the job as usual."""
+        if self._future is future and not (self.dead or self.retired):
+            try:
+                os.kill(self.process.pid, CANCEL_SIGNAL)
+            except (ProcessLookupError, TypeError):
+                pass
 
     def abandon(self, exc: BaseException) -> None:
         """End the outstanding job with ``exc`` (the pool is giving it up)."""
@@ -552,7 +573,7 @@ class WorkerPool:
         message = (kind, payload, request_id)
         try:
             worker = await self._take()
-            return await worker.begin(message, limit, self._finished)  # type: ignore[no-any-return]
+            return await self._await(worker, worker.begin(message, limit, self._finished))
         except WorkerLost as exc:
             if self._closing:
                 raise
@@ -563,7 +584,17 @@ class WorkerPool:
             # whatever killed the first may have killed this one too, its pipe's end not yet
             # read: a process that has ended is left to its replacement
             if worker.process.is_alive():
-                return await worker.begin(message, limit, self._finished)  # type: ignore[no-any-return]
+                return await self._await(worker, worker.begin(message, limit, self._finished))
+
+    @staticmethod
+    async def _await(worker: _Worker, answer: asyncio.Future[Any]) -> dict[str, Any]:
+        """The job's answer; when the request is cancelled (its client went away) the worker
+        is asked to drop the job (where the method checks its deadline, it stops there)."""
+        try:
+            return await answer  # type: ignore[no-any-return]
+        except asyncio.CancelledError:
+            worker.interrupt(answer)
+            raise
 
     async def _take(self) -> _Worker:
         """An idle worker, waiting at most ``queue_timeout`` s (less when draining)."""

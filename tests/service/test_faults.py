@@ -523,6 +523,30 @@ def test_a_client_that_leaves_takes_its_queued_job_with_it(two_workers):
             t.join(timeout=60)
 
 
+def test_a_client_that_leaves_stops_its_running_job_where_the_method_can(two_workers):
+    """Robustness replays check their deadline between runs: a job of ~9 s whose client gives
+    up after 0.5 s frees its worker at the next check, not 9 s later."""
+    base, _ = two_workers
+    long_job = {**SLOWISH, "random": {"count": 200, "spread": 0.01, "seed": 3}}
+    with httpx.Client(base_url=base, timeout=30) as client:
+        _wait_live(client, 2)
+        before = client.get("/readyz").json()["restarts"]
+        t0 = time.monotonic()
+        for _ in range(2):
+            with pytest.raises(httpx.TimeoutException):
+                httpx.post(base + "/v1/robustness", json=long_job, timeout=0.5)
+        deadline = time.monotonic() + 5
+        while (ready := client.get("/readyz").json())["idle"] < 2:
+            assert time.monotonic() < deadline, ready
+            time.sleep(0.05)
+        freed = time.monotonic() - t0
+        assert ready["restarts"] == before  # stopped by the job itself, no worker killed
+        r = client.post("/v1/plans", json=CHEAP)
+        assert r.status_code == 200, r.text
+    print(f"\ntwo ~9 s jobs whose clients left after 0.5 s each: workers free after {freed:.1f} s")
+    assert freed < 4.0
+
+
 def test_a_client_that_leaves_mid_body_is_counted_499_not_400(two_workers):
     base, _ = two_workers
     with _raw(_port(base)) as s:
