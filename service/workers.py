@@ -495,6 +495,9 @@ class WorkerPool:
         self._closing = True
         with self._lock:
             busy = [w for w in self._all if w.busy]
+        if busy or self._waiting:
+            log.warning("shutdown deadline: giving up %d running and %d waiting jobs",
+                        len(busy), self._waiting)
         for w in busy:
             w.retire()
             w.abandon(ShuttingDown("the server stopped before the job finished"))
