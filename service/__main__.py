@@ -8,7 +8,6 @@ app load here: the service is ready about as soon as the slower of the two is do
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import signal
 from collections.abc import Sequence
@@ -67,7 +66,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """Read the settings from the environment, set up JSON logs and serve ``service.main:app``."""
+    """Read the settings from the environment, set up JSON logs and serve ``service.main:app``
+    (:func:`service.server.serve`)."""
     args = parse_args(argv)
     # the app (service.main:app, imported by uvicorn) reads its settings from the environment
     if args.host is not None:
@@ -76,19 +76,13 @@ def main(argv: Sequence[str] | None = None) -> None:
         os.environ["PLANNER_PORT"] = str(args.port)
     signal.signal(signal.SIGTERM, _exit_cleanly)
     start_forkserver()
-    import uvicorn
-
     from .logs import configure_logging
+    from .server import serve
     from .settings import Settings
 
     settings = Settings()
     configure_logging(settings.log_level)
-    uvicorn.run("service.main:app", host=settings.host, port=settings.port,
-                log_level=settings.log_level, log_config=None, access_log=False,
-                proxy_headers=True, server_header=False,
-                # SIGTERM: stop accepting, let requests in flight finish (at most this long),
-                # then the lifespan stops the workers; the exit status is 0
-                timeout_graceful_shutdown=int(math.ceil(settings.shutdown_timeout)))
+    serve(settings)
 
 
 if __name__ == "__main__":

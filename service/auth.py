@@ -7,6 +7,9 @@ as ``X-API-Key: <key>`` or ``Authorization: Bearer <key>``; otherwise it is answ
 ``/readyz``), ``/metrics``, the docs (``/docs``, ``/redoc``, ``/openapi.json``, ``/static``) and
 the explorer page (``/``) stay open.
 
+A request with two different keys (two ``X-API-Key`` headers, or two ``Authorization``
+headers) is refused: which one a component reads first must not decide.
+
 Keys are compared with :func:`hmac.compare_digest` against *every* configured key (no early exit),
 so the time taken does not tell which bytes or which key matched. Keys are never logged.
 """
@@ -26,16 +29,37 @@ def protected(path: str, method: str) -> bool:
     return (path == "/v1" or path.startswith("/v1/")) and method.upper() != "OPTIONS"
 
 
-def presented_key(headers: Mapping[str, str]) -> str:
-    """The key a request presents (``X-API-Key``, else a Bearer token), or ``""``.
+#: The value the request middleware records for a header sent twice with different values.
+CONFLICTING = "\x00conflicting"
 
-    ``headers`` are lower-cased names with latin-1 decoded values (as the middleware builds
-    them).
+
+def _single(headers: Mapping[str, str], name: str) -> str | None:
+    """The one value of header ``name`` (``""`` when absent), None when it came twice with
+    different values."""
+    getlist = getattr(headers, "getlist", None)  # starlette's Headers keep every copy
+    if getlist is not None:
+        values = {v.strip() for v in getlist(name)}
+        if len(values) > 1:
+            return None
+        return values.pop() if values else ""
+    value = headers.get(name, "").strip()
+    return None if value == CONFLICTING else value
+
+
+def presented_key(headers: Mapping[str, str]) -> str:
+    """The key a request presents (``X-API-Key``, else a Bearer token), or ``""`` (also when
+    either header came twice with different values).
+
+    ``headers`` are starlette's headers, or lower-cased names with latin-1 decoded values (as
+    the middleware builds them, :data:`CONFLICTING` for a conflicting duplicate).
     """
-    key = headers.get("x-api-key", "").strip()
+    key = _single(headers, "x-api-key")
+    authorization = _single(headers, "authorization")
+    if key is None or authorization is None:
+        return ""
     if key:
         return key
-    scheme, _, token = headers.get("authorization", "").strip().partition(" ")
+    scheme, _, token = authorization.partition(" ")
     return token.strip() if scheme.lower() == "bearer" else ""
 
 

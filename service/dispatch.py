@@ -6,9 +6,11 @@ A job's outcome becomes either its JSON body (encoded by the worker) or a
 ==============================  ===========================================================
 pool / worker outcome           problem
 ==============================  ===========================================================
-``Overloaded``                  503 ``overloaded`` with ``Retry-After``
+``Overloaded``, ``QueueTimeout`` 503 ``overloaded`` with ``Retry-After``
 ``JobTimeout`` (worker killed)  504 ``timeout``
-``WorkerLost``                  422 ``numerical_failure``
+``WorkerLost`` (lost twice)     503 ``worker_lost`` with ``Retry-After``
+``ShuttingDown``                503 ``shutting_down`` with ``Retry-After``,
+                                ``Connection: close``
 library ``PlannerError``        its own code (``invalid_request``, ``infeasible``,
                                 ``timeout``, ``numerical_failure``)
 ==============================  ===========================================================
@@ -27,7 +29,7 @@ from optimizer.problem import PlanRequest
 from .robot_spec import robot_from
 from .problems import ServiceProblem
 from .settings import Settings
-from .workers import JobTimeout, Overloaded, WorkerLost, WorkerPool
+from .workers import JobTimeout, Overloaded, ShuttingDown, WorkerLost, WorkerPool
 
 T = TypeVar("T")
 
@@ -98,10 +100,10 @@ async def run_job(request: Request, kind: str, payload: dict[str, Any], time_lim
     ServiceProblem
     """
     return await execute(request.app.state, kind, payload, time_limit, method=method,
-                         admit=admit)
+                         admit=admit, request_id=request_id(request))
 
 
-async def answer_plan(state: Any, body: Any) -> bytes:
+async def answer_plan(state: Any, body: Any, request_id: str | None = None) -> bytes:
     """``POST /v1/plans`` for a validated request model: the library's own checks, then the
     plan on a worker. The one body of both entry points (the route and
     :mod:`service.fastpath`), so that they cannot answer differently.
@@ -112,11 +114,12 @@ async def answer_plan(state: Any, body: Any) -> bytes:
     """
     payload = body.to_library()
     check_plan(payload)
-    return await execute(state, "plan", payload, body.time_limit, method=body.method)
+    return await execute(state, "plan", payload, body.time_limit, method=body.method,
+                         request_id=request_id)
 
 
 async def execute(state: Any, kind: str, payload: dict[str, Any], time_limit: float, *,
-                  method: str, admit: bool = True) -> bytes:
+                  method: str, admit: bool = True, request_id: str | None = None) -> bytes:
     """:func:`run_job` given the app's ``state`` (``pool``, ``settings``, ``metrics``)."""
     pool: WorkerPool = state.pool
     settings: Settings = state.settings
@@ -124,18 +127,23 @@ async def execute(state: Any, kind: str, payload: dict[str, Any], time_limit: fl
     started = time.perf_counter()
     try:
         wait = time_limit + max(settings.timeout_grace - ANSWER_MARGIN, 0.0)
-        outcome = await pool.run(kind, payload, wait, admit=admit)
+        outcome = await pool.run(kind, payload, wait, admit=admit, request_id=request_id)
     except Overloaded as exc:
         raise overloaded(settings, str(exc)) from None
+    except ShuttingDown as exc:
+        metrics.observe_solve(kind, method, "shutting_down", time.perf_counter() - started)
+        raise shutting_down(settings, str(exc)) from None
     except JobTimeout:
         metrics.observe_solve(kind, method, "timeout", time.perf_counter() - started)
         raise ServiceProblem("timeout", f"the job exceeded its time limit of {time_limit:g} s "
                              "and was stopped", field="time_limit",
                              diagnostics={"time_limit": time_limit}) from None
     except WorkerLost:
-        metrics.observe_solve(kind, method, "numerical_failure", time.perf_counter() - started)
-        raise ServiceProblem("numerical_failure", "the solver process ended unexpectedly; "
-                             "it was replaced") from None
+        metrics.observe_solve(kind, method, "worker_lost", time.perf_counter() - started)
+        raise ServiceProblem("worker_lost", "the solver process ended under this job twice "
+                             "(it was replaced each time); retry later",
+                             headers={"Retry-After": str(settings.retry_after)},
+                             diagnostics={"retry_after": settings.retry_after}) from None
     seconds = float(outcome.get("seconds") or (time.perf_counter() - started))
     if outcome["ok"]:
         metrics.observe_solve(kind, method, "success", seconds)
@@ -146,6 +154,14 @@ async def execute(state: Any, kind: str, payload: dict[str, Any], time_limit: fl
         problem.diagnostics.setdefault("time_limit", time_limit)
     metrics.observe_solve(kind, method, problem.code, seconds)
     raise problem
+
+
+def shutting_down(settings: Settings, why: str) -> ServiceProblem:
+    """The 503 of a request the stopping server gives up (the connection closes after it)."""
+    return ServiceProblem("shutting_down", f"{why}; retry (another replica may answer)",
+                          headers={"Retry-After": str(settings.retry_after),
+                                   "Connection": "close"},
+                          diagnostics={"retry_after": settings.retry_after})
 
 
 def overloaded(settings: Settings, why: str) -> ServiceProblem:

@@ -73,7 +73,7 @@ class FastPlanRoute:
         except (ValueError, ValidationError, RecursionError):
             return False  # the route answers it (400 or 422, as documented)
         try:
-            response = SafeJSONResponse(await answer_plan(self.state, request))
+            response = SafeJSONResponse(await answer_plan(self.state, request, request_id))
         except ServiceProblem as problem:
             response = problem.response(request_id)
         await send({"type": "http.response.start", "status": response.status_code,

@@ -123,8 +123,11 @@ JOBS: dict[str, Callable[[Payload], Any]] = {
 }
 
 
-def run_job(kind: str, payload: Payload) -> dict[str, Any]:
+def run_job(kind: str, payload: Payload, request_id: str | None = None) -> dict[str, Any]:
     """Run one job and report its outcome as a plain dict (never raises).
+
+    ``request_id`` (the HTTP request's) is put on the log line of an unexpected failure, so
+    that it can be found from the client's answer.
 
     A :class:`optimizer.errors.PlannerError` becomes its ``code``/``message``/``field``/
     ``diagnostics``; any other exception (a library bug, a missing module) is logged here with
@@ -140,7 +143,7 @@ def run_job(kind: str, payload: Payload) -> dict[str, Any]:
             "code": exc.code, "message": exc.message, "field": exc.field,
             "diagnostics": json_safe(exc.diagnostics)}}
     except Exception as exc:  # noqa: BLE001 - the worker must answer whatever happens
-        log.exception("job %s failed unexpectedly", kind)
+        log.exception("job %s failed unexpectedly", kind, extra={"request_id": request_id})
         return {"ok": False, "seconds": time.perf_counter() - t0, "error": {
             "code": "numerical_failure",
             "message": "the solver failed unexpectedly; the failure was logged",

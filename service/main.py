@@ -43,11 +43,14 @@ convert to chained form.
 
 * JSON bodies, snake_case fields, **radians and seconds** everywhere.
 * Failures are `application/problem+json` documents with a machine-readable `code`:
-  `invalid_request` (422; 413 for an over-large body; 400 for a body that is not JSON; 415
-  for a body sent without `Content-Type: application/json`), `infeasible` (422),
-  `numerical_failure` (422: a solver failed numerically, the path failed verification on the
-  original model, or a solver process ended unexpectedly; the service never answers 500),
-  `timeout` (504), `overloaded` (503 with `Retry-After`), `unauthorized` (401).
+  `invalid_request` (422; 413 for an over-large body, 431 for over-large headers, 400 for
+  malformed HTTP or JSON; 415 for a body sent without `Content-Type: application/json`),
+  `request_timeout` (408: the body did not arrive in time),
+  `infeasible` (422), `numerical_failure` (422: a solver failed numerically or the path failed
+  verification on the original model; the service never answers 500), `timeout` (504),
+  `overloaded` (503: the queue is full or no worker became free in time), `worker_lost` (503:
+  the solver process ended under the job, twice), `shutting_down` (503: the server is
+  stopping), all 503s with `Retry-After`, and `unauthorized` (401).
 * No `NaN` or `Infinity` is ever sent: undefined numbers are `null`.
 * When the server has API keys configured, `/v1` needs an `X-API-Key` header (or
   `Authorization: Bearer <key>`).
@@ -80,7 +83,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                           start_timeout=settings.worker_start_timeout,
                           log_level=settings.log_level, nice=settings.worker_nice,
                           native_cache=settings.native_cache_dir,
-                          on_restart=lambda reason: metrics.restarts.labels(reason).inc())
+                          on_restart=lambda reason: metrics.restarts.labels(reason).inc(),
+                          queue_timeout=settings.queue_timeout,
+                          ping_interval=settings.worker_ping_interval,
+                          ping_timeout=settings.worker_ping_timeout)
         app.state.pool = pool
         metrics.bind_pool(pool.stats)
         await pool.start()
@@ -114,7 +120,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.add_middleware(RequestContextMiddleware, max_body_bytes=settings.max_body_bytes,
                        metrics=metrics, known_paths=lambda: known, api_keys=settings.api_keys,
-                       fast_routes=[FastPlanRoute(app.state, schemas)])
+                       fast_routes=[FastPlanRoute(app.state, schemas)],
+                       body_timeout=settings.body_timeout, send_timeout=settings.send_timeout)
     if settings.cors_origins:  # outermost: its headers are on every answer, a 401 or 413 too
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST"],

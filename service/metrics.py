@@ -20,7 +20,10 @@ class Metrics:
     ``planner_http_request_duration_seconds{route,method,status}``,
     ``planner_solve_duration_seconds{job,method,outcome}`` (wall time of a job on a worker;
     ``outcome`` is ``success`` or the problem code), ``planner_worker_restarts_total{reason}``
-    and gauges of the pool (``planner_workers{state}``, ``planner_queue_waiting``).
+    gauges of the pool (``planner_workers{state}``: ``idle``, ``busy``;
+    ``planner_workers_live``, ``planner_workers_configured``, ``planner_queue_waiting``) and
+    ``planner_requests_cancelled_total{reason}`` (``client_gone``, ``shutdown``),
+    ``planner_connections_closed_total{reason}``.
     """
 
     content_type = CONTENT_TYPE_LATEST
@@ -41,8 +44,18 @@ class Metrics:
                                 ["reason"], registry=self.registry)
         self.workers = Gauge("planner_workers", "Worker processes by state.", ["state"],
                              registry=self.registry)
+        self.live = Gauge("planner_workers_live", "Worker processes started, warmed up and "
+                          "answering pings.", registry=self.registry)
+        self.configured = Gauge("planner_workers_configured", "Configured worker processes.",
+                                registry=self.registry)
         self.waiting = Gauge("planner_queue_waiting", "Requests waiting for a worker.",
                              registry=self.registry)
+        self.connections_closed = Counter(
+            "planner_connections_closed", "Client connections refused or closed by the server, "
+            "by reason (limit, header_timeout, bad_request, body_timeout, send_timeout).",
+            ["reason"], registry=self.registry)
+        self.cancelled = Counter("planner_requests_cancelled", "Requests given up before "
+                                 "their answer, by reason.", ["reason"], registry=self.registry)
         self._pool_stats = pool_stats
         # the labelled children, looked up once (``labels()`` costs more than the update)
         self._request_children: dict[tuple[str, str, int], tuple[Any, Any]] = {}
@@ -77,5 +90,7 @@ class Metrics:
             st = self._pool_stats()
             self.workers.labels("idle").set(st.idle)
             self.workers.labels("busy").set(st.busy)
+            self.live.set(st.live)
+            self.configured.set(st.size)
             self.waiting.set(st.waiting)
         return generate_latest(self.registry)

@@ -11,10 +11,16 @@ invalid_request     422    the request is wrong (413 when the body is too large,
                            when it is not JSON at all, 415 when it was sent without
                            ``Content-Type: application/json``)
 infeasible          422    no singularity-free path under the request's method/bounds
-numerical_failure   422    a solver failed numerically, the path failed verification,
-                           or a solver process ended unexpectedly (never 500)
+numerical_failure   422    a solver failed numerically or the path failed verification
+                           (never 500)
 timeout             504    the solve ran past its ``time_limit``
-overloaded          503    too many requests wait for a worker (``Retry-After`` set)
+overloaded          503    too many requests wait for a worker, or none became free
+                           within ``queue_timeout`` (``Retry-After`` set)
+worker_lost         503    the solver process ended under the job twice (it is run
+                           once more on another worker first; ``Retry-After`` set)
+shutting_down       503    the server is stopping and could not finish the request
+                           in time (``Retry-After``, ``Connection: close``)
+request_timeout     408    the request's body did not arrive within ``body_timeout``
 unauthorized        401    API keys are configured and none valid was sent
 not_found           404    no such route
 method_not_allowed  405    the route exists, not with this HTTP method
@@ -39,6 +45,9 @@ STATUS_OF: dict[str, int] = {
     "numerical_failure": 422,
     "timeout": 504,
     "overloaded": 503,
+    "worker_lost": 503,
+    "shutting_down": 503,
+    "request_timeout": 408,
     "unauthorized": 401,
     "not_found": 404,
     "method_not_allowed": 405,
@@ -50,6 +59,9 @@ TITLE_OF: dict[str, str] = {
     "numerical_failure": "Numerical failure",
     "timeout": "Time limit exceeded",
     "overloaded": "Service overloaded",
+    "worker_lost": "Solver process lost",
+    "shutting_down": "Service shutting down",
+    "request_timeout": "Request timeout",
     "unauthorized": "Unauthorized",
     "not_found": "Not found",
     "method_not_allowed": "Method not allowed",

@@ -104,7 +104,8 @@ Gain = num(hi=1e3, gt=0.0, description="Transmission gain K_i (> 0).")
 Exponent = Annotated[int, Strict(), Field(ge=1, le=12, description="Exponent m_i (1..12).")]
 Weight = num(0.0, 1e6, description="Weight (>= 0).")
 ProblemCode = Literal["invalid_request", "infeasible", "timeout", "numerical_failure",
-                      "overloaded", "unauthorized", "not_found", "method_not_allowed"]
+                      "overloaded", "worker_lost", "shutting_down", "request_timeout",
+                      "unauthorized", "not_found", "method_not_allowed"]
 
 DEG = PI / 180.0
 WORKED_START: list[Any] = [round(10 * DEG, 9)] * 3
@@ -452,8 +453,13 @@ class Health(BaseModel):
 class Readiness(BaseModel):
     """``GET /readyz``."""
 
-    status: Literal["ready", "starting", "stopping"]
+    status: Literal["ready", "starting", "unavailable", "stopping"] = Field(
+        ..., description="ready (200) while at least one worker is live; otherwise 503: "
+                         "starting (the first workers warm up), unavailable (no worker is live; "
+                         "replacements are starting) or stopping.")
     workers: int = Field(..., description="Configured worker processes.")
+    live: int = Field(..., description="Worker processes started, warmed up and answering "
+                                       "their liveness pings.")
     idle: int
     busy: int
     waiting: int = Field(..., description="Requests waiting for a worker.")
@@ -743,7 +749,11 @@ def build_schemas(limits: Limits) -> Schemas:
 
         def to_library(self) -> dict[str, Any]:
             d = self.model_dump(exclude_none=True, exclude={"time_limit"})
-            d["plan"]["time_limit"] = min(self.plan.time_limit, self.time_limit)
+            # the top-level limit bounds the whole job; the plan's own, when given, may only
+            # tighten it (its default must not)
+            given = self.plan.time_limit if "time_limit" in self.plan.model_fields_set \
+                else self.time_limit
+            d["plan"]["time_limit"] = min(given, self.time_limit)
             return d
 
     class BatchRequest(RequestModel):

@@ -69,7 +69,30 @@ class Settings(BaseSettings):
         Seconds a new worker may take to start and warm up.
     shutdown_timeout : float
         On SIGTERM, seconds the server waits for requests in flight to finish (uvicorn's
-        ``timeout_graceful_shutdown``) before it cancels them and stops the workers.
+        ``timeout_graceful_shutdown``); what is still queued or running shortly before that is
+        answered 503 ``shutting_down``, then the workers stop.
+    queue_timeout : float
+        Seconds a request may wait for a free worker before 503 ``overloaded``.
+    worker_ping_interval, worker_ping_timeout : float
+        Each idle worker is pinged every ``worker_ping_interval`` s and replaced when it does
+        not answer within ``worker_ping_timeout`` s (0 interval: no pings).
+    max_connections : int
+        Open client connections; more are answered 503 at once and closed (lowered to fit
+        the file descriptor limit).
+    header_timeout : float
+        Seconds a client may take to send a request's headers (and a new connection its first
+        byte) before the connection is closed.
+    keep_alive_timeout : int
+        Seconds an idle keep-alive connection stays open (uvicorn's ``timeout_keep_alive``).
+    http : {"httptools", "h11"}
+        uvicorn's HTTP implementation (the bounds hold with either; httptools costs less CPU).
+    max_header_bytes : int
+        Largest request line plus headers; more is 431.
+    body_timeout : float
+        Seconds a request's whole body may take to arrive before 408 ``request_timeout``.
+    send_timeout : float
+        Seconds an answer may wait for the client to read a chunk of it (64 KiB) before the
+        connection is dropped.
     start_method : {"forkserver", "spawn"}
         How worker processes are created (never plain ``fork`` of a threaded server).
     warmup : bool
@@ -117,6 +140,16 @@ class Settings(BaseSettings):
     timeout_grace: float = Field(default=0.5, ge=0, le=60)
     worker_start_timeout: float = Field(default=120.0, gt=0)
     shutdown_timeout: float = Field(default=30.0, gt=0, le=3600)
+    queue_timeout: float = Field(default=30.0, gt=0, le=3600)
+    worker_ping_interval: float = Field(default=1.0, ge=0, le=3600)
+    worker_ping_timeout: float = Field(default=1.0, gt=0, le=3600)
+    max_connections: int = Field(default=1000, ge=1, le=1_000_000)
+    header_timeout: float = Field(default=10.0, gt=0, le=3600)
+    keep_alive_timeout: int = Field(default=5, ge=1, le=3600)
+    http: Literal["httptools", "h11"] = "httptools"
+    max_header_bytes: int = Field(default=16384, ge=1024, le=1 << 20)
+    body_timeout: float = Field(default=30.0, gt=0, le=3600)
+    send_timeout: float = Field(default=30.0, gt=0, le=3600)
     start_method: Literal["forkserver", "spawn"] = "forkserver"
     warmup: bool = True
     native_cache: str = Field(

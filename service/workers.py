@@ -26,13 +26,26 @@ runs in a separate *process*, and a solve that overruns must be killed. A
   worker is SIGKILLed at once, the request is answered ``timeout`` (504) without waiting for the
   process to be reaped (a helper thread reaps it), and a replacement process is started in the
   background; it joins the idle queue once ready. A worker whose pipe closes (crash, OOM kill)
-  is replaced the same way (``numerical_failure`` for its job, if it had one; an idle worker
-  that dies is replaced before any request can take it).
+  is replaced the same way; its job, if it had one, runs once more on another worker (jobs are
+  pure functions of their payload), and a second loss raises :class:`WorkerLost` (503
+  ``worker_lost``). An idle worker that dies is replaced before any request can take it.
+* **A pool that heals**: a replacement that fails to start (dies while warming up, no file
+  descriptors, a failed fork) is retried with a growing pause (:data:`RESTART_BACKOFF`) for as
+  long as the pool is open, so a slot is never given up. Idle workers are pinged every
+  ``ping_interval`` s; one that does not answer within ``ping_timeout`` (stopped, wedged) is
+  killed and replaced. :attr:`WorkerPool.ready` and :meth:`WorkerPool.live` count the workers
+  that are warmed up and not known dead: ``/readyz`` is 503 while none is.
 * **Bounded queue**: at most ``queue_size`` requests may wait for a worker; the next one is
-  refused at once with :class:`Overloaded` (503 ``overloaded`` with ``Retry-After``).
+  refused at once with :class:`Overloaded` (503 ``overloaded`` with ``Retry-After``), and one
+  that waits longer than ``queue_timeout`` gets :class:`QueueTimeout` (also 503).
+* **Shutdown**: :meth:`WorkerPool.drain` gives up, at a deadline, the requests still waiting
+  and the jobs still running (:class:`ShuttingDown`, 503 ``shutting_down``), so that each is
+  answered before the server's own shutdown timeout cancels it.
 * A request whose client goes away does not leak its worker: the worker is returned (or
   replaced) by the pipe's protocol or the timer when the job ends, never by the request's
-  coroutine.
+  coroutine. A request cancelled while it waits leaves the queue; one cancelled while its job
+  runs sends the worker :data:`CANCEL_SIGNAL`, which makes the job's next deadline check fail
+  (:func:`optimizer.planner.context.cancel`), so the worker is free again without a restart.
 """
 
 from __future__ import annotations
@@ -59,6 +72,17 @@ log = logging.getLogger("service.workers")
 #: warmed up: :mod:`service.preload`).
 PRELOAD = ["service.preload"]
 
+#: The pool's liveness probe of an idle worker and its answer.
+PING = "ping"
+PONG = {"ok": True, "pong": True}
+
+#: The signal that asks a worker to drop its job (see :func:`_worker_main`).
+CANCEL_SIGNAL = signal.SIGUSR1
+
+#: Seconds between attempts to start a replacement worker: doubled after each failure up to
+#: the last value (a failed start is retried for as long as the pool is open).
+RESTART_BACKOFF = (0.1, 2.0)
+
 
 class PoolError(Exception):
     """Base class of the pool's own failures."""
@@ -80,6 +104,14 @@ class WorkerLost(PoolError):
     """The worker process ended (crashed or was killed) before answering."""
 
 
+class QueueTimeout(Overloaded):
+    """No worker became free within the queue's time limit (none may be alive)."""
+
+
+class ShuttingDown(PoolError):
+    """The server is stopping and its drain deadline came before the job could finish."""
+
+
 # ---------------------------------------------------------------------------- worker side
 def _worker_main(conn: Connection, warmup: bool, log_level: str, nice: int = 0,
                  native_cache: str | None = None) -> None:
@@ -90,7 +122,13 @@ def _worker_main(conn: Connection, warmup: bool, log_level: str, nice: int = 0,
     # pipe close and exits)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    from optimizer.planner import context as _plan
+
     from . import jobs
+
+    # the server's request to drop the job in progress (its client went away): the solve ends
+    # at its next deadline check (:func:`optimizer.planner.context.cancel`)
+    signal.signal(CANCEL_SIGNAL, lambda signum, frame: _plan.cancel())
     from .logs import configure_logging
 
     configure_logging(log_level)
@@ -122,8 +160,12 @@ def _worker_main(conn: Connection, warmup: bool, log_level: str, nice: int = 0,
             break
         if message is None:
             break
-        kind, payload = message
-        conn.send(jobs.run_job(kind, payload))
+        kind, payload, request_id = message
+        if kind == PING:
+            conn.send(PONG)
+            continue
+        _plan.clear_cancel()
+        conn.send(jobs.run_job(kind, payload, request_id))
     conn.close()
 
 
@@ -143,6 +185,12 @@ def _freeze_heap() -> None:
 
 
 # ---------------------------------------------------------------------------- server side
+def _consume(future: asyncio.Future[Any]) -> None:
+    """Retrieve the outcome of a future nobody awaits (a ping), so asyncio does not log it."""
+    if not future.cancelled():
+        future.exception()
+
+
 _HEADER = struct.Struct("!i")
 _LONG_HEADER = struct.Struct("!Q")
 
@@ -211,6 +259,7 @@ class _Worker:
         self.ident = ident
         self.transport: asyncio.Transport | None = None
         self.ready_info: dict[str, Any] = {}
+        self.up = False        # it said ready
         self.dead = False      # its pipe closed
         self.retired = False   # taken out of the pool (killed or stopped)
         self.on_idle_lost: Callable[[_Worker], None] | None = None
@@ -222,6 +271,11 @@ class _Worker:
     @property
     def busy(self) -> bool:
         return self._future is not None
+
+    @property
+    def live(self) -> bool:
+        """Started, warmed up and not known to be dead, killed or unresponsive."""
+        return self.up and not (self.dead or self.retired)
 
     def begin(self, message: Any, limit: float,
               on_end: Callable[["_Worker", BaseException | None], None] | None = None,
@@ -250,6 +304,20 @@ class _Worker:
                 future.set_result(result)
         if on_end is not None:
             on_end(self, exc)
+
+    def interrupt(self, future: asyncio.Future[Any]) -> None:
+        """Ask the process to drop the job of ``future`` if it still runs it (the request
+        went away); its answer, a timeout, then ends the job as usual."""
+        if self._future is future and not (self.dead or self.retired):
+            try:
+                os.kill(self.process.pid, CANCEL_SIGNAL)
+            except (ProcessLookupError, TypeError):
+                pass
+
+    def abandon(self, exc: BaseException) -> None:
+        """End the outstanding job with ``exc`` (the pool is giving it up)."""
+        if self._future is not None:
+            self._end(exc=exc)
 
     def on_message(self, message: Any) -> None:
         if self._future is None:  # nothing expected (cannot happen: one job at a time)
@@ -298,12 +366,14 @@ class _Worker:
 class PoolStats:
     """A snapshot for ``/readyz`` and the metrics."""
 
-    size: int
+    size: int       # configured
+    live: int       # started, warmed up, answering
     idle: int
     busy: int
     waiting: int
     started: bool
-    warmed: bool
+    warmed: bool    # some worker has been ready once
+    closing: bool
     restarts: int
 
 
@@ -328,13 +398,22 @@ class WorkerPool:
     native_cache : str, optional
         Directory of compiled NLP functions (:func:`optimizer.native.configure`); None: off.
     on_restart : callable, optional
-        Called with the reason (``"timeout"`` or ``"lost"``) whenever a worker is replaced.
+        Called with the reason (``"timeout"``, ``"lost"`` or ``"unresponsive"``) whenever a
+        worker is replaced.
+    queue_timeout : float
+        Seconds a request may wait for a worker before :class:`QueueTimeout`.
+    ping_interval, ping_timeout : float
+        Every ``ping_interval`` s each idle worker must answer a ping within ``ping_timeout``
+        s, else it is killed and replaced (a stopped or wedged process would otherwise take
+        the next request and hold it for the request's whole time limit).
     """
 
     def __init__(self, size: int, queue_size: int, *, start_method: str = "forkserver",
                  warmup: bool = True, start_timeout: float = 120.0, log_level: str = "info",
                  nice: int = 0, native_cache: str | None = None,
-                 on_restart: Callable[[str], None] | None = None) -> None:
+                 on_restart: Callable[[str], None] | None = None,
+                 queue_timeout: float = 30.0, ping_interval: float = 1.0,
+                 ping_timeout: float = 1.0) -> None:
         if size < 1:
             raise ValueError("size must be >= 1")
         self.size = size
@@ -345,6 +424,9 @@ class WorkerPool:
         self.nice = nice
         self.native_cache = native_cache
         self.on_restart = on_restart
+        self.queue_timeout = queue_timeout
+        self.ping_interval = ping_interval
+        self.ping_timeout = ping_timeout
         self._ctx: Any = multiprocessing.get_context(start_method)
         if start_method == "forkserver":
             self._ctx.set_forkserver_preload(PRELOAD)
@@ -360,33 +442,65 @@ class WorkerPool:
         self._next_ident = 0
         self._started = False
         self._closing = False
+        self._drain_at: float | None = None
+        self._waits: set[asyncio.Timeout] = set()
         self._warmed = asyncio.Event()
+        self._initial_left = size
         self._tasks: set[asyncio.Task[Any]] = set()
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
-        """Start the workers; return at once (they start in the background).
+        """Start the workers; return at once (they start in the background, each slot
+        retried until it has a worker).
 
-        :attr:`ready` turns True when the initial workers are ready to plan.
+        :attr:`ready` turns True once every initial worker has started or failed its first
+        start, and one at least is live.
         """
         self._idle = asyncio.Queue()
         self._started = True
-        starters = [self._start_worker() for _ in range(self.size)]
-
-        async def _all_started() -> None:
-            results = await asyncio.gather(*starters, return_exceptions=True)
-            failed = [r for r in results if isinstance(r, BaseException)]
-            for exc in failed:
-                log.error("a worker failed to start: %s", exc)
-            if len(failed) < len(results):
-                self._warmed.set()
-
-        self._spawn_task(_all_started())
+        self._initial_left = self.size
+        for _ in range(self.size):
+            self._spawn_task(self._fill_slot(initial=True))
+        if self.ping_interval > 0:
+            self._spawn_task(self._ping_idle())
 
     @property
     def ready(self) -> bool:
-        """True once started, warmed up, and not shutting down."""
-        return self._started and self._warmed.is_set() and not self._closing
+        """True once started (see :meth:`start`), while not shutting down and while at least
+        one worker is live."""
+        return (self._started and self._warmed.is_set() and not self._closing
+                and self.live() > 0)
+
+    def live(self) -> int:
+        """Workers started, warmed up and not known dead or unresponsive."""
+        with self._lock:
+            return sum(w.live for w in self._all)
+
+    def drain(self, seconds: float) -> None:
+        """The server is stopping: whatever has not finished ``seconds`` from now is given up.
+
+        At that moment every request still waiting for a worker and every job still running
+        gets :class:`ShuttingDown` (their workers are killed; the pool is closing anyway), so
+        that each is answered before the server's own shutdown deadline cancels it.
+        """
+        loop = asyncio.get_running_loop()
+        self._drain_at = at = loop.time() + max(seconds, 0.0)
+        for wait in list(self._waits):
+            when = wait.when()
+            if when is None or when > at:
+                wait.reschedule(at)
+        loop.call_at(at, self._give_up)
+
+    def _give_up(self) -> None:
+        self._closing = True
+        with self._lock:
+            busy = [w for w in self._all if w.busy]
+        if busy or self._waiting:
+            log.warning("shutdown deadline: giving up %d running and %d waiting jobs",
+                        len(busy), self._waiting)
+        for w in busy:
+            w.retire()
+            w.abandon(ShuttingDown("the server stopped before the job finished"))
 
     async def close(self) -> None:
         """Stop every worker (gracefully, then by force) and the helper threads."""
@@ -411,13 +525,15 @@ class WorkerPool:
         self._threads.shutdown(wait=False, cancel_futures=True)
 
     def stats(self) -> PoolStats:
-        """Current counts of idle, busy and waiting."""
+        """Current counts of live, idle, busy and waiting."""
         idle = self._idle.qsize() if self._idle is not None else 0
         with self._lock:
             alive = len(self._all)
-        return PoolStats(size=self.size, idle=idle, busy=max(alive - idle, 0),
+            live = sum(w.live for w in self._all)
+        return PoolStats(size=self.size, live=live, idle=idle, busy=max(alive - idle, 0),
                          waiting=self._waiting + self._reserved, started=self._started,
-                         warmed=self._warmed.is_set(), restarts=self._restarts)
+                         warmed=self._warmed.is_set(), closing=self._closing,
+                         restarts=self._restarts)
 
     def pids(self) -> list[int]:
         """Process ids of the live workers (for operators and tests)."""
@@ -426,8 +542,11 @@ class WorkerPool:
 
     # ------------------------------------------------------------------ jobs
     async def run(self, kind: str, payload: dict[str, Any], limit: float, *,
-                  admit: bool = True) -> dict[str, Any]:
+                  admit: bool = True, request_id: str | None = None) -> dict[str, Any]:
         """Run one job on a worker and return its outcome dict (see :mod:`service.jobs`).
+
+        A job whose worker dies under it is run once more on another worker (jobs are pure
+        functions of their payload, so a retry is safe); a second loss raises.
 
         Parameters
         ----------
@@ -441,10 +560,12 @@ class WorkerPool:
         admit : bool
             Apply the queue bound (False for the items of an already admitted batch: each
             takes one of the places :meth:`admit` reserved for it).
+        request_id : str, optional
+            Put on the worker's log lines about this job.
 
         Raises
         ------
-        Overloaded, JobTimeout, WorkerLost
+        Overloaded, QueueTimeout, JobTimeout, WorkerLost, ShuttingDown
         """
         if admit:
             self.admit()
@@ -452,20 +573,62 @@ class WorkerPool:
             self.release(1)
             if self._idle is None or self._closing:
                 raise Overloaded("the worker pool is not running")
+        message = (kind, payload, request_id)
+        try:
+            worker = await self._take()
+            return await self._await(worker, worker.begin(message, limit, self._finished))
+        except WorkerLost as exc:
+            if self._closing:
+                raise
+            log.warning("%s under a job; running it once more on another worker", exc,
+                        extra={"request_id": request_id})
+        while True:
+            worker = await self._take()
+            # whatever killed the first may have killed this one too, its pipe's end not yet
+            # read: a process that has ended is left to its replacement
+            if worker.process.is_alive():
+                return await self._await(worker, worker.begin(message, limit, self._finished))
+
+    @staticmethod
+    async def _await(worker: _Worker, answer: asyncio.Future[Any]) -> dict[str, Any]:
+        """The job's answer; when the request is cancelled (its client went away) the worker
+        is asked to drop the job (where the method checks its deadline, it stops there)."""
+        try:
+            return await answer  # type: ignore[no-any-return]
+        except asyncio.CancelledError:
+            worker.interrupt(answer)
+            raise
+
+    async def _take(self) -> _Worker:
+        """An idle worker, waiting at most ``queue_timeout`` s (less when draining)."""
         idle = self._idle
-        assert idle is not None
+        if idle is None or self._closing:
+            raise Overloaded("the worker pool is not running")
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.queue_timeout
         while True:
             if idle.empty():
+                at = deadline if self._drain_at is None else min(deadline, self._drain_at)
                 self._waiting += 1
                 try:
-                    worker = await idle.get()
+                    async with asyncio.timeout_at(at) as wait:
+                        self._waits.add(wait)
+                        try:
+                            worker = await idle.get()
+                        finally:
+                            self._waits.discard(wait)
+                except TimeoutError:
+                    if self._drain_at is not None and loop.time() >= self._drain_at:
+                        raise ShuttingDown("the server stopped before a worker became free"
+                                           ) from None
+                    raise QueueTimeout(f"no worker became free within {self.queue_timeout:g} s"
+                                       f" ({self.live()} of {self.size} workers live)") from None
                 finally:
                     self._waiting -= 1
             else:
                 worker = idle.get_nowait()
             if not (worker.dead or worker.retired):
-                break  # (a worker that died idle is being replaced: take the next)
-        return await worker.begin((kind, payload), limit, self._finished)  # type: ignore[no-any-return]
+                return worker  # (a worker that died idle is being replaced: take the next)
 
     def admit(self, reserve: int = 0) -> None:
         """Raise :class:`Overloaded` when a new request would exceed the queue bound.
@@ -494,15 +657,39 @@ class WorkerPool:
     # ------------------------------------------------------------------ internals
     def _finished(self, worker: _Worker, exc: BaseException | None) -> None:
         """Return the worker to the idle queue, or replace it if it was killed or died."""
+        self._return(worker, exc, "timeout")
+
+    def _pinged(self, worker: _Worker, exc: BaseException | None) -> None:
+        self._return(worker, exc, "unresponsive")
+
+    def _return(self, worker: _Worker, exc: BaseException | None, timeout_reason: str) -> None:
         if self._closing:
             return
-        if isinstance(exc, (JobTimeout, WorkerLost)):
-            self._replace_worker(worker, "timeout" if isinstance(exc, JobTimeout) else "lost")
-        elif worker.dead or worker.retired:
+        if isinstance(exc, JobTimeout):
+            self._replace_worker(worker, timeout_reason)
+        elif isinstance(exc, WorkerLost) or worker.dead or worker.retired:
             self._replace_worker(worker, "lost")
         else:
             assert self._idle is not None
             self._idle.put_nowait(worker)
+
+    async def _ping_idle(self) -> None:
+        """Probe the idle workers every ``ping_interval`` s (see the class docstring)."""
+        assert self._idle is not None
+        idle = self._idle
+        while not self._closing:
+            await asyncio.sleep(self.ping_interval)
+            workers = []
+            while not idle.empty():
+                workers.append(idle.get_nowait())
+            for w in workers:
+                if w.dead or w.retired:
+                    continue  # died idle: already being replaced
+                try:
+                    pong = w.begin((PING, None, None), self.ping_timeout, self._pinged)
+                except WorkerLost:
+                    continue
+                pong.add_done_callback(_consume)
 
     def _idle_lost(self, worker: _Worker) -> None:
         """A worker died while idle (OOM kill, an operator): take it out of the idle queue (the
@@ -531,17 +718,29 @@ class WorkerPool:
         self._restarts += 1
         if self.on_restart is not None:
             self.on_restart(reason)
-        self._spawn_task(self._replace())
+        self._spawn_task(self._fill_slot())
 
-    async def _replace(self, attempts: int = 3) -> None:
-        """Start a replacement worker, retrying a failed start a few times."""
-        for attempt in range(attempts):
+    async def _fill_slot(self, initial: bool = False) -> None:
+        """Start a worker for one slot, retrying any failed start (a worker that dies while
+        starting, no file descriptors left, a fork that fails) with a growing pause, for as
+        long as the pool is open: a slot is never given up."""
+        pause, longest = RESTART_BACKOFF
+        attempt = 0
+        while not self._closing:
+            attempt += 1
             try:
                 await self._start_worker()
                 return
-            except WorkerLost as exc:
-                log.error("replacement worker failed to start (attempt %d): %s", attempt + 1, exc)
-                await asyncio.sleep(1.0)
+            except Exception as exc:  # noqa: BLE001 - whatever failed, the slot is retried
+                log.error("a worker failed to start (attempt %d; next in %.1f s): %s: %s",
+                          attempt, pause, type(exc).__name__, exc)
+            finally:
+                if initial and attempt == 1:
+                    self._initial_left -= 1
+                    if self._initial_left == 0:
+                        self._warmed.set()
+            await asyncio.sleep(pause)
+            pause = min(pause * 2.0, longest)
 
     async def _start_worker(self) -> _Worker:
         loop = asyncio.get_running_loop()
@@ -569,12 +768,12 @@ class WorkerPool:
         worker.ready_info = info
         if self._closing:
             return worker
+        worker.up = True
         worker.on_idle_lost = self._idle_lost
         log.info("worker %s ready", worker.ident, extra={"warmup": worker.ready_info})
         assert self._idle is not None
         self._idle.put_nowait(worker)
         return worker
-
     def _new_process(self) -> tuple[_Worker, socket.socket]:
         """Start a worker process (blocking: runs in a helper thread); its pipe's socket."""
         ours, theirs = self._ctx.Pipe(duplex=True)
@@ -610,4 +809,4 @@ class WorkerPool:
     def _task_done(self, task: asyncio.Task[Any]) -> None:
         self._tasks.discard(task)
         if not task.cancelled() and task.exception() is not None:
-            log.error("worker start failed: %s", task.exception())
+            log.error("worker pool task failed: %r", task.exception())

@@ -16,19 +16,24 @@ def build_router() -> APIRouter:
         return SafeJSONResponse({"status": "ok"})
 
     @router.get("/readyz", response_model=Readiness,
-                responses={503: {"model": Readiness, "description": "Not ready yet (workers "
-                                                                      "starting) or stopping."}},
-                summary="Readiness: the worker pool is up and warmed up")
+                responses={503: {"model": Readiness, "description": "No live worker (starting, "
+                                                                      "or all lost and being "
+                                                                      "replaced) or stopping."}},
+                summary="Readiness: at least one worker process is live")
     async def readyz(request: Request) -> Response:
         pool = getattr(request.app.state, "pool", None)
         if pool is None:
-            return SafeJSONResponse({"status": "starting", "workers": 0, "idle": 0, "busy": 0,
-                                     "waiting": 0, "restarts": 0}, status_code=503)
+            return SafeJSONResponse({"status": "starting", "workers": 0, "live": 0, "idle": 0,
+                                     "busy": 0, "waiting": 0, "restarts": 0}, status_code=503)
         st = pool.stats()
-        status = "ready" if pool.ready else ("stopping" if st.started and st.warmed
-                                             else "starting")
-        return SafeJSONResponse({"status": status, "workers": st.size, "idle": st.idle,
-                                 "busy": st.busy, "waiting": st.waiting,
+        if st.closing:
+            status = "stopping"
+        elif not st.warmed:
+            status = "starting"
+        else:
+            status = "ready" if st.live > 0 else "unavailable"
+        return SafeJSONResponse({"status": status, "workers": st.size, "live": st.live,
+                                 "idle": st.idle, "busy": st.busy, "waiting": st.waiting,
                                  "restarts": st.restarts},
                                 status_code=200 if status == "ready" else 503)
 

@@ -24,7 +24,8 @@ def build_router(S: Schemas) -> APIRouter:
                              "by re-integrating the original model. A request that cannot be "
                              "planned is answered with a problem document, never a 200.")
     async def create_plan(body: S.PlanRequest, request: Request) -> Response:  # type: ignore[name-defined]
-        return SafeJSONResponse(await answer_plan(request.app.state, body))
+        return SafeJSONResponse(await answer_plan(request.app.state, body,
+                                                  request_id(request)))
 
     @router.post("/plans/batch", response_model=BatchResponse, responses=ERROR_RESPONSES,
                  summary="Plan many motions in parallel",

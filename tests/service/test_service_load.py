@@ -119,21 +119,21 @@ def test_more_requests_than_the_queue_holds_get_503_overloaded():
 
 
 def test_a_worker_that_dies_is_replaced_and_the_request_answered():
-    """SIGKILL the only worker in the middle of a sweep: the request gets a problem (not a 500
-    and not a hang) and the next request is served by a replacement."""
-    with running_app(workers=1, queue_size=4) as c:
+    """SIGKILL the only worker in the middle of a sweep: the job runs again on the replacement
+    (not a 500, not a hang, not a 422) and the next request is served too."""
+    with running_app(workers=1, queue_size=4, worker_ping_interval=0) as c:
         (pid,) = c.app.state.pool.pids()
         slow = {"robot": {}, "start": [10 * DEG] * 8, "goal": [30 * DEG] * 8,
-                "phi_change_range": [-12.0, 12.0], "points": 2001, "time_limit": 30}
+                "phi_change_range": [-12.0, 12.0], "points": 201, "time_limit": 30}
         with ThreadPoolExecutor(max_workers=1) as ex:
             pending = ex.submit(c.post, "/v1/sweeps", json=slow)
             deadline = time.monotonic() + 10
             while c.get("/readyz").json()["busy"] == 0 and time.monotonic() < deadline:
                 time.sleep(0.01)
             os.kill(pid, signal.SIGKILL)
-            r = pending.result(timeout=30)
-        body = assert_problem(r, 422, "numerical_failure")
-        assert "ended unexpectedly" in body["detail"]
+            r = pending.result(timeout=60)
+        assert r.status_code == 200, r.text
+        assert len(r.json()["phi_change"]) == 201
         r = c.post("/v1/plans", json={**WORKED, "phi_change": 34 * DEG, "samples": 5})
         assert r.status_code == 200, r.text
         assert 'planner_worker_restarts_total{reason="lost"} 1.0' in c.get("/metrics").text

@@ -20,7 +20,7 @@ def test_health_and_readiness(client):
     r = client.get("/readyz")
     assert r.status_code == 200
     body = r.json()
-    assert body["status"] == "ready" and body["workers"] == 2
+    assert body["status"] == "ready" and body["workers"] == 2 and body["live"] == 2
     assert body["idle"] + body["busy"] == 2
 
 

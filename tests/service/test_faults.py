@@ -1,0 +1,684 @@
+"""Faults, as a fault audit injects them: the service heals itself and tells the truth.
+
+* Every worker SIGKILLed again and again (replacements killed while they start too): the pool
+  is back at full size within 15 s and plans are answered; while no worker is live ``/readyz``
+  is not 200, and whenever it is 200 a worker is live.
+* A worker killed under a job: the job runs once more on another worker (200); killed twice,
+  503 ``worker_lost`` with ``Retry-After``.
+* A stopped (SIGSTOP) idle worker is found by its ping and replaced before it holds a request.
+* Connections: an oversized header (431 problem document), a stalled body (408, within
+  ``body_timeout``), a silent connection (closed within ``header_timeout``), a slow reader
+  (dropped after ``send_timeout``; server memory bounded), the connection cap.
+* A shutdown that cannot drain: its queued requests are answered 503 ``shutting_down``.
+
+Live servers on loopback (``python -m service``), each test bounded well under a minute.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from typing import Any, Iterator
+
+import httpx
+import psutil
+import pytest
+
+from service.schemas import build_schemas
+from service.settings import Limits
+from svc_support import (DEG, ROOT, WORKED, assert_problem, free_port, running_app,
+                         server_process)
+
+CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 5}
+#: ~1.5-2 s of work for one worker: a plan, then 40 open-loop v-replays (DOP853 with the input
+#: map at the actual state, ~45 ms each; the u-replays of the handed-out form take ~1 ms).
+SLOWISH = {"plan": {**WORKED, "phi_change": 34 * DEG, "samples": 51},
+           "random": {"count": 40, "spread": 0.01, "seed": 5}, "replay": "v", "time_limit": 30}
+
+
+def _workers(server_pid: int) -> list[psutil.Process]:
+    """The worker processes of a ``python -m service`` server: the forkserver's children."""
+    out = []
+    for child in psutil.Process(server_pid).children():
+        try:
+            if "forkserver" in " ".join(child.cmdline()):
+                out.extend(child.children())
+        except psutil.NoSuchProcess:
+            pass
+    return out
+
+
+def _kill_all(procs: list[psutil.Process]) -> int:
+    killed = 0
+    for p in procs:
+        try:
+            p.send_signal(signal.SIGKILL)
+            killed += 1
+        except psutil.NoSuchProcess:
+            pass
+    return killed
+
+
+def _server_pid(port: int) -> int:
+    for conn in psutil.net_connections("tcp"):
+        if conn.status == psutil.CONN_LISTEN and conn.laddr.port == port and conn.pid:
+            return conn.pid
+    raise AssertionError("no process listens on the port")
+
+
+#: Connection bounds of the test server, tightened so that each test takes seconds.
+BOUNDS = {"PLANNER_HEADER_TIMEOUT": "1", "PLANNER_BODY_TIMEOUT": "1", "PLANNER_SEND_TIMEOUT": "2",
+          "PLANNER_MAX_CONNECTIONS": "40", "PLANNER_MAX_HEADER_BYTES": "16384"}
+
+
+@pytest.fixture(scope="module")
+def two_workers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, int]]:
+    """``python -m service`` with 2 workers; yields the base URL and the server's pid."""
+    port = free_port()
+    log = tmp_path_factory.mktemp("faults") / "server.log"
+    env = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "2",
+           "PLANNER_QUEUE_SIZE": "100", "PLANNER_LOG_LEVEL": "warning", **BOUNDS}
+    with server_process([sys.executable, "-m", "service"], env, port, log) as base:
+        yield base, _server_pid(port)
+
+
+@pytest.fixture(scope="module", params=["httptools", "h11"])
+def bounded(request: pytest.FixtureRequest, two_workers: tuple[str, int],
+            tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """The base URL of a server with :data:`BOUNDS`, for each of uvicorn's HTTP protocols."""
+    if request.param == "httptools":  # the default: the module's server
+        yield two_workers[0]
+        return
+    port = free_port()
+    log = tmp_path_factory.mktemp("faults_h11") / "server.log"
+    env = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "1",
+           "PLANNER_LOG_LEVEL": "warning", "PLANNER_HTTP": "h11", **BOUNDS}
+    with server_process([sys.executable, "-m", "service"], env, port, log) as base:
+        yield base
+
+
+# ---------------------------------------------------------------------- the pool heals
+def test_after_repeated_kills_of_every_worker_the_pool_heals_and_readyz_tells_the_truth(
+        two_workers):
+    base, pid = two_workers
+    with httpx.Client(base_url=base, timeout=10) as client:
+        before = client.get("/readyz").json()
+        assert before["live"] == 2
+        seen: list[tuple[int, dict[str, Any]]] = []
+        stop = threading.Event()
+
+        def poll() -> None:
+            with httpx.Client(base_url=base, timeout=10) as c:
+                while not stop.is_set():
+                    r = c.get("/readyz")
+                    seen.append((r.status_code, r.json()))
+                    time.sleep(0.02)
+
+        poller = threading.Thread(target=poll)
+        poller.start()
+        killed = 0
+        try:
+            end = time.monotonic() + 4.0  # every worker, and every replacement as it starts
+            while time.monotonic() < end:
+                killed += _kill_all(_workers(pid))
+                time.sleep(0.05)
+        finally:
+            stop.set()
+            poller.join(timeout=20)
+        healed_at = None
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 15.0:
+            r = client.get("/readyz")
+            if r.status_code == 200 and r.json()["live"] == 2:
+                healed_at = time.monotonic() - t0
+                break
+            time.sleep(0.05)
+        print(f"\n{killed} kills; healed to 2 live workers {healed_at} s after the last; "
+              f"/readyz seen {len(seen)} times, {sum(c != 200 for c, _ in seen)} not 200")
+        assert healed_at is not None, client.get("/readyz").json()
+        assert killed >= 4
+        # the truth meanwhile: never 200 without a live worker, never 'ready' while none is
+        for status, body in seen:
+            assert (status == 200) == (body["status"] == "ready"), body
+            assert (status == 200) == (body["live"] > 0), body
+        assert any(status == 503 and body["live"] == 0 for status, body in seen), \
+            "no /readyz answer saw the pool without workers"
+        for _ in range(4):
+            r = client.post("/v1/plans", json=CHEAP)
+            assert r.status_code == 200, r.text
+        ready = client.get("/readyz").json()
+        assert ready["restarts"] >= before["restarts"] + 2
+        metrics = client.get("/metrics").text
+        assert "planner_workers_live 2.0" in metrics
+        assert "planner_workers_configured 2.0" in metrics
+
+
+def test_a_job_whose_workers_are_all_killed_is_answered_200_or_503(two_workers):
+    """Every worker killed under a job: run again on a replacement (200), or, should that be
+    lost too, 503 ``worker_lost``; never a 422, a 500 or a hang."""
+    base, pid = two_workers
+    answer: dict[str, Any] = {}
+
+    def send() -> None:
+        r = httpx.post(base + "/v1/robustness", json=SLOWISH, timeout=60)
+        answer.update(status=r.status_code, body=r.json(), headers=dict(r.headers))
+
+    with httpx.Client(base_url=base, timeout=10) as client:
+        _wait_live(client, 2)
+        sender = threading.Thread(target=send)
+        sender.start()
+        deadline = time.monotonic() + 20
+        while client.get("/readyz").json()["busy"] == 0:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        time.sleep(0.2)  # the job is well under way
+        assert _kill_all(_workers(pid)) == 2  # the job's worker and the idle one
+        sender.join(timeout=60)
+        _wait_live(client, 2)
+    assert answer["status"] in (200, 503), answer
+    if answer["status"] == 200:
+        assert answer["body"]["summary"]["runs"] == 40
+    else:
+        assert answer["body"]["code"] == "worker_lost" and answer["headers"]["retry-after"]
+
+
+def test_a_job_whose_worker_is_killed_is_run_again_on_another_worker():
+    with running_app(workers=2, queue_size=4, worker_ping_interval=0) as client:
+        pool = client.app.state.pool
+        answer: dict[str, Any] = {}
+
+        def send() -> None:
+            answer.update(response=client.post("/v1/robustness", json=SLOWISH))
+
+        sender = threading.Thread(target=send)
+        sender.start()
+        deadline = time.monotonic() + 20
+        while not (busy := [w for w in list(pool._all) if w.busy]):
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        time.sleep(0.2)  # the job is well under way
+        os.kill(busy[0].process.pid, signal.SIGKILL)
+        sender.join(timeout=60)
+        r = answer["response"]
+        assert r.status_code == 200, r.text
+        assert r.json()["summary"]["runs"] == 40
+        assert 'planner_worker_restarts_total{reason="lost"} 1.0' in client.get("/metrics").text
+
+
+def test_a_job_lost_twice_is_answered_503_worker_lost():
+    with running_app(workers=1, queue_size=4, worker_ping_interval=0) as client:
+        pool = client.app.state.pool
+        answer: dict[str, Any] = {}
+
+        def send() -> None:
+            r = client.post("/v1/robustness", json=SLOWISH)
+            answer.update(response=r)
+
+        sender = threading.Thread(target=send)
+        sender.start()
+        killed: list[int] = []
+        deadline = time.monotonic() + 40
+        while len(killed) < 2 and time.monotonic() < deadline:
+            st = pool.stats()
+            pids = pool.pids()
+            if st.busy == 1 and st.idle == 0 and st.live == 1 and pids and pids[0] not in killed:
+                time.sleep(0.1)  # the job has reached the worker
+                os.kill(pids[0], signal.SIGKILL)
+                killed.append(pids[0])
+            time.sleep(0.01)
+        sender.join(timeout=60)
+        assert len(killed) == 2
+        body = assert_problem(answer["response"], 503, "worker_lost")
+        assert answer["response"].headers["retry-after"] == "1"
+        assert body["diagnostics"]["retry_after"] == 1
+        r = client.post("/v1/plans", json=CHEAP)  # the pool has a worker again
+        assert r.status_code == 200, r.text
+
+
+def test_a_stopped_idle_worker_is_replaced_before_it_holds_a_request():
+    with running_app(workers=1, queue_size=4, worker_ping_interval=0.2,
+                     worker_ping_timeout=0.3) as client:
+        pool = client.app.state.pool
+        (old,) = pool.pids()
+        os.kill(old, signal.SIGSTOP)
+        try:
+            deadline = time.monotonic() + 10
+            while old in pool.pids():
+                assert time.monotonic() < deadline, "the stopped worker was not replaced"
+                time.sleep(0.02)
+            _wait_live(client, 1)
+            t0 = time.perf_counter()
+            r = client.post("/v1/plans", json={**CHEAP, "time_limit": 5})
+            assert r.status_code == 200, r.text
+            assert time.perf_counter() - t0 < 2.0
+            metrics = client.get("/metrics").text
+            assert 'planner_worker_restarts_total{reason="unresponsive"} 1.0' in metrics
+        finally:
+            try:
+                os.kill(old, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+def test_a_replacement_that_fails_to_start_is_retried_whatever_the_error():
+    """No descriptors left (EMFILE), three times in a row: the slot is still filled."""
+    with running_app(workers=1, queue_size=4) as client:
+        pool = client.app.state.pool
+        real, failures = pool._new_process, []
+
+        def flaky() -> Any:
+            if len(failures) < 3:
+                failures.append(1)
+                raise OSError(errno.EMFILE, "Too many open files")
+            return real()
+
+        pool._new_process = flaky
+        (old,) = pool.pids()
+        os.kill(old, signal.SIGKILL)
+        deadline = time.monotonic() + 15
+        while not (pool.stats().live == 1 and pool.pids() != [old]):
+            assert time.monotonic() < deadline, pool.stats()
+            time.sleep(0.02)
+        assert len(failures) == 3
+        r = client.post("/v1/plans", json=CHEAP)
+        assert r.status_code == 200, r.text
+
+
+def test_a_request_waits_for_a_worker_at_most_queue_timeout():
+    with running_app(workers=1, queue_size=4, queue_timeout=0.5) as client:
+        def slow() -> None:
+            client.post("/v1/robustness", json=SLOWISH)
+
+        t = threading.Thread(target=slow)
+        t.start()
+        pool = client.app.state.pool
+        deadline = time.monotonic() + 20
+        while pool.stats().idle:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        t0 = time.perf_counter()
+        r = client.post("/v1/plans", json=CHEAP)
+        elapsed = time.perf_counter() - t0
+        body = assert_problem(r, 503, "overloaded")
+        assert "retry-after" in r.headers and "no worker became free" in body["detail"]
+        assert 0.5 <= elapsed < 1.5, elapsed
+        t.join(timeout=60)
+
+
+# ---------------------------------------------------------------------- bounded connections
+def _raw(port: int) -> socket.socket:
+    s = socket.create_connection(("127.0.0.1", port), timeout=10)
+    return s
+
+
+def _read_all(s: socket.socket) -> bytes:
+    """Everything the server sends until it closes the connection."""
+    out = b""
+    try:
+        while chunk := s.recv(65536):
+            out += chunk
+    except ConnectionResetError:
+        pass
+    return out
+
+
+def _port(base: str) -> int:
+    return int(base.rsplit(":", 1)[1])
+
+
+def _problem_of(raw: bytes) -> tuple[int, dict[str, Any]]:
+    head, _, body = raw.partition(b"\r\n\r\n")
+    status = int(head.split(b" ", 2)[1])
+    assert b"content-type: application/problem+json" in head.lower(), head
+    return status, json.loads(body)
+
+
+def test_an_oversized_header_is_refused_431_and_malformed_http_400(bounded):
+    base = bounded
+    r = httpx.get(base + "/healthz", headers={"X-Big": "a" * 100_000}, timeout=10)
+    body = assert_problem(r, 431, "invalid_request")
+    assert body["diagnostics"]["max_header_bytes"] == 16384
+    r = httpx.get(base + "/healthz", headers={"X-Fine": "a" * 8000}, timeout=10)
+    assert r.status_code == 200
+    # a head sent in pieces (h11's own bound)
+    with _raw(_port(base)) as s:
+        s.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
+        for _ in range(5):
+            s.sendall(b"X-Piece: " + b"b" * 4000 + b"\r\n")
+            time.sleep(0.01)
+        status, body = _problem_of(_read_all(s))
+    assert status == 431 and body["code"] == "invalid_request"
+    with _raw(_port(base)) as s:
+        s.sendall(b"NOT HTTP AT ALL\r\n\r\n")
+        status, body = _problem_of(_read_all(s))
+    assert status == 400 and body["code"] == "invalid_request"
+
+
+@pytest.mark.parametrize("sent", [b"", b"GET /healthz HTTP/1.1\r\nHost: x\r\n"],
+                         ids=["silent", "partial_head"])
+def test_a_connection_without_a_complete_head_is_closed_after_header_timeout(bounded, sent):
+    base = bounded
+    with _raw(_port(base)) as s:
+        s.sendall(sent)
+        t0 = time.monotonic()
+        assert _read_all(s) == b""
+        elapsed = time.monotonic() - t0
+    assert 0.9 <= elapsed < 2.0, elapsed
+
+
+@pytest.mark.parametrize("trickle", [False, True], ids=["stalled", "trickled"])
+def test_a_body_that_does_not_arrive_in_time_is_answered_408(bounded, trickle):
+    base = bounded
+    with _raw(_port(base)) as s:
+        s.sendall(b"POST /v1/plans HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                  b"Content-Length: 100\r\n\r\n{")
+        t0 = time.monotonic()
+        if trickle:  # a byte every 0.2 s: each read is quick, the whole body is not
+            s.settimeout(0.2)
+            for _ in range(20):
+                try:
+                    s.sendall(b" ")
+                    if s.recv(1, socket.MSG_PEEK):
+                        break
+                except (TimeoutError, BrokenPipeError, ConnectionResetError):
+                    continue
+            s.settimeout(10)
+        raw = _read_all(s)
+        elapsed = time.monotonic() - t0
+    status, body = _problem_of(raw)
+    assert status == 408 and body["code"] == "request_timeout", body
+    assert b"connection: close" in raw.lower()
+    assert 0.9 <= elapsed < 2.0, elapsed
+
+
+def test_connections_past_the_cap_are_answered_503_at_once(bounded):
+    base = bounded
+    socks = [_raw(_port(base)) for _ in range(50)]  # the cap is 40
+    try:
+        time.sleep(0.3)
+        refused = []
+        for s in socks:
+            s.setblocking(False)
+            try:
+                refused.append(s.recv(65536))
+            except BlockingIOError:
+                pass
+        refused = [r for r in refused if r]  # (b"": closed, none should be yet)
+        assert len(refused) == 10, len(refused)
+        status, body = _problem_of(refused[0])
+        assert status == 503 and body["code"] == "overloaded"
+    finally:
+        for s in socks:
+            s.close()
+
+
+def test_slow_readers_are_dropped_and_server_memory_stays_bounded(two_workers):
+    """8 clients ask for a 45 MB answer each and never read it. Bound: while they stall the
+    server holds at most about one answer per stalled client (asserted: 1.5 x); once
+    ``send_timeout`` (2 s) passes without progress they are dropped and the memory is back
+    within 100 MB of where it started (it stayed for good before)."""
+    base, pid = two_workers
+    port = _port(base)
+    body = json.dumps({"requests": [{**CHEAP, "samples": 20001}] * 9}).encode()
+    with httpx.Client(base_url=base, timeout=30) as client:
+        _wait_live(client, 2)
+        # one answer read in full first: the workers' own memory grows to what such an answer
+        # takes once, whoever asks; what is measured below is what slow readers add
+        for _ in range(2):
+            r = client.post("/v1/plans/batch", content=body,
+                            headers={"Content-Type": "application/json"})
+            assert r.status_code == 200
+        answer_mb = len(r.content) / 1e6
+    server = psutil.Process(pid)
+
+    def rss_mb() -> float:
+        total = 0
+        for p in [server, *server.children(recursive=True)]:
+            try:
+                total += p.memory_info().rss
+            except psutil.NoSuchProcess:
+                pass
+        return total / 1e6
+
+    def open_clients() -> int:
+        return sum(1 for c in server.net_connections("tcp")
+                   if c.status == psutil.CONN_ESTABLISHED and c.laddr.port == port)
+
+    before = rss_mb()
+    n = 8
+    socks = []
+    for _ in range(n):
+        s = socket.socket()
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        s.connect(("127.0.0.1", port))
+        s.sendall(b"POST /v1/plans/batch HTTP/1.1\r\nHost: x\r\nContent-Type: application/json"
+                  b"\r\nContent-Length: %d\r\n\r\n" % len(body) + body)
+        socks.append(s)
+    try:
+        peak = before
+        t0 = time.monotonic()
+        while open_clients() and time.monotonic() - t0 < 40:
+            peak = max(peak, rss_mb())
+            time.sleep(0.2)
+        dropped_after = time.monotonic() - t0
+        settle = time.monotonic() + 5.0  # the last answers' buffers are let go
+        while (after := rss_mb()) - before >= 100 and time.monotonic() < settle:
+            time.sleep(0.2)
+    finally:
+        for s in socks:
+            s.close()
+    print(f"\nslow readers: {n} x {answer_mb:.1f} MB answers; server tree RSS {before:.0f} MB "
+          f"before, peak {peak:.0f}, {after:.0f} after; all dropped {dropped_after:.1f} s "
+          f"after they asked")
+    assert open_clients() == 0
+    assert peak - before < n * 1.5 * answer_mb, peak - before
+    assert after - before < 100, (before, after)
+    with httpx.Client(base_url=base, timeout=30) as client:
+        metrics = client.get("/metrics").text
+    line = next(li for li in metrics.splitlines()
+                if li.startswith('planner_connections_closed_total{reason="send_timeout"}'))
+    assert float(line.split()[-1]) >= n
+    assert 'route="/v1/plans/batch",status="499"}' in metrics  # counted as not answered
+
+
+def _metric(text: str, prefix: str) -> float:
+    """The value of the sample line starting with ``prefix`` (0 when absent)."""
+    for line in text.splitlines():
+        if line.startswith(prefix):
+            return float(line.split()[-1])
+    return 0.0
+
+
+def test_a_client_that_leaves_takes_its_queued_job_with_it(two_workers):
+    base, _ = two_workers
+    long_job = {**SLOWISH, "random": {"count": 200, "spread": 0.01, "seed": 3}}  # ~9 s
+
+    def post(path: str, body: dict[str, Any], timeout: float) -> None:
+        with pytest.raises(httpx.TimeoutException):  # the client gives up
+            httpx.post(base + path, json=body, timeout=timeout)
+
+    with httpx.Client(base_url=base, timeout=30) as client:
+        _wait_live(client, 2)
+        gone = 'planner_requests_cancelled_total{reason="client_gone"}'
+        plans_499 = 'planner_http_requests_total{method="POST",route="/v1/plans",status="499"}'
+        metrics = client.get("/metrics").text
+        before = _metric(metrics, gone), _metric(metrics, plans_499)
+        busy = [threading.Thread(target=post, args=("/v1/robustness", long_job, 6.0))
+                for _ in range(2)]
+        for t in busy:
+            t.start()
+        deadline = time.monotonic() + 20
+        while client.get("/readyz").json()["idle"] > 0:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        leavers = [threading.Thread(target=post, args=("/v1/plans", CHEAP, 3.0))
+                   for _ in range(6)]
+        for t in leavers:
+            t.start()
+        deadline = time.monotonic() + 2.5
+        while (waiting := client.get("/readyz").json()["waiting"]) < 6:
+            assert time.monotonic() < deadline, waiting
+            time.sleep(0.02)
+        for t in leavers:
+            t.join()
+        time.sleep(0.2)
+        ready = client.get("/readyz").json()
+        assert ready["waiting"] == 0 and ready["idle"] == 0, ready  # the jobs left the queue
+        metrics = client.get("/metrics").text
+        assert _metric(metrics, gone) >= before[0] + 6
+        assert _metric(metrics, plans_499) == before[1] + 6
+        for t in busy:
+            t.join(timeout=30)
+
+
+def test_a_client_that_leaves_stops_its_running_job_where_the_method_can(two_workers):
+    """Robustness replays check their deadline between runs: a job of ~9 s whose client gives
+    up after 0.5 s frees its worker at the next check, not 9 s later."""
+    base, _ = two_workers
+    long_job = {**SLOWISH, "random": {"count": 200, "spread": 0.01, "seed": 3}}
+    with httpx.Client(base_url=base, timeout=30) as client:
+        _wait_live(client, 2)
+        before = client.get("/readyz").json()["restarts"]
+        t0 = time.monotonic()
+        for _ in range(2):
+            with pytest.raises(httpx.TimeoutException):
+                httpx.post(base + "/v1/robustness", json=long_job, timeout=0.5)
+        deadline = time.monotonic() + 5
+        while (ready := client.get("/readyz").json())["idle"] < 2:
+            assert time.monotonic() < deadline, ready
+            time.sleep(0.05)
+        freed = time.monotonic() - t0
+        assert ready["restarts"] == before  # stopped by the job itself, no worker killed
+        r = client.post("/v1/plans", json=CHEAP)
+        assert r.status_code == 200, r.text
+    print(f"\ntwo ~9 s jobs whose clients left after 0.5 s each: workers free after {freed:.1f} s")
+    assert freed < 4.0
+
+
+def test_a_client_that_leaves_mid_body_is_counted_499_not_400(two_workers):
+    base, _ = two_workers
+    with _raw(_port(base)) as s:
+        s.sendall(b"POST /v1/sweeps HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                  b"Content-Length: 100\r\n\r\n{\"start\":")
+        time.sleep(0.1)
+    time.sleep(0.3)
+    metrics = httpx.get(base + "/metrics", timeout=10).text
+    assert 'route="/v1/sweeps",status="499"} 1.0' in metrics
+    assert 'route="/v1/sweeps",status="400"}' not in metrics
+
+
+# ---------------------------------------------------------------------- shutdown
+def test_a_shutdown_that_cannot_drain_answers_503_shutting_down(tmp_path):
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PLANNER_")}
+    env.update({"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "1",
+                "PLANNER_SHUTDOWN_TIMEOUT": "3", "PLANNER_LOG_LEVEL": "info"})
+    log_path = tmp_path / "server.log"
+    answers: list[httpx.Response | BaseException] = []
+
+    def send() -> None:
+        try:
+            answers.append(httpx.post(base + "/v1/robustness", json=SLOWISH, timeout=60))
+        except httpx.HTTPError as exc:
+            answers.append(exc)
+
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "service"], cwd=ROOT, env=env,
+                                stdout=log, stderr=subprocess.STDOUT)
+        try:
+            with httpx.Client(base_url=base, timeout=10) as client:
+                deadline = time.monotonic() + 120
+                while True:
+                    assert proc.poll() is None
+                    try:
+                        if client.get("/readyz").status_code == 200:
+                            break
+                    except httpx.TransportError:
+                        pass
+                    assert time.monotonic() < deadline
+                    time.sleep(0.1)
+                senders = [threading.Thread(target=send) for _ in range(5)]  # ~8 s of work
+                for t in senders:
+                    t.start()
+                while client.get("/readyz").json()["waiting"] < 4:
+                    assert time.monotonic() < deadline
+                    time.sleep(0.01)
+            t0 = time.monotonic()
+            proc.send_signal(signal.SIGTERM)
+            for t in senders:
+                t.join(timeout=30)
+            code = proc.wait(timeout=30)
+            stopped = time.monotonic() - t0
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=10)
+    log_text = log_path.read_text(errors="replace")
+    assert all(isinstance(a, httpx.Response) for a in answers), answers
+    statuses = sorted(a.status_code for a in answers if isinstance(a, httpx.Response))
+    print(f"\nshutdown with ~8 s of work and a 3 s timeout: {statuses}, stopped in "
+          f"{stopped:.1f} s")
+    assert len(statuses) == 5 and set(statuses) <= {200, 503} and 503 in statuses, statuses
+    for a in answers:
+        assert isinstance(a, httpx.Response)
+        if a.status_code == 503:
+            assert_problem(a, 503, "shutting_down")
+            assert a.headers["retry-after"] == "1" and a.headers["connection"] == "close"
+    assert code == 0 and stopped < 6.0, log_text[-2000:]
+    assert not re.search(r'"status": ?500\b', log_text), log_text[-3000:]
+    assert "Traceback" not in log_text and "Exception in ASGI" not in log_text, log_text[-3000:]
+    assert re.search(r'"status": ?503\b', log_text)  # the access log counts them as answered
+
+
+# ---------------------------------------------------------------------- smaller items
+def test_two_different_api_keys_are_refused_by_middleware_and_route_alike():
+    with running_app(workers=1, queue_size=4, api_keys=["k1", "k2"]) as client:
+        for path, body in (("/v1/plans", CHEAP), ("/v1/sweeps", {})):
+            r = client.post(path, json=body, headers=[("X-API-Key", "k1"), ("X-API-Key", "k2")])
+            assert_problem(r, 401, "unauthorized")
+            r = client.post(path, json=body, headers=[("Authorization", "Bearer k1"),
+                                                      ("Authorization", "Bearer zz")])
+            assert_problem(r, 401, "unauthorized")
+        r = client.post("/v1/plans", json=CHEAP, headers=[("X-API-Key", "k1"),
+                                                          ("X-API-Key", "k1")])
+        assert r.status_code == 200, r.text
+
+
+def test_the_robustness_time_limit_is_not_capped_by_the_plans_default():
+    schemas = build_schemas(Limits())
+    req = schemas.RobustnessRequest.model_validate(
+        {"plan": CHEAP, "random": {"count": 2, "spread": 0.01, "seed": 1}, "time_limit": 30})
+    assert req.to_library()["plan"]["time_limit"] == 30
+    req = schemas.RobustnessRequest.model_validate(
+        {"plan": {**CHEAP, "time_limit": 5}, "random": {"count": 2, "spread": 0.01, "seed": 1},
+         "time_limit": 30})
+    assert req.to_library()["plan"]["time_limit"] == 5
+
+
+def test_the_workers_log_of_an_unexpected_failure_names_the_request(caplog):
+    from service import jobs
+    with caplog.at_level(logging.ERROR, logger="service.worker"):
+        out = jobs.run_job("transform", {"direction": "to_chained", "points": []}, "req-42")
+    assert out["ok"] is False and out["error"]["code"] == "numerical_failure"
+    (record,) = [r for r in caplog.records if "failed unexpectedly" in r.getMessage()]
+    assert record.request_id == "req-42"
+
+
+def _wait_live(client: Any, n: int, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        ready = client.get("/readyz").json()
+        if ready["live"] >= n and ready["idle"] >= n:
+            return
+        assert time.monotonic() < deadline, ready
+        time.sleep(0.05)
