@@ -379,7 +379,8 @@ def markdown(results: dict[str, Any]) -> str:
         lines.append(f"| {n} | {e['goals']} | {e['verified']} | {_ms(e['p50'])} | "
                      f"{_ms(e['p95'])} | {_ms(e['max'])} | {e['near_limit']} |")
     lines += ["", "### Per method (success = planner answered; verified = re-integration)", "",
-              "| n | method | success | verified | median ms (all goals) |", "|---|---|---|---|---|"]
+              "| n | method | success | verified | median ms (all goals) |",
+              "|---|---|---|---|---|"]
     for n, e in s["per_n"].items():
         for m, me in e["methods"].items():
             lines.append(f"| {n} | {m} | {me['success']}/{me['goals']} | "
