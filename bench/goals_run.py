@@ -340,8 +340,8 @@ def summarise_goals(rows: list[dict[str, Any]], cfg: GoalsConfig) -> dict[str, A
                 why.append(f"near the time limit: {d['slowest_call']:.2f} s")
             if c is not None:
                 if not c["dev_no_larger"]:
-                    why.append(f"deviation {c['default_dev_deg']:.3g} deg > baseline "
-                               f"{c['baseline_dev_deg']:.3g} deg")
+                    why.append(f"deviation {c['default_dev_deg']:.4g} deg > baseline "
+                               f"{c['baseline_dev_deg']:.4g} deg")
                 if not c["reversals_no_more"]:
                     why.append(f"reversals {c['default_reversals']} > baseline "
                                f"{c['baseline_reversals']}")
