@@ -7,6 +7,9 @@ Usage::
     .venv/bin/python -m bench --quick         # short run (fewer repeats, 3 s HTTP levels)
     .venv/bin/python -m bench --quick --cases 1 --no-http --joints 3   # smoke test
     .venv/bin/python -m bench --out bench/results/mine.json
+    .venv/bin/python -m bench --goals [options]   # issue 15: generated goals, the default
+                                                  # request, every method and the baseline
+                                                  # (= python -m bench.goals_run; its --help)
 
 See ``docs/benchmarks.md`` for what is measured.
 """
@@ -41,6 +44,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """Command-line options."""
     p = argparse.ArgumentParser(prog="python -m bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--goals", action="store_true",
+                   help="run the benchmark on generated goals instead (issue 15): every other "
+                        "option is bench.goals_run's (--goals-counts, --repeats, --methods, ...)")
     p.add_argument("--quick", action="store_true",
                    help="short run: at most 3 repeats, 3 s per HTTP level, one cold start")
     p.add_argument("--out", type=Path, default=None,
@@ -170,6 +176,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status (0 unless the run itself broke)."""
+    rest = list(sys.argv[1:] if argv is None else argv)
+    if "--goals" in rest:  # the generated-goals run has its own options (bench.goals_run)
+        from bench import goals_run
+        rest.remove("--goals")
+        return goals_run.main(rest)
     args = parse_args(argv)
     warnings.simplefilter("ignore")  # discarded members warn by design; results say what failed
     results = run(args)

@@ -52,12 +52,18 @@ BASE_SEED = 20261124
 
 @dataclass(frozen=True)
 class Goal:
-    """One generated start/goal pair (rad)."""
+    """One generated start/goal pair (rad).
+
+    ``rates`` are the Legendre coefficients (rows ``u1``, ``u2``; argument ``2t - 1`` on
+    ``[0, 1]`` s) of the inputs that produced the goal: a witness of its reachability that anyone
+    can re-integrate (:func:`rates_at`).
+    """
 
     name: str
     kind: str
     start: tuple[float, ...]
     goal: tuple[float, ...]
+    rates: tuple[tuple[float, ...], ...] = ()
 
     @property
     def n(self) -> int:
@@ -73,6 +79,13 @@ def _rhs(gains: np.ndarray, exps: np.ndarray, coef: np.ndarray):  # type: ignore
         dq[2:] = gains * np.cos(q[1:-1]) ** exps * u1
         return dq
     return f
+
+
+def rates_at(g: Goal, t: float) -> np.ndarray:
+    """``(u1, u2)`` of the inputs that generated ``g``, at ``t`` in ``[0, 1]`` s."""
+    coef = np.asarray(g.rates, float)
+    return np.array([legendre.legval(2.0 * t - 1.0, coef[0]),
+                     legendre.legval(2.0 * t - 1.0, coef[1])])
 
 
 def _rates(rng: np.random.Generator, kind: str) -> np.ndarray:
@@ -120,7 +133,8 @@ def generate(n: int, count: int, seed: int = BASE_SEED) -> list[Goal]:
         if kind == "same" and opposed:
             continue
         out.append(Goal(name=f"r{n}_{len(out):03d}_{kind}", kind=kind,
-                        start=tuple(float(x) for x in th0), goal=tuple(float(x) for x in goal)))
+                        start=tuple(float(x) for x in th0), goal=tuple(float(x) for x in goal),
+                        rates=tuple(tuple(float(c) for c in row) for row in coef)))
     return out
 
 

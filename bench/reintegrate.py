@@ -25,16 +25,25 @@ Metrics (all from the re-integrated path, on a uniform grid of :data:`GRID` time
 ``d_a_deg``
     Joint 1: ``max_t |th1(t) - (th1(0) + t/T (goal_1 - th1(0)))|`` (the paper's d_a).
 ``joint_space_dev_deg``
-    Largest perpendicular distance of ``th(t)`` from the straight line start -> goal in joint
-    space.
+    Largest perpendicular distance of ``th(t)`` from the straight LINE through start and goal in
+    joint space (eq 17).
+``segment_dev_deg``
+    Largest distance of ``th(t)`` from the straight SEGMENT start -> goal in joint space: the
+    planner's ``deviation`` indicator, measured here on the re-integrated path.
 ``reversals_phi``, ``reversals_th1``
-    Interior extrema of ``phi(t)`` and ``th1(t)`` (reversals of the two actuators), counted with a
-    hysteresis dead band of :data:`DEAD_BAND` rad.
+    Interior extrema of ``phi(t)`` and ``th1(t)`` (reversals of the two actuators), counted by
+    :func:`optimizer.indicators.count_reversals` (the one definition) with its actuator dead band
+    :data:`DEAD_BAND` rad.
 ``energy``
     ``integral of u1^2 + u2^2 dt`` (rad^2/s).
 ``region_margin_deg``
     ``min_t min(th_i, 90 deg - th_i)`` over ``i = 1..n-1``; negative when the path left the region
     where the chained form exists.
+``region_margin_all_deg``
+    The same over every joint ``i = 1..n``: the product keeps ``th_n`` inside ``(0, 90 deg)`` too.
+
+Only the metrics' formulas are shared with the planner (:mod:`optimizer.indicators`); the path
+they are applied to comes from scipy here, never from the planner's own integrator.
 """
 
 from __future__ import annotations
@@ -47,14 +56,16 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from optimizer.dynamics import vector_field
+from optimizer.indicators import (ACTUATOR_DEAD_BAND, count_reversals, joint_space_distance,
+                                  segment_distance)
 
 RTOL = 1e-10
 ATOL = 1e-12
 #: Uniform grid of the metrics (points over [0, T]).
 GRID = 4001
-#: Dead band of the reversal count (rad): a reversal counts once the signal has come back from
-#: its running extreme by more than this (1e-4 rad = 0.0057 deg).
-DEAD_BAND = 1e-4
+#: Dead band of the reversal count (rad): the planner's actuator dead band, so that the
+#: re-integrated counts mean what ``reversals_phi``/``reversals_th1`` mean (1e-4 rad = 0.0057 deg).
+DEAD_BAND = ACTUATOR_DEAD_BAND
 
 #: ``u(t) -> (u1, u2)`` (any array-like of two numbers).
 UFunction = Callable[[float], Any]
@@ -84,6 +95,8 @@ class PathMetrics:
     ok : bool
         The integration finished and every number is finite.
     message : str
+    segment_dev_deg, region_margin_all_deg : float
+        Added after the others (defaults keep older constructions valid).
     """
 
     terminal_error_rad: float
@@ -96,6 +109,8 @@ class PathMetrics:
     final: list[float]
     ok: bool
     message: str = ""
+    segment_dev_deg: float = math.nan
+    region_margin_all_deg: float = math.nan
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly copy."""
@@ -131,48 +146,6 @@ def model_rhs(gains: Sequence[float], exponents: Sequence[int]
     return rhs
 
 
-def count_reversals(x: np.ndarray, dead_band: float = DEAD_BAND) -> int:
-    """Interior extrema of a sampled signal, with hysteresis ``dead_band``.
-
-    Parameters
-    ----------
-    x : ndarray (N,)
-    dead_band : float
-
-    Returns
-    -------
-    int
-        How many times the signal turned back by more than ``dead_band`` from its running
-        extreme.
-    """
-    x = np.asarray(x, float)
-    if x.size < 3:
-        return 0
-    x0 = float(x[0])
-    direction = 0
-    ext = x0
-    count = 0
-    for v in x[1:].tolist():
-        if direction == 0:
-            if v - x0 > dead_band:
-                direction, ext = 1, v
-            elif x0 - v > dead_band:
-                direction, ext = -1, v
-        elif direction == 1:
-            if v > ext:
-                ext = v
-            elif ext - v > dead_band:
-                count += 1
-                direction, ext = -1, v
-        else:
-            if v < ext:
-                ext = v
-            elif v - ext > dead_band:
-                count += 1
-                direction, ext = 1, v
-    return count
-
-
 def line_distance(th: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     """Largest perpendicular distance of the rows of ``th`` from the line through ``a`` and ``b``.
 
@@ -186,13 +159,9 @@ def line_distance(th: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     float
         Same unit as ``th``.
     """
-    d = th - a
-    ell = b - a
-    nrm = float(ell @ ell)
-    if nrm == 0.0:
-        return float(np.max(np.linalg.norm(d, axis=1)))
-    perp2 = np.sum(d * d, axis=1) - (d @ ell) ** 2 / nrm
-    return float(np.sqrt(np.max(np.maximum(perp2, 0.0))))
+    # joint_space_distance measures from the line through the first and last row; a and b lie
+    # on their own line (distance 0), so framing th by them changes nothing else
+    return joint_space_distance(np.vstack([a, th, b]))
 
 
 def integrate(gains: Sequence[float], exponents: Sequence[int], q0: np.ndarray,
@@ -271,6 +240,7 @@ def path_metrics(t: np.ndarray, x: np.ndarray, start: np.ndarray, goal: np.ndarr
     line1 = start[0] + tau * (goal[0] - start[0])
     inner = th[:, : n - 1]
     margin = float(np.min(np.minimum(inner, 0.5 * math.pi - inner)))
+    margin_all = float(np.min(np.minimum(th, 0.5 * math.pi - th)))
     final = x[-1, : n + 1]
     m = PathMetrics(
         terminal_error_rad=float(np.max(np.abs(final[1:] - goal))),
@@ -282,10 +252,13 @@ def path_metrics(t: np.ndarray, x: np.ndarray, start: np.ndarray, goal: np.ndarr
         region_margin_deg=math.degrees(margin),
         final=[float(v) for v in final],
         ok=True,
+        segment_dev_deg=math.degrees(segment_distance(th, start, goal)),
+        region_margin_all_deg=math.degrees(margin_all),
     )
     finite = all(math.isfinite(v) for v in (m.terminal_error_rad, m.d_a_deg,
                                              m.joint_space_dev_deg, m.energy,
-                                             m.region_margin_deg))
+                                             m.region_margin_deg, m.segment_dev_deg,
+                                             m.region_margin_all_deg))
     if not finite:
         return PathMetrics(**{**asdict(m), "ok": False, "message": "non-finite metric"})
     return m
@@ -294,7 +267,8 @@ def path_metrics(t: np.ndarray, x: np.ndarray, start: np.ndarray, goal: np.ndarr
 def failed_metrics(message: str) -> PathMetrics:
     """Metrics of a path that could not be re-integrated."""
     nan = float("nan")
-    return PathMetrics(nan, nan, nan, -1, -1, nan, nan, [], False, message)
+    return PathMetrics(nan, nan, nan, -1, -1, nan, nan, [], False, message,
+                       segment_dev_deg=nan, region_margin_all_deg=nan)
 
 
 def planner_segments(plan: Any) -> list[Segment]:

@@ -21,7 +21,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.reintegrate import Segment, count_reversals, integrate, line_distance  # noqa: E402
+from bench.reintegrate import (DEAD_BAND, Segment, integrate, line_distance,  # noqa: E402
+                               path_metrics)
+from optimizer.indicators import count_reversals  # noqa: E402
 
 FINITE_KEYS = ("terminal_error_rad", "d_a_deg", "joint_space_dev_deg", "energy",
                "region_margin_deg")
@@ -108,7 +110,25 @@ def test_reintegration_helpers() -> None:
     t, x = integrate((0.88658, 0.7115), (2, 3), np.array([0.0, 0.1, 0.2, 0.3]), seg, grid=11)
     assert t[0] == 0.0 and t[-1] == 1.0 and np.all(np.diff(t) > 0)
     np.testing.assert_allclose(x[-1], [0.0, 0.3, 0.2, 0.3, 0.04], atol=1e-12)
-    assert count_reversals(np.sin(np.linspace(0, 3 * np.pi, 1001))) == 3  # pi/2, 3pi/2, 5pi/2
-    assert count_reversals(np.linspace(0, 1, 11) + 1e-6 * (-1) ** np.arange(11)) == 0
+    # the one reversal count, with the benchmark's dead band
+    assert count_reversals(np.sin(np.linspace(0, 3 * np.pi, 1001)), DEAD_BAND) == 3
+    assert count_reversals(np.linspace(0, 1, 11) + 1e-6 * (-1) ** np.arange(11), DEAD_BAND) == 0
+    assert count_reversals(np.r_[0.0, 1.0, 1.0 - 0.5 * DEAD_BAND, 2.0], DEAD_BAND) == 0
     th = np.array([[0.0, 0.0], [0.5, 1.5], [1.0, 1.0]])
     assert line_distance(th, th[0], th[-1]) == pytest.approx(np.sqrt(0.5))
+
+
+def test_segment_deviation_and_margin_of_every_joint() -> None:
+    # a path that overshoots the goal along the line: 0 from the LINE, 0.5 from the SEGMENT
+    t = np.linspace(0.0, 1.0, 3)
+    th = np.array([[0.2, 0.3], [1.2, 0.3], [0.7, 0.3]])
+    x = np.column_stack([np.zeros(3), th, np.zeros(3)])
+    start, goal = th[0], th[-1]
+    m = path_metrics(t, x, start, goal)
+    assert m.joint_space_dev_deg == pytest.approx(0.0, abs=1e-9)
+    assert m.segment_dev_deg == pytest.approx(np.degrees(0.5))
+    th[1, 1] = 0.05  # the last joint dips below th1's smallest value (0.2)
+    x = np.column_stack([np.zeros(3), th, np.zeros(3)])
+    m = path_metrics(t, x, start, goal)
+    assert m.region_margin_deg == pytest.approx(np.degrees(0.2))     # th1 only (n - 1 = 1)
+    assert m.region_margin_all_deg == pytest.approx(np.degrees(0.05))  # th2 included
