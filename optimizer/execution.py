@@ -259,9 +259,27 @@ def replay_form(robot: Robot, form: Form, p: np.ndarray, q0: np.ndarray,
     """The original model under ``form`` with parameters ``p`` (cascade quadrature, panels
     between the form's knots)."""
     K = form.knots.size - 1
-    return integrate_cascade(robot, lambda t: form.u(p, t), q0, form.T, t_eval, form.knots,
-                             nodes=REPLAY_NODES, initial_panels=1,
+    return integrate_cascade(robot, lambda t: form.u(p, t), q0, form.T, t_eval,
+                             kinks(form, p), nodes=REPLAY_NODES, initial_panels=1,
                              max_panels=4 * K + 2048)
+
+
+def kinks(form: Form, p: np.ndarray) -> np.ndarray:
+    """The knots where ``u`` under ``p`` is not smooth: the panels of a replay need start only
+    there. For the linear rule a knot where ``u`` is continuous with the same slope on both
+    sides (to rounding: the rows of a piecewise-constant plan between its breaks) is not one;
+    the integrand is still evaluated exactly, so this only saves panels."""
+    knots = form.knots
+    if form.rule != "linear" or knots.size <= 2:
+        return knots
+    a, b = p[form.idx[:, 0]], p[form.idx[:, 1]]
+    h = np.diff(knots)
+    tol = 1e-12 * (1.0 + float(np.max(np.abs(p))))
+    jump = np.max(np.abs(b[:-1] - a[1:]), axis=1)
+    bend = np.max(np.abs((b[:-1] - a[:-1]) / h[:-1, None] - (b[1:] - a[1:]) / h[1:, None]),
+                  axis=1) * np.minimum(h[:-1], h[1:])
+    smooth = (jump <= tol) & (bend <= tol)
+    return np.concatenate([knots[:1], knots[1:-1][~smooth], knots[-1:]])
 
 
 def _jacobian(robot: Robot, form: Form, p: np.ndarray, q: np.ndarray, rows: int) -> np.ndarray:
