@@ -7,11 +7,11 @@ different ``dphi`` by three backends, each set up ONCE and then re-solved:
 ``clarabel-fresh``
     Clarabel's own Python API, a fresh ``clarabel.DefaultSolver`` per solve from
     scipy.sparse CSC data (:func:`optimizer.planner.convex.solve_qp` with
-    ``PERSISTENT_SOLVERS = False``).
+    ``persistent=False``).
 ``clarabel-persistent``
     The same, but one solver per problem shape, built once and then updated in place
     (``solver.update(A=..., b=...)``, presolve off, structural zeros kept): what convex.py uses
-    (``PERSISTENT_SOLVERS = True``).
+    (``persistent=True``).
 ``cvxpy-dpp``
     One ``cvxpy.Problem`` built once with ``Parameter`` G and h (DPP-compliant, so re-solves
     skip canonicalisation), solved by Clarabel through cvxpy.
@@ -75,8 +75,7 @@ class CvxpyDPP:
 def clarabel_via_convex(persistent: bool):
     """convex.py's own solve path, with or without solver reuse."""
     def solve(G: np.ndarray, h: np.ndarray) -> np.ndarray:
-        convex.PERSISTENT_SOLVERS = persistent
-        status, y, _ = convex.solve_qp(G, h)
+        status, y, _ = convex.solve_qp(G, h, persistent=persistent)
         assert y is not None, status
         return y
     return solve
@@ -136,7 +135,6 @@ def main() -> None:
         q = np.quantile(times[name], [0.1, 0.9])
         medians[name] = statistics.median(times[name])
         print(f"{name:34s} {medians[name] * 1e3:8.3f}ms {q[0] * 1e3:8.3f}ms {q[1] * 1e3:8.3f}ms")
-    convex.PERSISTENT_SOLVERS = True
     fastest = min(medians, key=medians.__getitem__)
     print(f"fastest: {fastest}; cvxpy-dpp / fastest = "
           f"{medians['cvxpy-dpp (Clarabel)'] / medians[fastest]:.2f}")

@@ -21,6 +21,7 @@ from optimizer.planner.intervals import dphi_grid
 from optimizer.planner.context import Deadline
 from optimizer.planner.family import family_for
 from optimizer.planner.plan import plan
+from optimizer.planner import qp
 from optimizer.planner.retimed import RETIME_SIGMA_SAMPLES
 from optimizer.planner.rules import phi_search_bounds
 from optimizer.problem import PlanRequest
@@ -37,7 +38,7 @@ def test_csc_matches_scipy() -> None:
         A = rng.normal(size=shape)
         A[rng.uniform(size=shape) < 0.6] = 0.0
         A[:, 1] = 0.0                                       # an empty column
-        ours = retime._Csc.from_dense(A)
+        ours = qp.Csc.from_dense(A)
         ref = sparse.csc_matrix(A)
         ref.sort_indices()
         assert ours.shape == ref.shape and ours.nnz == ref.nnz
@@ -51,13 +52,13 @@ def test_time_law_scipy_fallback_agrees(monkeypatch: pytest.MonkeyPatch) -> None
     f = lambda s: 0.2 + 0.4 * s + 0.15 * np.sin(7 * s)  # noqa: E731 - a th1 with a backtrack
     law = retime.optimal_time_law(f, 0.2, 0.6)
 
-    class Strict(retime._Csc):  # a Clarabel that reads scipy's own attributes only
+    class Strict(qp.Csc):  # a Clarabel that reads scipy's own attributes only
         def __getattribute__(self, name: str) -> object:
             if name == "has_canonical_format":
                 raise AttributeError(name)
             return object.__getattribute__(self, name)
 
-    monkeypatch.setattr(retime._Csc, "from_dense", classmethod(
+    monkeypatch.setattr(qp.Csc, "from_dense", classmethod(
         lambda cls, A: Strict(*(lambda c: (c.data, c.indices, c.indptr, c.shape))(
             sparse.csc_matrix(A)))))
     ref = retime.optimal_time_law(f, 0.2, 0.6)

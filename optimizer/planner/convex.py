@@ -108,24 +108,22 @@ shared with other jobs), median per solve from the assembled ``(G, h)`` to the s
 (the three agree to 1e-11; the assembly itself, common to all, takes ~1.5 ms). cvxpy's problem
 is built once per (n, m, grid size) and re-solves skip canonicalisation, but its per-solve
 parameter mapping and solution retrieval cost more than Clarabel's own setup at this size, so
-the direct API is kept; :data:`PERSISTENT_SOLVERS` switches solver reuse off.
+the direct API is kept; ``solve_qp(..., persistent=False)`` switches solver reuse off
+(:mod:`.qp` holds the Clarabel wrapper).
 """
 
 from __future__ import annotations
 
 import functools
 import math
-import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import casadi as ca
-import clarabel
 import numpy as np
 from numpy.polynomial import legendre as Leg
 from numpy.polynomial import polynomial as P
-from scipy import sparse
 from scipy.linalg import null_space
 from scipy.optimize import minimize_scalar
 
@@ -138,6 +136,7 @@ from ..region import PathCheck, Region
 from ..results import Plan
 from ..steering import (MIN_ABS_DPHI, ChainedPath, ConstraintPoint, InputSchedule, affine_basis,
                         solve_polynomial)
+from . import qp
 from .family import SEARCH_SAMPLES, PolynomialFamily
 from .intervals import feasible_intervals
 from .base import Capabilities, Method
@@ -255,59 +254,11 @@ def level_maps(robot: Robot) -> LevelMaps:
     return LevelMaps(chained_form(robot))
 
 
-#: Reuse one Clarabel solver per problem shape (updated in place) instead of building one per
-#: solve; see the module docstring for the measured gain. Per thread: a solver is not shareable.
-PERSISTENT_SOLVERS = True
-_SOLVERS = threading.local()
-
-
-def _dense_csc(G: np.ndarray) -> sparse.csc_matrix:
-    """CSC storing every entry (explicit zeros too): one sparsity pattern per shape."""
-    r, d = G.shape
-    return sparse.csc_matrix((G.ravel(order="F"), np.tile(np.arange(r), d),
-                              np.arange(0, r * d + 1, r)), shape=(r, d))
-
-
-def _clarabel_solve(Pd: np.ndarray, q: np.ndarray, G: np.ndarray, h: np.ndarray) -> Any:
-    """``min 1/2 x' diag(Pd) x + q' x  s.t.  G x <= h`` with Clarabel's Python API.
-
-    With :data:`PERSISTENT_SOLVERS` a solver built for the same shape and objective is updated
-    in place (``solver.update``: new A and b values, same dense pattern); presolve is off and
-    structural zeros are kept so that updates stay allowed. A solver whose solve did not end
-    Solved is dropped, so that a next problem never inherits its state.
-    """
-    settings = clarabel.DefaultSettings()
-    settings.verbose = False
-    settings.presolve_enable = False
-    settings.input_sparse_dropzeros = False
-    cones = [clarabel.NonnegativeConeT(G.shape[0])]
-    if not PERSISTENT_SOLVERS:
-        solver = clarabel.DefaultSolver(sparse.diags(Pd, format="csc"), q, _dense_csc(G), h,
-                                        cones, settings)
-        return solver.solve()
-    cache = getattr(_SOLVERS, "cache", None)
-    if cache is None:
-        cache = _SOLVERS.cache = {}
-    key = (G.shape, Pd.tobytes(), q.tobytes())
-    solver = cache.get(key)
-    if solver is None:
-        if len(cache) > 32:  # shapes of old cut rounds: keep the cache small
-            cache.clear()
-        solver = clarabel.DefaultSolver(sparse.diags(Pd, format="csc"), q, _dense_csc(G), h,
-                                        cones, settings)
-        cache[key] = solver
-    else:
-        solver.update(A=G.ravel(order="F"), b=h)
-    sol = solver.solve()
-    if not str(sol.status).endswith("Solved") or str(sol.status).endswith("AlmostSolved"):
-        cache.pop(key, None)
-    return sol
-
-
 def solve_qp(G: np.ndarray, h: np.ndarray, margin_column: np.ndarray | None = None,
-             margin_cap: float = np.inf, regularisation: float = 1e-4
-             ) -> tuple[str, np.ndarray | None, float]:
-    """``min 1/2 ||y||^2  s.t.  G y <= h`` with Clarabel's Python API.
+             margin_cap: float = np.inf, regularisation: float = 1e-4,
+             persistent: bool = True) -> tuple[str, np.ndarray | None, float]:
+    """``min 1/2 ||y||^2  s.t.  G y <= h`` with Clarabel's Python API (``persistent``: reuse
+    the solver of the same shape, updated in place, :func:`.qp.solve_nonneg_persistent`).
 
     With ``margin_column`` (one entry per row of ``G``) the margin variant is solved instead:
     ``min -t + regularisation/2 ||y||^2  s.t.  G y + margin_column t <= h,  t <= margin_cap``.
@@ -343,7 +294,8 @@ def solve_qp(G: np.ndarray, h: np.ndarray, margin_column: np.ndarray | None = No
     # row scaling: rows of z_{n+1} carry dphi^(n-1); Clarabel equilibrates too, this is cheap help
     G = G / nrm[:, None]
     h = h / nrm
-    sol = _clarabel_solve(Pd, q, G, h)
+    sol = qp.solve_nonneg_persistent(Pd, q, G, h) if persistent else qp.solve(
+        qp.diagonal(Pd), q, qp.dense_csc(G), h)
     status = str(sol.status).split(".")[-1]
     if status not in ("Solved", "AlmostSolved"):
         return status, None, math.nan

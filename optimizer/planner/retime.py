@@ -31,13 +31,13 @@ import functools
 from dataclasses import dataclass
 from typing import Callable
 
-import clarabel
 import numpy as np
-from scipy import sparse
 from scipy.special import comb
 
 from ..errors import NumericalError
 from ..steering import ChainedPath, InputSchedule
+from . import qp
+from .qp import Csc
 
 #: Pieces of the piecewise-linear time law.
 PIECES = 8
@@ -132,15 +132,7 @@ def optimal_time_law(th1_of_sigma: Callable[[np.ndarray], np.ndarray], a: float,
     r: np.ndarray = lp.off - np.diff(knots)
     q = lp.reg_DdT @ r
     q[-1] += 1.0
-    settings = clarabel.DefaultSettings()
-    settings.verbose = False
-    try:
-        solver = clarabel.DefaultSolver(lp.P, q.tolist(), _Csc.from_dense(G), h.tolist(),
-                                        [clarabel.NonnegativeConeT(G.shape[0])], settings)
-    except (AttributeError, TypeError):  # a Clarabel that wants scipy's own class
-        solver = clarabel.DefaultSolver(lp.P.to_scipy(), q, sparse.csc_matrix(G), h,
-                                        [clarabel.NonnegativeConeT(G.shape[0])], settings)
-    sol = solver.solve()
+    sol = qp.solve(lp.P, q, Csc.from_dense(G), h)
     if str(sol.status) not in ("Solved", "AlmostSolved"):
         raise NumericalError(f"the time-law LP did not solve ({sol.status})",
                              diagnostics={"status": str(sol.status)})
@@ -149,36 +141,6 @@ def optimal_time_law(th1_of_sigma: Callable[[np.ndarray], np.ndarray], a: float,
     # guard against round-off: strictly increasing by construction of the constraints
     tau = np.maximum.accumulate(tau)
     return TimeLaw(knots_tau=tau, knots_sigma=knots, deviation=float(x[-1]), bound=bound)
-
-
-class _Csc:
-    """A CSC matrix with the attributes Clarabel reads (``data``, ``indices``, ``indptr``,
-    ``nnz``, ``shape``, ``has_canonical_format``): built from a small dense matrix in a few
-    microseconds, where scipy's constructors (format checks, COO round trip) take ~40 us.
-    Canonical: row indices sorted within each column, no duplicates, explicit zeros dropped
-    (the same arrays as ``scipy.sparse.csc_matrix(dense)``)."""
-
-    has_canonical_format = True
-
-    def __init__(self, data: np.ndarray, indices: np.ndarray, indptr: np.ndarray,
-                 shape: tuple[int, int]) -> None:
-        # Python lists: Clarabel copies the entries out one by one, and from a list of Python
-        # numbers that is several times cheaper than from a numpy array (a scalar object each)
-        self.data: list[float] = np.asarray(data, float).tolist()
-        self.indices: list[int] = np.asarray(indices).tolist()
-        self.indptr: list[int] = np.asarray(indptr).tolist()
-        self.nnz = int(self.indptr[-1])
-        self.shape = shape
-
-    @classmethod
-    def from_dense(cls, A: np.ndarray) -> "_Csc":
-        mask = A.T != 0.0                                   # (columns, rows): column-major
-        indptr = np.zeros(A.shape[1] + 1, np.int64)
-        np.cumsum(np.count_nonzero(mask, axis=1), out=indptr[1:])
-        return cls(A.T[mask], np.nonzero(mask)[1], indptr, (A.shape[0], A.shape[1]))
-
-    def to_scipy(self) -> sparse.csc_matrix:
-        return sparse.csc_matrix((self.data, self.indices, self.indptr), shape=self.shape)
 
 
 @dataclass(frozen=True)
@@ -192,7 +154,7 @@ class _LpStructure:
     neg_Dd: np.ndarray     # (K, K): minus the piece durations' matrix (tau_j - tau_{j-1})
     off: np.ndarray        # the durations' constant part (tau_K = 1)
     reg_DdT: np.ndarray    # 2 rho Dd^T (the regulariser's linear term is reg_DdT @ r)
-    P: _Csc                # upper triangle of 2 rho Dd^T Dd
+    P: Csc                # upper triangle of 2 rho Dd^T Dd
 
 
 @functools.lru_cache(maxsize=8)
@@ -216,7 +178,7 @@ def _lp_structure(K: int, M: int) -> _LpStructure:
     off[-1] = 1.0
     reg_DdT = 2.0 * REGULARISATION * Dd.T
     out = _LpStructure(j, ww, np.ascontiguousarray(coef[:, :-1]), const, -Dd, off, reg_DdT,
-                       _Csc.from_dense(np.triu(reg_DdT @ Dd)))
+                       Csc.from_dense(np.triu(reg_DdT @ Dd)))
     for arr in (j, ww, out.coef, const, out.neg_Dd, off, reg_DdT):
         arr.flags.writeable = False                     # shared between calls
     return out
