@@ -56,7 +56,7 @@ import functools
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence, TypeVar
 
 import casadi as ca
 import numpy as np
@@ -83,6 +83,9 @@ class Transcription:
     substeps: int
     rate_bound: float
 
+
+
+SolutionT = TypeVar("SolutionT")
 
 #: Tried in order until one NLP converges. The first: 20 intervals, one RK4 step each, at most
 #: 0.5 rad per interval (without a bound the NLP found a spurious optimum with phi moving 2 rad
@@ -487,6 +490,26 @@ def rungs(req: PlanRequest) -> list[tuple[Transcription, tuple[float, float] | N
     return out
 
 
+def solve_rungs(req: PlanRequest,
+                solve: Callable[[Transcription, tuple[float, float] | None], SolutionT]
+                ) -> tuple[SolutionT, Transcription, tuple[float, float] | None,
+                           list[dict[str, Any]]]:
+    """The first solution of ``solve`` over :func:`rungs`: ``(solution, transcription, signs,
+    attempts of the rungs that failed)``; :class:`InfeasibleError` naming every rung when none
+    converged (a finer or free rung may converge where one failed)."""
+    failures: list[str] = []
+    tried: list[dict[str, Any]] = []
+    for tr, signs in rungs(req):
+        try:
+            return solve(tr, signs), tr, signs, tried
+        except InfeasibleError as exc:
+            failures.append(f"{tr.intervals} intervals" + (" (monotone)" if signs else "")
+                            + f": {exc.message}")
+            tried.extend(exc.diagnostics.get("tried", []))
+    raise InfeasibleError("; ".join(failures),
+                          diagnostics={"blocking": "nlp_failed", "tried": tried})
+
+
 def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard") -> MultipleShootingNLP:
     """The cached NLP of ``req``'s robot under transcription ``tr``."""
     return multiple_shooting_nlp(tuple(float(k) for k in req.robot.gains),
@@ -653,6 +676,6 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
 __all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "DeadlineCallback", "INFEASIBLE",
            "IPOPT_OPTIONS", "LADDER", "MARGIN", "MultipleShootingNLP", "REGION_MODES", "SUCCESS",
            "SolveOutcome", "TIMEOUT", "Transcription", "classify", "correct_rates", "error_for",
-           "fatrop_options", "ipopt_options", "multiple_shooting_nlp", "nlp_for", "node_bounds", "rungs",
+           "fatrop_options", "ipopt_options", "multiple_shooting_nlp", "nlp_for", "node_bounds", "rungs", "solve_rungs",
            "objective_weights", "parameters", "run_solver", "sensitivity_frobenius",
            "variable_bounds"]

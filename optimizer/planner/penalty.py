@@ -287,19 +287,9 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
             field="constraint_points")
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
-    failures: list[str] = []
-    tried: list[dict[str, Any]] = []
-    for tr, signs in nlp_layer.rungs(req):
-        try:
-            sol = solve_penalty(req, deadline, tr, warm_start=warm_start, rate_signs=signs)
-            break
-        except InfeasibleError as exc:  # a finer or free transcription may still converge
-            failures.append(f"{tr.intervals} intervals" + (" (monotone)" if signs else "")
-                            + f": {exc.message}")
-            tried.extend(exc.diagnostics.get("tried", []))
-    else:
-        raise InfeasibleError("; ".join(failures),
-                              diagnostics={"blocking": "nlp_failed", "tried": tried})
+    sol, tr, signs, tried = nlp_layer.solve_rungs(
+        req, lambda tr, rate_signs: solve_penalty(req, deadline, tr, warm_start=warm_start,
+                                                  rate_signs=rate_signs))
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the penalty NLP")
     t1 = time.perf_counter()

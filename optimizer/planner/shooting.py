@@ -190,23 +190,10 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
             field="constraint_points")
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
-    failures: list[str] = []
-    tried: list[dict[str, Any]] = []
-    # Under the default objective (fewest reversals first) a plan in which no actuator
-    # reverses wins whatever its deviation: the NLP with rates of fixed signs first, then with
-    # phi's sign alone fixed, then free.
-    rungs = nlp_layer.rungs(req)
-    for tr, mono in rungs:
-        try:
-            sol = solve_shooting(req, deadline, tr, mono)
-            break
-        except InfeasibleError as exc:  # a finer or free transcription may still converge
-            failures.append(f"{tr.intervals} intervals" + (" (monotone)" if mono else "")
-                            + f": {exc.message}")
-            tried.extend(exc.diagnostics.get("tried", []))
-    else:
-        raise InfeasibleError("; ".join(failures),
-                              diagnostics={"blocking": "nlp_failed", "tried": tried})
+    # the rungs (nlp.rungs): under the default objective rates of fixed signs first (a plan
+    # in which no actuator reverses wins whatever its deviation), then free
+    sol, tr, mono, tried = nlp_layer.solve_rungs(
+        req, lambda tr, signs: solve_shooting(req, deadline, tr, signs))
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
     t1 = time.perf_counter()
