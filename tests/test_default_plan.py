@@ -157,3 +157,54 @@ def test_unknown_method_names_the_field() -> None:
     with pytest.raises(InvalidRequestError) as exc:
         plan(PlanRequest(start=start, goal=goal, method="magic"))
     assert exc.value.field == "method"
+
+
+@pytest.mark.parametrize("n", [3, 4, 5])
+def test_the_monotone_reach_bound_never_rules_out_a_reached_goal(n) -> None:
+    """Goals reached by the original model under rates of fixed signs (scipy, the independent
+    reference model) always pass the necessary condition that lets the planner skip an NLP."""
+    from optimizer.planner.rules import monotone_reach_ok
+
+    robot = Robot.default(n)
+    rng = np.random.default_rng(n)
+    checked = 0
+    for _ in range(200):
+        th0 = rng.uniform(R(10), R(80), size=n)
+        s1 = rng.choice([-1.0, 1.0])
+        c = rng.uniform(0.1, 0.6, size=(2, 3))
+        th1_monotone = bool(rng.integers(2))
+        s2 = rng.choice([-1.0, 1.0])
+
+        def u(t: float) -> np.ndarray:
+            u1 = s1 * (c[0, 0] + c[0, 1] * t + c[0, 2] * t * t)
+            u2 = (s2 * (c[1, 0] + c[1, 1] * t) if th1_monotone
+                  else 1.5 * math.sin(2 * math.pi * (c[1, 2] + t)))
+            return np.array([u1, u2])
+
+        sol = solve_ivp(lambda t, q: model_rhs(q, u(t), robot.gains, robot.exponents),
+                        (0.0, 1.0), np.concatenate([[0.0], th0]), method="DOP853",
+                        rtol=1e-11, atol=1e-12, dense_output=True)
+        th = sol.sol(np.linspace(0.0, 1.0, 2001))[1:].T
+        if not (th.min() > 0.0 and th.max() < HALF_PI):
+            continue
+        req = PlanRequest(start=tuple(th0), goal=tuple(th[-1]), robot=robot)
+        assert monotone_reach_ok(req, False)
+        if th1_monotone:
+            assert monotone_reach_ok(req, True)
+        checked += 1
+    assert checked >= 40
+
+
+def test_the_bound_rules_out_a_monotone_th1_on_the_worked_example() -> None:
+    """[10, 10, 10] -> [30, 30, 30] deg: with th1 and th2 monotone from 10 to 30 deg, th3 can
+    move at most (K3 / K2) int_10^30 cos^3 / cos^2(30 deg) ~ 17 deg, not 20: th1 must overshoot
+    (the paper's t_p = 1 there)."""
+    from optimizer.planner.rules import monotone_reach_ok
+
+    req = PlanRequest(start=tuple(map(R, (10, 10, 10))), goal=tuple(map(R, (30, 30, 30))))
+    K2, K3 = req.robot.gains
+    x = np.linspace(R(10), R(30), 100001)
+    reach = K3 / K2 * np.trapezoid(np.cos(x) ** 3, x) / math.cos(R(30)) ** 2
+    assert math.degrees(reach) < 20.0
+    assert not monotone_reach_ok(req, True)
+    assert monotone_reach_ok(req, False)

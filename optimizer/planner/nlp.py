@@ -68,7 +68,7 @@ from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, Plan
                       SolverTimeoutError)
 from ..problem import MAX_TIME_LIMIT, PlanRequest
 from ..region import Region
-from .rules import monotone_signs
+from .rules import monotone_reach_ok, monotone_signs
 from ..verify import integrate_cascade
 
 
@@ -485,8 +485,10 @@ def rungs(req: PlanRequest) -> list[tuple[Transcription, tuple[float, float] | N
     out: list[tuple[Transcription, tuple[float, float] | None]] = [(t, None) for t in LADDER]
     signs = monotone_signs(req) if req.objective == "reversals_then_deviation" else None
     if signs is not None:
-        out[:0] = (([(LADDER[0], signs)] if signs[1] != 0.0 else [])
-                   + [(LADDER[0], (signs[0], 0.0))])
+        # only the rungs the goal's reach does not rule out (monotone_reach_ok)
+        out[:0] = (([(LADDER[0], signs)] if signs[1] != 0.0 and monotone_reach_ok(req, True)
+                    else [])
+                   + ([(LADDER[0], (signs[0], 0.0))] if monotone_reach_ok(req, False) else []))
     return out
 
 

@@ -84,6 +84,53 @@ def phi_search_bounds(req: PlanRequest) -> tuple[float, float]:
     return lo, hi
 
 
+#: Gauss-Legendre nodes of the integrals in :func:`monotone_reach_ok` (smooth integrands).
+_GL = np.polynomial.legendre.leggauss(24)
+
+
+def _cos_power_integral(a: float, b: float, m: int) -> float:
+    """``int_a^b cos(x)^m dx`` (signed)."""
+    x, w = _GL
+    mid, half = 0.5 * (a + b), 0.5 * (b - a)
+    return float(half * np.sum(w * np.cos(mid + half * x) ** m))
+
+
+def monotone_reach_ok(req: PlanRequest, th1_monotone: bool) -> bool:
+    """A necessary condition for a path in which ``phi`` does not reverse (and, with
+    ``th1_monotone``, neither does ``th_1``) to reach the goal.
+
+    With ``phi`` monotone every ``th_i`` (i >= 2) is monotone, so it stays between its start
+    and goal, and along the path ``dth_{i+1} / dth_i = K_{i+1} cos(th_i)^{m_{i+1}} /
+    (K_i cos(th_{i-1})^{m_i})``. With ``th_{i-1}`` confined to a range where ``cos^{m_i}`` lies
+    in ``[c_lo, c_hi]``, ``|dth_{i+1}|`` lies between ``K_{i+1}/K_i |int cos^{m_{i+1}} dth_i|``
+    divided by ``c_hi`` and by ``c_lo``. ``th_1`` is confined to its start..goal range when it is
+    monotone, else to its limits. A goal outside these bounds cannot be reached that way: the
+    NLP need not be asked (it takes tens of iterations to give up).
+    """
+    n = req.n
+    a, b = np.array(req.start, float), np.array(req.goal, float)
+    lo_lim, hi_lim = joint_limits(req)
+    K, m = req.robot.gains, req.robot.exponents
+    if np.any(a[1:] == b[1:]):
+        return False  # th_i' = K_i cos(.)^m u1 != 0 while phi moves: th_i must change
+    for i in range(2, n):  # joints th_i -> th_{i+1}, 1-based; arrays 0-based
+        prev = i - 2                                   # th_{i-1}
+        if prev == 0 and not th1_monotone:
+            r_lo, r_hi = max(lo_lim[0], 0.0), min(hi_lim[0], HALF_PI)
+        else:
+            r_lo, r_hi = min(a[prev], b[prev]), max(a[prev], b[prev])
+        c_hi, c_lo = np.cos(r_lo) ** m[i - 2], np.cos(r_hi) ** m[i - 2]
+        integral = abs(_cos_power_integral(a[i - 1], b[i - 1], m[i - 1]))
+        ratio = K[i - 1] / K[i - 2]
+        need = abs(b[i] - a[i])
+        low = ratio * integral / c_hi
+        if need < low * (1.0 - 1e-9):
+            return False
+        if c_lo > 0.0 and need > ratio * integral / c_lo * (1.0 + 1e-9):
+            return False
+    return True
+
+
 def monotone_signs(req: PlanRequest) -> tuple[float, float] | None:
     """Signs of ``(u1, u2)`` of a plan in which neither actuator reverses, or None when the
     goal needs ``phi`` to reverse (:func:`direction_conflict`).
