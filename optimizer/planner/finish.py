@@ -142,12 +142,12 @@ def _duration(req: PlanRequest, cf: Any, chained: ChainedPath) -> float:
     return req.duration_for_rates(np.max(np.abs(U), axis=0))
 
 
-def output_grid(samples: int, breaks: np.ndarray) -> np.ndarray:
-    """Where the path is wanted, in units of ``breaks``: the returned samples, the indicators'
-    dense grid and the interval ends (the region check)."""
+def output_grid(breaks: np.ndarray) -> np.ndarray:
+    """Where the exact replay of an actuator-rate plan is wanted, in units of ``breaks``: the
+    indicators' dense grid and the interval ends (the region check). The handed-out samples
+    come from the replay of their own form (:mod:`optimizer.execution`)."""
     T = float(breaks[-1])
-    return np.concatenate([np.linspace(0.0, T, int(samples)),
-                           np.linspace(0.0, T, INDICATOR_SAMPLES), breaks])
+    return np.concatenate([np.linspace(0.0, T, INDICATOR_SAMPLES), breaks])
 
 
 def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: str,
@@ -158,8 +158,9 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
     ``replay`` is the original model integrated under the schedule's rates (cascade quadrature,
     error estimate <= 1e-11 rad, DOP853 as fallback) in normalised time (``t / T``: the model
     is driftless, the path is the same), on :func:`output_grid` of the normalised breaks:
-    samples, indicators, the region check at the interval ends (enough, see the module
-    docstring) and the terminal error all come from it. ``planned_nodes`` (the NLP's own node
+    indicators, the region check at the interval ends (enough: every joint is monotone between
+    them, see :mod:`.shooting`) and the terminal error come from it; the handed-out samples
+    from the replay of their own form (:func:`optimizer.execution.execute`). ``planned_nodes`` (the NLP's own node
     states) give the verification's ``max_deviation``.
 
     Raises
@@ -170,17 +171,14 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
         The true path does not reach the goal.
     """
     robot = req.robot
-    cf = chained_form(robot)
     T = schedule.duration
     q0 = req.q_start()
-    t = np.linspace(0.0, T, int(req.samples))
     td = np.linspace(0.0, T, INDICATOR_SAMPLES)
     rep = replay
     if not rep.success:
         raise NumericalError(f"the re-integration failed: {rep.message}",
                              diagnostics={"method": method})
-    ns, nd = t.size, td.size
-    q, qd, qb = rep.q[:ns], rep.q[ns:ns + nd], rep.q[ns + nd:]
+    qd, qb = rep.q[:td.size], rep.q[td.size:]
     lo, hi = joint_limits(req)
     th = qb[:, 1:]
     margins = np.minimum(th - lo, hi - th)

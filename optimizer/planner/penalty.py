@@ -295,7 +295,7 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
     t1 = time.perf_counter()
     nlp = nlp_for(req, tr, "penalty")
     N = sol.rates.shape[0]
-    grid = output_grid(req.samples, np.linspace(0.0, 1.0, N + 1))
+    grid = output_grid(np.linspace(0.0, 1.0, N + 1))
     rates, errors, replay = nlp_layer.correct_rates(req, nlp, sol.rates,
                                                     float(sol.nodes[-1, 0]), grid)
     timing["correction_and_verification"] = time.perf_counter() - t1

@@ -176,7 +176,7 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
                   phi_end: float) -> tuple[np.ndarray, list[float], Any]:
     """:func:`optimizer.planner.nlp.correct_rates` with the replay on :func:`output_grid`
     (what :func:`finish_actuator_plan` reads)."""
-    grid = output_grid(req.samples, np.linspace(0.0, 1.0, rates.shape[0] + 1))
+    grid = output_grid(np.linspace(0.0, 1.0, rates.shape[0] + 1))
     return nlp_layer.correct_rates(req, nlp, rates, phi_end, grid)
 
 
