@@ -67,7 +67,6 @@ from ..dynamics import rk4_step, vector_field
 from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, PlannerError,
                       SolverTimeoutError)
 from ..problem import MAX_TIME_LIMIT, PlanRequest
-from ..region import Region
 from .rules import monotone_reach_ok, monotone_signs
 from ..verify import integrate_cascade
 

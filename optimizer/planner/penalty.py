@@ -58,7 +58,7 @@ from ..actuation import ActuatorSchedule
 from ..chained_form import chained_form
 from ..errors import InfeasibleError, InvalidRequestError, SolverTimeoutError
 from ..problem import PlanRequest
-from ..region import HALF_PI, Region
+from ..region import Region
 from ..results import Plan
 from ..steering import ChainedPath, InputSchedule
 from ..verify import integrate_cascade

@@ -16,7 +16,7 @@ from .family import PolynomialFamily, family_for
 from .finish import finish_plan
 from .intervals import feasible_intervals
 from .objectives import optimise
-from .rules import direction_conflict, make_region, phi_search_bounds
+from .rules import phi_search_bounds
 
 
 def plan_polynomial(req: PlanRequest, deadline: Deadline) -> Plan:

@@ -72,12 +72,9 @@ from typing import Any
 import numpy as np
 
 from ..actuation import ActuatorSchedule
-from ..chained_form import chained_form
-from ..errors import InfeasibleError, InvalidRequestError, NumericalError, SolverTimeoutError
-from ..indicators import compute_indicators
+from ..errors import InfeasibleError, InvalidRequestError, SolverTimeoutError
 from ..problem import PlanRequest
 from ..results import Plan
-from ..verify import CASCADE_TOL, Verification
 from . import nlp as nlp_layer
 from .nlp import (CORRECTION_TARGET, D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, MARGIN,
                   MultipleShootingNLP, Transcription, multiple_shooting_nlp, nlp_for,
