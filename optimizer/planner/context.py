@@ -7,7 +7,7 @@ the ranking and the orchestrator can use it without an import circle.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from ..errors import SolverTimeoutError
@@ -61,14 +61,7 @@ class PlanContext:
         The inputs of a verified plan already in hand (an
         :class:`~optimizer.steering.InputSchedule` or
         :class:`~optimizer.actuation.ActuatorSchedule`); a method that can start from it may.
-    notes : dict
-        Free-form facts a method leaves for the orchestrator (never read by another method).
     """
 
     deadline: Deadline
     warm_start: Any = None
-    notes: dict[str, Any] = field(default_factory=dict)
-
-    @classmethod
-    def for_seconds(cls, seconds: float) -> "PlanContext":
-        return cls(Deadline(seconds))

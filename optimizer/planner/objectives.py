@@ -478,16 +478,9 @@ def optimise_geometry(family: PolynomialFamily, intervals: list[tuple[float, flo
     few reversals), and the continuous check of the result; the next best node when that check
     fails.
     """
-    pieces = []
-    widths = np.array([b - a for a, b in intervals])
-    total = float(widths.sum())
-    for (a, b), w in zip(intervals, widths):
-        k = max(3, int(round(GEOMETRY_NODES * w / total)) if total > 0 else 3)
-        eps = min(1e-7, 0.25 * (b - a))
-        pieces.append(np.linspace(a + eps, b - eps, k))
-    if not pieces:
+    if not intervals:
         return None
-    nodes = np.concatenate(pieces)
+    nodes = window_nodes(intervals, GEOMETRY_NODES)
     rev, dev = _geometry_keys(family, nodes)
     order = np.lexsort((dev, rev))
     for i in order:
@@ -514,3 +507,16 @@ def optimise_geometry(family: PolynomialFamily, intervals: list[tuple[float, flo
 
 
 _INF_F = float("inf")
+
+
+def window_nodes(intervals: list[tuple[float, float]], count: int) -> np.ndarray:
+    """About ``count`` nodes spread over the intervals in proportion to their widths, each a
+    hair inside (interval ends are on the boundary, margin 0)."""
+    widths = np.array([b - a for a, b in intervals])
+    total = float(widths.sum())
+    out: list[np.ndarray] = []
+    for (a, b), w in zip(intervals, widths):
+        k = max(3, int(round(count * w / total)) if total > 0 else 3)
+        eps = min(1e-7, 0.25 * (b - a))
+        out.append(np.linspace(a + eps, b - eps, k))
+    return np.concatenate(out)

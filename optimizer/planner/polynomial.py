@@ -93,8 +93,6 @@ def closest_feasible(fam: PolynomialFamily, target: float, deadline: Deadline,
     return best
 
 
-
-
 class PolynomialMethod(Method):
     name = "polynomial"
     capabilities = Capabilities(constraint_points=True, fixed_phi_change=True,

@@ -18,7 +18,7 @@ from .context import Deadline, PlanContext
 from .family import family_for
 from .finish import finish_plan
 from .intervals import dphi_grid, feasible_intervals
-from .objectives import optimise
+from .objectives import optimise, window_nodes
 from .retime import SCREEN_TIMES, frechet_bound, optimal_time_law, retimed_path
 from .rules import phi_search_bounds
 
@@ -116,7 +116,7 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
                         "blocking": "no_feasible_phi_change", "searched": [lo, hi]})
             t2 = time.perf_counter()
             if req.objective == "tp_then_da":
-                chosen = by_bound(_window_nodes(feasible, RETIME_CANDIDATES))
+                chosen = by_bound(window_nodes(feasible, RETIME_CANDIDATES))
             else:  # the polynomial method's choice (retiming changes neither t_p nor ||J_R||)
                 best_e = optimise(fam, feasible, req.objective, req.weights)
                 chosen = None if best_e is None else best_e.dphi
@@ -146,21 +146,6 @@ def plan_retimed(req: PlanRequest, deadline: Deadline) -> Plan:
                         "time_law": {"knots_t_over_T": law.knots_tau.tolist(),
                                      "lp_d_a": law.deviation, "d_a_lower_bound": law.bound}},
                        chained=retimed, geometry=path)
-
-
-def _window_nodes(intervals: list[tuple[float, float]], count: int) -> np.ndarray:
-    """About ``count`` nodes spread over the intervals in proportion to their widths, each a
-    hair inside (interval ends are on the boundary, margin 0)."""
-    widths = np.array([b - a for a, b in intervals])
-    total = float(widths.sum())
-    out: list[np.ndarray] = []
-    for (a, b), w in zip(intervals, widths):
-        k = max(3, int(round(count * w / total)) if total > 0 else 3)
-        eps = min(1e-7, 0.25 * (b - a))
-        out.append(np.linspace(a + eps, b - eps, k))
-    return np.concatenate(out)
-
-
 
 
 class RetimedMethod(Method):
