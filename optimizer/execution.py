@@ -330,7 +330,8 @@ def _grid(form: Form) -> np.ndarray:
 
 def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np.ndarray,
             region: Region, t_out: np.ndarray,
-            limits: tuple[float | None, float | None] = (None, None)
+            limits: tuple[float | None, float | None] = (None, None),
+            initial: Replay | None = None
             ) -> tuple[np.ndarray, np.ndarray, ExecutionCheck]:
     """Correct the parameters of ``form`` until the original model under it ends at ``target``.
 
@@ -348,6 +349,10 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
         Bounds of ``|u1|, |u2|`` when the parameters are rates (the linear and the held
         forms): the start is clipped to them and a step changes a rate in proportion to its
         headroom (none at the bound), so the corrected rates stay within them.
+    initial : Replay, optional
+        The original model under ``form`` with ``p0`` (within ``limits``), its last
+        ``len(t_out)`` rows at ``t_out``: the first replay, not integrated again (its rows
+        before those count for the margin).
 
     Returns
     -------
@@ -370,23 +375,32 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
     bounded = np.isfinite(lim)
     if bounded.any():
         p = np.clip(p, -lim, lim)
-    best: tuple[float, np.ndarray, Replay] | None = None
-    initial = math.inf
+        if not np.array_equal(p, p0):  # the given replay is of other rates
+            initial = None
+    best: tuple[float, np.ndarray, Replay, int] | None = None
+    first_error = math.inf
     steps = 0
     errors: list[float] = []
     for k in range(MAX_CORRECTIONS + 1):
-        rep = replay_form(robot, form, p, q0, t_eval)
+        if k == 0 and initial is not None:
+            rep, off = initial, initial.q.shape[0] - t_out.size
+        else:
+            rep, off = replay_form(robot, form, p, q0, t_eval), ng
         if not rep.success:
             break
         r = rep.final - target
         err = float(np.max(np.abs(r)))
         if k == 0:
-            initial = float(np.max(np.abs(r[1:])))
+            first_error = float(np.max(np.abs(r[1:])))
         errors.append(err)
         if best is None or err < best[0]:
-            best, steps = (err, p, rep), k
+            best, steps = (err, p, rep, off), k
         if err <= CORRECTION_TARGET or k == MAX_CORRECTIONS:
             break
+        if off != ng:  # the given first replay has no states on the Jacobian's grid
+            rep = replay_form(robot, form, p, q0, t_eval)
+            if not rep.success:
+                break
         J = _jacobian(robot, form, p, rep.q[:ng], rows)          # (n+1, rows, 2)
         scale = np.repeat(sw[:, None], 2, axis=1)
         if bounded.any():
@@ -398,18 +412,18 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
     if best is None:
         raise NumericalError(f"the {form.rule} form could not be integrated: {rep.message}",
                              diagnostics={"rule": form.rule})
-    _, p, rep = best
+    _, p, rep, off = best
     lo, hi = np.asarray(region.lower, float), np.asarray(region.upper, float)
     th = rep.q[:, 1:]
     margin = float(np.min(np.minimum(th - lo, hi - th)))
     check = ExecutionCheck(
         rule=form.rule, terminal_error=float(np.max(np.abs(rep.final[1:] - target[1:]))),
         phi_error=abs(float(rep.final[0] - target[0])), margin=margin,
-        singular=bool(rep.singular), initial_terminal_error=initial, corrections=steps,
+        singular=bool(rep.singular), initial_terminal_error=first_error, corrections=steps,
         errors=tuple(errors),
         error_estimate=rep.error_estimate, integrator=rep.integrator or CASCADE_NAME,
         final=tuple(float(x) for x in rep.final))
-    return p, rep.q[ng:], check
+    return p, rep.q[off:], check
 
 
 # ---------------------------------------------------------------------- sample grids
@@ -558,8 +572,22 @@ def check_period(req: PlanRequest, T: float) -> None:
             f"T = {T:.6g} s, more than {MAX_SAMPLES}", field="controller_period")
 
 
+def piece_values(form: Form, u_exact: Uexact) -> np.ndarray:
+    """The linear form's samples of rates that are constant between the form's knots: each
+    row the value of the (positive-length) interval it bounds, read at the interval's middle.
+    A doubled sample at a break takes the value before it (first copy) and after it (second),
+    so the form holds such rates exactly."""
+    mid = 0.5 * (form.knots[:-1] + form.knots[1:])
+    vals = np.asarray(u_exact(mid), float)
+    p = np.zeros((int(form.idx.max()) + 1, 2))
+    p[form.idx[:, 1]] = vals
+    p[form.idx[:, 0]] = vals
+    return p
+
+
 def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
-            phi_end: float, region: Region | None = None) -> Execution:
+            phi_end: float, region: Region | None = None, *,
+            constant: Replay | None = None) -> Execution:
     """The handed-out forms of a verified plan: sampled, corrected onto the goal, re-integrated.
 
     Parameters
@@ -576,6 +604,12 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
         ``phi(T)`` of the plan (the forms end there too).
     region : Region, optional
         The region the executed forms must stay in (default: the request's full region).
+    constant : Replay, optional
+        Only for rates that are constant between ``breaks``: the original model under them,
+        its last rows at :func:`linear_times` ``(T, req.samples, breaks)``. The linear form
+        (each inner break a doubled sample) then holds the rates exactly: its samples are the
+        rates (no projection) and this replay is the form's own first replay (not integrated
+        twice). Ignored on a controller period.
 
     Raises
     ------
@@ -601,9 +635,14 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
     else:
         times = period_times(T, float(req.controller_period), breaks)
         form = zoh_form(times)
-    p0 = _projection(form, u_exact, times.size, breaks)
     limits = (req.max_u1, req.max_u2)
-    u, q, check = correct(robot, form, p0, q0, target, region, times, limits)
+    initial = None
+    if (constant is not None and form.rule == "linear" and constant.t.size >= times.size
+            and np.array_equal(constant.t[constant.t.size - times.size:], times)):
+        p0, initial = piece_values(form, u_exact), constant
+    else:
+        p0 = _projection(form, u_exact, times.size, breaks)
+    u, q, check = correct(robot, form, p0, q0, target, region, times, limits, initial)
     for c, lim in enumerate(limits):
         if lim is not None and float(np.max(np.abs(u[:, c]))) > lim * (1.0 + 1e-9):
             raise InfeasibleError(

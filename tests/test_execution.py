@@ -101,6 +101,42 @@ def test_shooting_samples_at_breaks_are_the_break_times_with_both_rates():
                            rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("n", [3, 4, 5])
+def test_shooting_path_holds_its_rates_and_replays_onto_the_goal(n):
+    """A shooting plan's handed-out linear path is its piecewise-constant rates themselves
+    (equal samples between breaks), needs no correction of its own, and scipy's replay of
+    it, by linear interpolation, ends on the goal to 1e-8 rad."""
+    req, p = _plan(n, "shooting")
+    sched, path = p.inputs, p.path
+    mid = 0.5 * (path.t[:-1] + path.t[1:])
+    live = np.diff(path.t) > 0.0
+    assert np.array_equal(path.u[:-1][live], sched.u(mid[live]))
+    assert np.array_equal(path.u[1:][live], sched.u(mid[live]))
+    assert p.execution.check.corrections == 0
+    qf, margin = replay_linear(p.robot, path.t, path.u, req.q_start())
+    assert float(np.max(np.abs(qf[1:] - np.array(req.goal)))) < 1e-8
+    assert margin > 0.0
+
+
+def test_piece_values_hold_piecewise_constant_rates_exactly():
+    """The linear form's samples of rates constant between uneven breaks reproduce them at
+    any time (each inner break a doubled sample: the rate before, then after)."""
+    from optimizer.actuation import ActuatorSchedule
+    from optimizer.execution import linear_form, linear_times, piece_values
+
+    rng = np.random.default_rng(5)
+    breaks = np.concatenate([[0.0], np.sort(rng.uniform(0.0, 2.0, 9)), [2.0]])
+    sched = ActuatorSchedule(breaks=breaks, rates=rng.normal(size=(10, 2)))
+    times = linear_times(2.0, 57, breaks)
+    form = linear_form(times)
+    p = piece_values(form, sched.u)
+    t = rng.uniform(0.0, 2.0, 4000)
+    assert np.allclose(form.u(p, t), sched.u(t), rtol=0, atol=1e-15)
+    for k, b in enumerate(breaks[1:-1]):
+        rows = np.nonzero(times == b)[0]
+        assert np.array_equal(p[rows], sched.rates[[k, k + 1]])
+
+
 def test_controller_period_must_fit_the_duration():
     start, goal = GOALS[3][0]
     for bad in (0.0, -0.01, 5e-5, 0.6, math.inf):

@@ -18,20 +18,23 @@ path misses the goal by more than :data:`~.rules.TERMINAL_TOLERANCE` or leaves t
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from ..actuation import ActuatorSchedule
 from ..chained_form import chained_form
 from ..errors import InfeasibleError, NumericalError
-from ..execution import execute
+from ..execution import (CORRECTION_TARGET, REPLAY_NODES, check_period, execute,
+                         linear_times)
 from ..indicators import compute_indicators
 from ..problem import PlanRequest
 from ..results import Plan
 from ..steering import ChainedPath, InputSchedule
-from ..verify import CASCADE_TOL, PlannedInputs, Verification, verify_plan
+from ..verify import (CASCADE_TOL, PlannedInputs, Replay, Verification, integrate_cascade,
+                      verify_plan)
 from .family import SEARCH_SAMPLES
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region, make_region
 
@@ -142,26 +145,34 @@ def _duration(req: PlanRequest, cf: Any, chained: ChainedPath) -> float:
     return req.duration_for_rates(np.max(np.abs(U), axis=0))
 
 
-def output_grid(breaks: np.ndarray) -> np.ndarray:
-    """Where the exact replay of an actuator-rate plan is wanted, in units of ``breaks``: the
-    indicators' dense grid and the interval ends (the region check). The handed-out samples
-    come from the replay of their own form (:mod:`optimizer.execution`)."""
-    T = float(breaks[-1])
-    return np.concatenate([np.linspace(0.0, T, INDICATOR_SAMPLES), breaks])
+def actuator_schedule(req: PlanRequest, rates: np.ndarray) -> ActuatorSchedule:
+    """Rates ``U`` (N, 2) on equal intervals of normalised time, as a schedule in seconds: the
+    duration is the request's, or the shortest that keeps ``|u| = |U| / T`` within its
+    actuator limits (the model is driftless: ``T`` does not change the path)."""
+    T = req.duration_for_rates(np.max(np.abs(rates), axis=0))
+    return ActuatorSchedule(breaks=np.linspace(0.0, T, rates.shape[0] + 1), rates=rates / T)
 
 
-def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: str,
+def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
                          planned_nodes: np.ndarray, timing: dict[str, float],
-                         diagnostics: dict[str, Any], replay: Any) -> Plan:
-    """Check, sample and measure a piecewise-constant-rate plan.
+                         diagnostics: dict[str, Any],
+                         refine: Callable[[np.ndarray], np.ndarray] | None = None) -> Plan:
+    """Re-integrate, check, sample and measure a plan of piecewise-constant rates.
 
-    ``replay`` is the original model integrated under the schedule's rates (cascade quadrature,
-    error estimate <= 1e-11 rad, DOP853 as fallback) in normalised time (``t / T``: the model
-    is driftless, the path is the same), on :func:`output_grid` of the normalised breaks:
-    indicators, the region check at the interval ends (enough: every joint is monotone between
-    them, see :mod:`.shooting`) and the terminal error come from it; the handed-out samples
-    from the replay of their own form (:func:`optimizer.execution.execute`). ``planned_nodes`` (the NLP's own node
+    ``rates`` (N, 2) are per unit of normalised time on N equal intervals
+    (:func:`actuator_schedule` makes them a schedule in seconds). One quadrature of the
+    original model under them (cascade quadrature between the breaks, error estimate <= 1e-11
+    rad, DOP853 as fallback) proves the plan: on the indicators' dense grid (indicators), at
+    the breaks (the region check: enough, every joint is monotone between them, see
+    :mod:`.shooting`), at its end (the terminal error) and at the handed-out path's times. The
+    linear form of the handed-out path holds these rates exactly, so the same replay is that
+    form's own (:func:`optimizer.execution.execute`, its ``constant``); a controller period's
+    held form is corrected and replayed on its own. ``planned_nodes`` (the NLP's own node
     states) give the verification's ``max_deviation``.
+
+    ``refine``, given the replay's end state when it misses the goal by more than
+    :data:`~optimizer.execution.CORRECTION_TARGET`, returns rates corrected for that miss; they
+    are re-integrated and kept when they end closer (once).
 
     Raises
     ------
@@ -171,14 +182,36 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
         The true path does not reach the goal.
     """
     robot = req.robot
-    T = schedule.duration
     q0 = req.q_start()
-    td = np.linspace(0.0, T, INDICATOR_SAMPLES)
-    rep = replay
+    goal = np.array(req.goal)
+    t0 = time.perf_counter()
+
+    def replay(U: np.ndarray) -> tuple[ActuatorSchedule, np.ndarray, np.ndarray, Replay]:
+        sched = actuator_schedule(req, U)
+        T = sched.duration
+        check_period(req, T)
+        td = np.linspace(0.0, T, INDICATOR_SAMPLES)
+        times = (linear_times(T, req.samples, sched.breaks) if req.controller_period is None
+                 else np.empty(0))
+        rep = integrate_cascade(robot, sched.u, q0, T,
+                                np.concatenate([td, sched.breaks, times]), sched.breaks,
+                                nodes=REPLAY_NODES, initial_panels=1, fallback=sched.u_scalar)
+        return sched, td, times, rep
+
+    def miss(r: Replay) -> float:
+        return float(np.max(np.abs(r.final[1:] - goal))) if r.success else math.inf
+
+    schedule, td, times, rep = replay(rates)
+    if refine is not None and rep.success and miss(rep) > CORRECTION_TARGET:
+        again = replay(refine(rep.final))
+        if miss(again[3]) < miss(rep):
+            schedule, td, times, rep = again
+    timing["verification"] = time.perf_counter() - t0
+    T, breaks = schedule.duration, schedule.breaks
     if not rep.success:
         raise NumericalError(f"the re-integration failed: {rep.message}",
                              diagnostics={"method": method})
-    qd, qb = rep.q[:td.size], rep.q[td.size:]
+    qd, qb = rep.q[:td.size], rep.q[td.size:td.size + breaks.size]
     lo, hi = joint_limits(req)
     th = qb[:, 1:]
     margins = np.minimum(th - lo, hi - th)
@@ -187,7 +220,7 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
         k, j = np.unravel_index(int(np.argmin(margins)), margins.shape)
         raise InfeasibleError(
             f"the re-integrated path leaves the singularity-free region: th{j + 1} at "
-            f"t = {schedule.breaks[k]:.6g} s", diagnostics={"margin": margin})
+            f"t = {breaks[k]:.6g} s", diagnostics={"margin": margin})
     final = rep.final
     terminal = float(np.max(np.abs(final[1:] - np.array(req.goal))))
     if not terminal <= TERMINAL_TOLERANCE:
@@ -196,8 +229,7 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
             f"(terminal error {terminal:.3g} rad)",
             diagnostics={"terminal_error": terminal, "method": method})
     t1 = time.perf_counter()
-    # the replay ran in normalised time: int |u|^2 dt = int |U|^2 dtau / T
-    energy = rep.energy / T
+    energy = rep.energy
     ind = dataclasses.replace(compute_indicators(td, qd, None), energy=energy)
     dphi = float(final[0] - q0[0])
     ver = Verification(terminal_error=terminal, phi_error=0.0,
@@ -208,7 +240,8 @@ def finish_actuator_plan(req: PlanRequest, schedule: ActuatorSchedule, method: s
     timing["sampling"] = time.perf_counter() - t1
     # the handed-out path is what a controller executes: corrected for its rule and verified
     # by it (optimizer.execution), the breaks in seconds exact in its times
-    exe = execute(req, schedule.u, schedule.breaks, T, float(final[0]), limits_region(req))
+    exe = execute(req, schedule.u, breaks, T, float(final[0]), limits_region(req),
+                  constant=rep if times.size else None)
     timing["execution"] = exe.seconds
     return Plan(robot=robot, method=method, phi_change=dphi, duration=T, inputs=schedule,
                 chained=None, feasible_phi_changes=[], indicators=ind, margin=margin,

@@ -66,7 +66,7 @@ from . import nlp as nlp_layer
 from .nlp import LADDER, MultipleShootingNLP, Transcription, nlp_for, node_bounds, run_solver
 from .base import Capabilities, Method
 from .context import PlanContext
-from .finish import finish_actuator_plan, output_grid
+from .finish import finish_actuator_plan
 from .rules import joint_limits, limits_region
 
 #: The penalty weight of the first solve from every start. On the benchmark's ten goals the
@@ -295,12 +295,9 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
     t1 = time.perf_counter()
     nlp = nlp_for(req, tr, "penalty")
     N = sol.rates.shape[0]
-    grid = output_grid(np.linspace(0.0, 1.0, N + 1))
-    rates, errors, replay = nlp_layer.correct_rates(req, nlp, sol.rates,
-                                                    float(sol.nodes[-1, 0]), grid)
-    timing["correction_and_verification"] = time.perf_counter() - t1
-    T = req.duration_for_rates(np.max(np.abs(rates), axis=0))
-    schedule = ActuatorSchedule(breaks=np.linspace(0.0, T, N + 1), rates=rates / T)
+    phi_end = float(sol.nodes[-1, 0])
+    rates, errors = nlp_layer.correct_rates(req, nlp, sol.rates, phi_end)
+    timing["correction"] = time.perf_counter() - t1
     region = penalised_region(req)
     th = sol.nodes[:, 1:]
     distance = float(np.min(np.minimum(th - region.lower, region.upper - th)))
@@ -315,8 +312,14 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
                     "tried": tried + list(sol.tried),
                     "compiled": nlp.compiled and sol.status.startswith("fatrop"),
                     "terminal_error_per_correction": errors}}
-    return finish_actuator_plan(req, schedule, "penalty", sol.nodes, timing, diagnostics,
-                                replay=replay)
+
+    def refine(exact_end: np.ndarray) -> np.ndarray:
+        # the quadrature's end missed the goal: correct for the fine map's error there
+        again, more = nlp_layer.correct_rates(req, nlp, rates, phi_end, exact_end)
+        errors.extend(more)
+        return again
+
+    return finish_actuator_plan(req, rates, "penalty", sol.nodes, timing, diagnostics, refine)
 
 
 class PenaltyMethod(Method):
