@@ -52,7 +52,8 @@ Solvers
 -------
 fatrop (an interior-point solver for this stage structure, bundled with CasADi) first: about
 half IPOPT's time per iteration here. From ``phi`` travelling +0.6 rad, then -0.6 rad
-(:data:`ATTEMPTS`); IPOPT from the same guesses when fatrop does not converge. Both solve the
+(:data:`ATTEMPTS`); IPOPT from the same guess when fatrop does not converge (from
+:data:`IPOPT_FIRST_JOINTS` joints on, IPOPT alone on the free rungs). Both solve the
 same NLP (a test checks that they find the same solution). With compiled functions configured
 (:mod:`optimizer.native`: the service does it), fatrop evaluates the first rung's functions as
 compiled C once their library is built (:meth:`~.nlp.MultipleShootingNLP.load_native`): the
@@ -89,10 +90,15 @@ from .context import PlanContext
 from .finish import finish_actuator_plan
 from .rules import joint_limits
 
-#: Solver and sign of phi's initial travel of each attempt, in order (the first converged
-#: solution is returned).
-ATTEMPTS: tuple[tuple[str, float], ...] = (("fatrop", 1.0), ("fatrop", -1.0), ("ipopt", 1.0),
+#: Solver and sign of phi's initial travel of each attempt on a free rung, in order (the
+#: first converged solution is returned): from each guess fatrop, then IPOPT, which converges
+#: where fatrop reaches its iteration cap.
+ATTEMPTS: tuple[tuple[str, float], ...] = (("fatrop", 1.0), ("ipopt", 1.0), ("fatrop", -1.0),
                                            ("ipopt", -1.0))
+#: From this many joints on, free rungs start with IPOPT: on the 15 five-joint goals of the
+#: benchmark fatrop reached its cap on 11 of 12 free rungs (0.3 ms per iteration: about 20 ms
+#: lost each), where IPOPT converged from the same guess on all 15 in 22-69 iterations.
+IPOPT_FIRST_JOINTS = 5
 #: Net travel of phi (rad) of the initial guesses (both signs, see :data:`ATTEMPTS`).
 GUESS_PHI_TRAVEL = 0.6
 
@@ -127,21 +133,25 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0
     """Solve the NLP of transcription ``tr`` for ``req`` (normalised time); raise a typed error
     when it fails.
 
-    Attempts in the order of :data:`ATTEMPTS` (fatrop, then IPOPT; ``phi`` travelling +0.6
-    rad, then -0.6 rad in the initial guess); the first converged solution is returned.
+    Attempts in the order of :data:`ATTEMPTS` (``phi`` travelling +0.6 rad, then -0.6 rad in
+    the initial guess; fatrop, then IPOPT from each); the first converged solution is
+    returned. Rates of fixed signs: fatrop alone, one guess.
     """
     nlp = nlp_for(req, tr)
     a, b = np.array(req.start), np.array(req.goal)
     lo, hi = node_bounds(req, joint_limits(req))
     lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi, monotone)
     attempts = ATTEMPTS
+    if req.n >= IPOPT_FIRST_JOINTS:
+        attempts = tuple(at for at in ATTEMPTS if at[0] == "ipopt")
     if monotone is not None:
-        # rates of fixed signs (see rules.monotone_signs): only guesses travelling that way
-        # and fatrop alone: rates of fixed signs may be infeasible (th1 must overshoot on
-        # some goals), and fatrop's iteration cap bounds the cost of finding out (IPOPT took
-        # 0.1-0.2 s to give up on 4-joint goals); the free rungs follow
-        attempts = tuple(at for at in ATTEMPTS
-                         if at[0] == "fatrop" and monotone[0] in (0.0, at[1]))
+        # rates of fixed signs (see rules.monotone_signs): one guess travelling that way (phi
+        # free: the way th2, the first joint phi drives, moves) and fatrop alone: rates of
+        # fixed signs may be infeasible (th1 must overshoot on some goals), and fatrop's
+        # iteration cap bounds the cost of finding out (IPOPT took 0.1-0.2 s to give up on
+        # 4-joint goals); the free rungs follow
+        sign = monotone[0] or float(np.sign(req.goal[1] - req.start[1])) or 1.0
+        attempts = (("fatrop", sign),)
     p = nlp_layer.parameters(req, *objective_weights(req, "shooting"))
     nlp.load_native()
     solvers = dict(nlp.solvers)
