@@ -119,6 +119,10 @@ MARGIN = math.radians(0.5)
 #: Iteration cap of fatrop (it converged in 15-38 iterations on the bench's goals; a failing run
 #: ends early and the next attempt starts).
 FATROP_MAX_ITER = 60
+#: From this many joints on, free rungs go to IPOPT without fatrop: on the 15 five-joint goals
+#: of the benchmark fatrop reached its cap on 11 of 12 free rungs (0.3 ms per iteration: about
+#: 20 ms lost each), where IPOPT converged from the same guess on all 15 in 22-69 iterations.
+IPOPT_FIRST_JOINTS = 5
 #: fatrop's convergence tolerance: the optimum to 1e-6 is plenty, the goal's precision comes
 #: from the correction on the exact model (1e-8 took one or two more iterations, same plans).
 FATROP_TOL = 1e-6
@@ -745,6 +749,7 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
 
 
 __all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "DeadlineCallback", "INFEASIBLE",
+           "IPOPT_FIRST_JOINTS",
            "IPOPT_OPTIONS", "LADDER", "MARGIN", "MultipleShootingNLP", "REGION_MODES", "SUCCESS",
            "SolveOutcome", "TIMEOUT", "Transcription", "classify", "correct_rates", "error_for",
            "fatrop_options", "ipopt_options", "multiple_shooting_nlp", "nlp_for", "node_bounds", "rungs", "solve_rungs",

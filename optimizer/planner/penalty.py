@@ -23,7 +23,9 @@ Search
   region: the cheapest feasible start there is), then ``shooting``'s straight-line guesses
   (joint-space straight line, inside the region's box; ``phi`` travelling +0.6 rad, then
   -0.6 rad: which way ``phi`` should go first is not known in advance). fatrop from each,
-  then IPOPT from each when fatrop does not converge (:data:`SOLVERS`).
+  then IPOPT from each when fatrop does not converge (:data:`SOLVERS`; IPOPT alone from
+  :data:`~.nlp.IPOPT_FIRST_JOINTS` joints on; rates of fixed signs: fatrop from the start
+  that travels their way).
 * ``rho`` starts at :data:`RHO_START` and is multiplied by :data:`RHO_GROWTH` at most
   :data:`RHO_INCREASES` times, each time warm-started from the last solution, only while that
   solution violates the region by more than :data:`VIOLATION_TOL` at some node. The first
@@ -63,7 +65,8 @@ from ..results import Plan
 from ..steering import ChainedPath, InputSchedule
 from ..verify import integrate_cascade
 from . import nlp as nlp_layer
-from .nlp import LADDER, MultipleShootingNLP, Transcription, nlp_for, node_bounds, run_solver
+from .nlp import (IPOPT_FIRST_JOINTS, LADDER, MultipleShootingNLP, Transcription, nlp_for,
+                  node_bounds, run_solver)
 from .base import Capabilities, Method
 from .context import PlanContext
 from .finish import finish_actuator_plan
@@ -211,8 +214,14 @@ def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0]
     solvers = [s for s in SOLVERS if s in dict(nlp.solvers)]
     if rate_signs is not None:
         # rates of fixed signs may be infeasible: fatrop's iteration cap bounds the cost of
-        # finding out (the free rungs follow)
+        # finding out (the free rungs follow), from the one start that travels their way
         solvers = solvers[:1]
+        sign = rate_signs[0] or float(np.sign(req.goal[1] - req.start[1])) or 1.0
+        straight = [st for st in starts if st[0] != "warm_start"]
+        keep = [st for st in straight if (sign > 0) == ("+" in st[0])] or straight[:1]
+        starts = [st for st in starts if st[0] == "warm_start"] + keep
+    elif req.n >= IPOPT_FIRST_JOINTS:
+        solvers = [s for s in solvers if s == "ipopt"] or solvers
     tried: list[dict[str, Any]] = []
     for solver in solvers:
         for name, reason, x0 in starts:

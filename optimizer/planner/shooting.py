@@ -53,7 +53,7 @@ Solvers
 fatrop (an interior-point solver for this stage structure, bundled with CasADi) first: about
 half IPOPT's time per iteration here. From ``phi`` travelling +0.6 rad, then -0.6 rad
 (:data:`ATTEMPTS`); IPOPT from the same guess when fatrop does not converge (from
-:data:`IPOPT_FIRST_JOINTS` joints on, IPOPT alone on the free rungs). Both solve the
+:data:`~.nlp.IPOPT_FIRST_JOINTS` joints on, IPOPT alone on the free rungs). Both solve the
 same NLP (a test checks that they find the same solution). With compiled functions configured
 (:mod:`optimizer.native`: the service does it), fatrop evaluates the first rung's functions as
 compiled C once their library is built (:meth:`~.nlp.MultipleShootingNLP.load_native`): the
@@ -82,7 +82,8 @@ from ..errors import InfeasibleError, InvalidRequestError, SolverTimeoutError
 from ..problem import PlanRequest
 from ..results import Plan
 from . import nlp as nlp_layer
-from .nlp import (CORRECTION_TARGET, D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, MARGIN,
+from .nlp import (CORRECTION_TARGET, D_A_WEIGHT, DEVIATION_WEIGHT, IPOPT_FIRST_JOINTS, LADDER,
+                  MARGIN,
                   MultipleShootingNLP, Transcription, correct_rates, multiple_shooting_nlp, nlp_for,
                   node_bounds, objective_weights, run_solver)
 from .base import Capabilities, Method
@@ -95,10 +96,7 @@ from .rules import joint_limits
 #: where fatrop reaches its iteration cap.
 ATTEMPTS: tuple[tuple[str, float], ...] = (("fatrop", 1.0), ("ipopt", 1.0), ("fatrop", -1.0),
                                            ("ipopt", -1.0))
-#: From this many joints on, free rungs start with IPOPT: on the 15 five-joint goals of the
-#: benchmark fatrop reached its cap on 11 of 12 free rungs (0.3 ms per iteration: about 20 ms
-#: lost each), where IPOPT converged from the same guess on all 15 in 22-69 iterations.
-IPOPT_FIRST_JOINTS = 5
+
 #: Net travel of phi (rad) of the initial guesses (both signs, see :data:`ATTEMPTS`).
 GUESS_PHI_TRAVEL = 0.6
 
