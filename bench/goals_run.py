@@ -252,6 +252,8 @@ def compare_with_baseline(row: dict[str, Any]) -> dict[str, Any] | None:
         "default_reversals": rev_d, "baseline_reversals": rev_b,
         "reversals_no_more": bool(ok and rev_d is not None and rev_b is not None
                                   and rev_d <= rev_b),
+        "fewer_reversals": bool(ok and rev_d is not None and rev_b is not None
+                                and rev_d < rev_b),
         "speed_ratio": (t_b / t_d) if (t_d and t_d > 0) else math.nan,
         "default_time": t_d, "baseline_time": t_b,
     }
@@ -270,12 +272,34 @@ def summarise_goals(rows: list[dict[str, Any]], cfg: GoalsConfig) -> dict[str, A
                 if r["default"]["slowest_call"] >= NEAR_LIMIT_SHARE * cfg.time_limit]
         nver = sum(r["default"]["verified"] for r in sub)
         methods: dict[str, Any] = {}
+
+        def per_goal_ratio(num: Callable[[dict[str, Any]], Any],
+                           den: Callable[[dict[str, Any]], Any]) -> float:
+            """Median over the goals where both ran and verified of num(row) / den(row)."""
+            out = []
+            for r in sub:
+                a, b = num(r), den(r)
+                if (a and b and a.get("verified") and b.get("verified")
+                        and math.isfinite(a["time"]["median"]) and b["time"]["median"] > 0):
+                    out.append(a["time"]["median"] / b["time"]["median"])
+            return _pct(out, 50)
+
         for m in ["default"] + list(cfg.methods):
             runs = [r["default"] if m == "default" else r["methods"][m] for r in sub]
             mt = [x["time"]["median"] for x in runs if math.isfinite(x["time"]["median"])]
+
+            def run_of(r: dict[str, Any], m: str = m) -> Any:
+                return r["default"] if m == "default" else r["methods"][m]
+
             methods[m] = {"success": sum(x["status"] == "success" for x in runs),
                           "verified": sum(bool(x["verified"]) for x in runs),
                           "median_time": _pct(mt, 50), "goals": len(runs),
+                          # issue 14's measures: median per goal, same run
+                          "baseline_over_method": per_goal_ratio(
+                              lambda r: r.get("baseline"), run_of),
+                          "method_over_shooting": (per_goal_ratio(
+                              run_of, lambda r: r["methods"]["shooting"])
+                              if "shooting" in cfg.methods else math.nan),
                           "failures": {x_name: x["status"] if x["status"] != "success"
                                        else "not verified"
                                        for x_name, x in zip((r["name"] for r in sub), runs)
@@ -299,6 +323,7 @@ def summarise_goals(rows: list[dict[str, Any]], cfg: GoalsConfig) -> dict[str, A
         if n in BASELINE_JOINTS and have:
             k = len(have)
             dev_ok = sum(c["dev_no_larger"] for _, c in have)
+            dev_or_fewer = sum(c["dev_no_larger"] or c["fewer_reversals"] for _, c in have)
             rev_ok = sum(c["reversals_no_more"] for _, c in have)
             ratios = [c["speed_ratio"] for _, c in have if math.isfinite(c["speed_ratio"])]
             entry["baseline"] = {
@@ -308,6 +333,7 @@ def summarise_goals(rows: list[dict[str, Any]], cfg: GoalsConfig) -> dict[str, A
                 "baseline_verified": sum(bool(r["baseline"]["verified"]) for r, _ in have),
                 "baseline_median_time": _pct([c["baseline_time"] for _, c in have], 50),
                 "dev_no_larger": dev_ok, "reversals_no_more": rev_ok,
+                "dev_no_larger_or_fewer_reversals": dev_or_fewer,
                 "median_speed_ratio": _pct(ratios, 50),
                 "per_goal": {r["name"]: c for r, c in have}}
             targets += [
@@ -341,7 +367,10 @@ def summarise_goals(rows: list[dict[str, Any]], cfg: GoalsConfig) -> dict[str, A
             if c is not None:
                 if not c["dev_no_larger"]:
                     why.append(f"deviation {c['default_dev_deg']:.4g} deg > baseline "
-                               f"{c['baseline_dev_deg']:.4g} deg")
+                               f"{c['baseline_dev_deg']:.4g} deg"
+                               + (f" (with fewer reversals: {c['default_reversals']} < "
+                                  f"{c['baseline_reversals']})" if c["fewer_reversals"]
+                                  else ""))
                 if not c["reversals_no_more"]:
                     why.append(f"reversals {c['default_reversals']} > baseline "
                                f"{c['baseline_reversals']}")
@@ -385,12 +414,19 @@ def markdown(results: dict[str, Any]) -> str:
         lines.append(f"| {n} | {e['goals']} | {e['verified']} | {_ms(e['p50'])} | "
                      f"{_ms(e['p95'])} | {_ms(e['max'])} | {e['near_limit']} |")
     lines += ["", "### Per method (success = planner answered; verified = re-integration)", "",
-              "| n | method | success | verified | median ms (all goals) |",
-              "|---|---|---|---|---|"]
+              "| n | method | success | verified | median ms (all goals) | baseline / method "
+              "(median per goal) | method / shooting (median per goal) |",
+              "|---|---|---|---|---|---|---|"]
+
+    def _x(v: Any) -> str:
+        return "-" if v is None or not math.isfinite(v) else f"{v:.2f}"
+
     for n, e in s["per_n"].items():
         for m, me in e["methods"].items():
             lines.append(f"| {n} | {m} | {me['success']}/{me['goals']} | "
-                         f"{me['verified']}/{me['goals']} | {_ms(me['median_time'])} |")
+                         f"{me['verified']}/{me['goals']} | {_ms(me['median_time'])} | "
+                         f"{_x(me.get('baseline_over_method'))} | "
+                         f"{_x(me.get('method_over_shooting'))} |")
     for n, e in s["per_n"].items():
         b = e.get("baseline")
         if not b:
@@ -405,6 +441,9 @@ def markdown(results: dict[str, Any]) -> str:
                   f"({b['dev_no_larger'] / k:.0%}) | >= 90 % |",
                   f"| reversals (phi + th1) no more | {b['reversals_no_more']}/{k} "
                   f"({b['reversals_no_more'] / k:.0%}) | >= 90 % |",
+                  f"| deviation no larger, or fewer reversals (the default rule's order) | "
+                  f"{b['dev_no_larger_or_fewer_reversals']}/{k} "
+                  f"({b['dev_no_larger_or_fewer_reversals'] / k:.0%}) | - |",
                   f"| median speed ratio | {b['median_speed_ratio']:.2f} | >= 3 |"]
     lines += ["", "### Targets", "", "| n | target | measured | met |", "|---|---|---|---|"]
     for t in s["targets"]:

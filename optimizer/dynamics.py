@@ -36,6 +36,14 @@ def power(c: Any, m: int) -> Any:
     return out
 
 
+def joint_rate(gains: Sequence[float], exponents: Sequence[int], i: int, th_prev: Any, u1: Any,
+               cos: Callable[[Any], Any] = np.cos) -> Any:
+    """``th_i' = K_i cos(th_{i-1})^{m_i} u1`` of joint ``i`` (2..n) from ``th_{i-1}``: the one
+    place the transmission's law is written (the cascade quadrature of
+    :mod:`optimizer.verify` integrates the joints one after another with it)."""
+    return gains[i - 2] * power(cos(th_prev), exponents[i - 2]) * u1
+
+
 def vector_field(gains: Sequence[float], exponents: Sequence[int], q: Any, u1: Any, u2: Any,
                  cos: Callable[[Any], Any] = np.cos) -> list[Any]:
     """The components ``[phi', th1', th2', ..., thn']`` of the model (eq 2-3).
@@ -60,7 +68,7 @@ def vector_field(gains: Sequence[float], exponents: Sequence[int], q: Any, u1: A
     """
     out = [u1, u2]
     for i in range(2, len(gains) + 2):
-        out.append(gains[i - 2] * power(cos(q[i - 1]), exponents[i - 2]) * u1)
+        out.append(joint_rate(gains, exponents, i, q[i - 1], u1, cos))
     return out
 
 
@@ -87,4 +95,4 @@ def rk4_step(f: Field, x: Any, u: Any, h: Any, substeps: int = 1) -> Any:
     return y
 
 
-__all__ = ["Field", "field_numpy", "power", "rk4_step", "vector_field"]
+__all__ = ["Field", "field_numpy", "joint_rate", "power", "rk4_step", "vector_field"]

@@ -56,6 +56,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .chained_form import chained_form
+from .dynamics import joint_rate
 from .errors import InfeasibleError, InvalidRequestError, NumericalError
 from .model import Robot
 from .problem import MAX_SAMPLES, PlanRequest
@@ -313,7 +314,9 @@ def _jacobian(robot: Robot, form: Form, p: np.ndarray, q: np.ndarray, rows: int)
         lam[:, :, j] += tail
     # F_c = lam G(q)[:, c]: u2 drives th1; u1 drives phi and th_j with K_j cos(th_{j-1})^m_j
     F1 = lam[:, :, 1]
-    F0 = lam[:, :, 0] + np.einsum("mij,mj->mi", lam[:, :, 2:], Kg * c ** m)
+    g1 = np.stack([joint_rate(robot.gains, robot.exponents, i, th[:, i - 2], 1.0)
+                   for i in range(2, n + 1)], axis=1)   # th_i' per unit u1 (i = 2..n)
+    F0 = lam[:, :, 0] + np.einsum("mij,mj->mi", lam[:, :, 2:], g1)
     inner = np.arange(1, 1 + GAUSS)
     F = np.stack([F0, F1], axis=-1).reshape(K, s.size, n + 1, 2)[:, inner]   # (K, G, n+1, 2)
     W = form.shapes(g) * wg[:, None]                 # (G, R)

@@ -40,6 +40,7 @@ from numpy.polynomial import chebyshev as cheb
 from scipy.integrate import solve_ivp
 
 from .chained_form import ChainedForm
+from .dynamics import joint_rate, vector_field
 from .model import Robot
 from .steering import ChainedPath
 
@@ -204,16 +205,13 @@ def integrate(robot: Robot, u_of_t: Callable[[float, np.ndarray], np.ndarray], q
         Open-loop inputs ignore ``q``; the v-replay uses it.
     """
     n = robot.n
-    K = np.array(robot.gains)
-    m = np.array(robot.exponents)
+    gains, exponents = robot.gains, robot.exponents
 
     def rhs(t: float, x: np.ndarray) -> np.ndarray:
         # x = [q, energy]: the input energy is integrated with the state, to the same accuracy
         u = u_of_t(t, x[: n + 1])
         dx = np.empty_like(x)
-        dx[0] = u[0]
-        dx[1] = u[1]
-        dx[2:n + 1] = K * np.cos(x[1:n]) ** m * u[0]
+        dx[: n + 1] = vector_field(gains, exponents, x, u[0], u[1])
         dx[n + 1] = u[0] * u[0] + u[1] * u[1]
         return dx
 
@@ -571,7 +569,7 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                 X[s] = R[:, :p] + ends[s, :-1, None]
                 if 1 <= s < n:  # th_s drives th_{s+1}
                     cosx[s - 1] = np.cos(X[s])
-                    F[s + 1] = K[s - 1] * cosx[s - 1] ** m[s - 1] * F[0]
+                    F[s + 1] = joint_rate(robot.gains, robot.exponents, s + 1, X[s], F[0])
             energy = float(F[nq] @ rule.total @ half)
             if not (math.isfinite(float(ends[:, -1].sum())) and math.isfinite(energy)):
                 return failed("a state is not finite")

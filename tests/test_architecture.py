@@ -100,3 +100,21 @@ def test_mathematics_imports_nothing_of_the_web() -> None:
         web = sorted({t for t, _ in imps if t.split(".")[0] in ("service", "fastapi", "uvicorn",
                                                                  "starlette", "pydantic")})
         assert not web, f"{m} imports {web}"
+
+
+def test_the_transmission_law_is_written_once() -> None:
+    """``th_i' = K_i cos(th_{i-1})^{m_i} u1`` appears in ``optimizer/dynamics.py`` only (bounds
+    of ``cos^m`` elsewhere are not the law: they carry no input rate). The bench's generator
+    and baseline and the tests' references keep their own on purpose: independent checks."""
+    import re
+
+    law = re.compile(r"cos\w*[(\[][^\n]*\*\*[^\n]*\*\s*(u1|u\[0\]|U\[0\]|F\[0\]|u\[:, 0\])")
+    power = re.compile(r"power\(\s*(np\.|ca\.|math\.)?cos\(")
+    offenders = [f"{p.relative_to(ROOT)}:{i}"
+                 for p in PKG.rglob("*.py") if p.name != "dynamics.py"
+                 for i, line in enumerate(p.read_text().splitlines(), 1)
+                 if law.search(line) or power.search(line)]
+    assert not offenders, offenders
+    # the pattern finds the copies this replaced (the cascade's integrand, DOP853's rhs)
+    assert law.search("F[s + 1] = K[s - 1] * cosx[s - 1] ** m[s - 1] * F[0]")
+    assert law.search("dx[2:n + 1] = K * np.cos(x[1:n]) ** m * u[0]")

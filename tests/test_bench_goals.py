@@ -145,9 +145,19 @@ def test_summary_agrees_with_rows(run: tuple[dict[str, Any], str, str]) -> None:
                                           <= math.radians(bm["segment_dev_deg"]) + 1e-6)
             assert c["reversals_no_more"] == (dm["reversals_phi"] + dm["reversals_th1"]
                                               <= bm["reversals_phi"] + bm["reversals_th1"])
+            assert c["fewer_reversals"] == (dm["reversals_phi"] + dm["reversals_th1"]
+                                            < bm["reversals_phi"] + bm["reversals_th1"])
         assert c["speed_ratio"] == pytest.approx(r["baseline"]["time"]["median"]
                                                  / r["default"]["time"]["median"])
     assert b["dev_no_larger"] == sum(c["dev_no_larger"] for c in per.values())
+    assert b["dev_no_larger_or_fewer_reversals"] == sum(
+        c["dev_no_larger"] or c["fewer_reversals"] for c in per.values())
+    # issue 14's per-goal ratios: the baseline's time over the default plan's, per goal
+    ratios = [r["baseline"]["time"]["median"] / r["default"]["time"]["median"]
+              for r in rows if r["n"] == 3 and r.get("baseline")
+              and r["baseline"].get("verified") and r["default"]["verified"]]
+    assert s["per_n"]["3"]["methods"]["default"]["baseline_over_method"] == pytest.approx(
+        float(np.median(ratios)))
     # every target is stated with its measurement, and every miss names its goal and reason
     assert {t["target"] for t in s["targets"] if t["n"] == 3} >= {
         "every goal verified", "p95 of the default plan <= 30 ms",
