@@ -208,3 +208,62 @@ def test_the_bound_rules_out_a_monotone_th1_on_the_worked_example() -> None:
     assert math.degrees(reach) < 20.0
     assert not monotone_reach_ok(req, True)
     assert monotone_reach_ok(req, False)
+
+
+@pytest.mark.parametrize("n", [3, 4, 5])
+def test_the_th1_monotone_reach_bound_never_rules_out_a_reached_goal(n) -> None:
+    """Goals reached by the original model with th1 monotone and phi reversing (scipy, the
+    independent reference model) always pass the necessary condition that lets the planner
+    skip the NLP of th1 held monotone."""
+    from optimizer.planner.rules import th1_monotone_reach_ok
+
+    robot = Robot.default(n)
+    rng = np.random.default_rng(10 + n)
+    checked = 0
+    for _ in range(200):
+        th0 = rng.uniform(R(10), R(80), size=n)
+        c = rng.uniform(0.2, 0.8, size=4)
+        s2 = rng.choice([-1.0, 1.0])
+
+        def u(t: float) -> np.ndarray:
+            return np.array([c[0] * math.sin(2 * math.pi * (c[1] + 1.5 * t)),
+                             s2 * (c[2] + c[3] * t)])
+
+        sol = solve_ivp(lambda t, q: model_rhs(q, u(t), robot.gains, robot.exponents),
+                        (0.0, 1.0), np.concatenate([[0.0], th0]), method="DOP853",
+                        rtol=1e-11, atol=1e-12, dense_output=True)
+        q = sol.sol(np.linspace(0.0, 1.0, 2001)).T
+        th = q[:, 1:]
+        if not (th.min() > 0.0 and th.max() < HALF_PI):
+            continue
+        assert np.any(np.diff(np.sign(np.diff(q[:, 0]))) != 0)  # phi reverses
+        req = PlanRequest(start=tuple(th0), goal=tuple(th[-1]), robot=robot)
+        assert th1_monotone_reach_ok(req, 0.0, HALF_PI, slack=0.0)
+        # and with th2's own range on the path as its bounds
+        assert th1_monotone_reach_ok(req, float(th[:, 1].min()), float(th[:, 1].max()),
+                                     slack=1e-9)
+        checked += 1
+    assert checked >= 40
+
+
+def test_the_th1_monotone_bound_on_the_worked_example() -> None:
+    """[10, 10, 10] -> [30, 30, 30] deg with th1 monotone and phi free: th2 at its lower
+    bound while th1 moves gives th3 the most, (K3 / K2) (int_0^30 cos^3 / cos^2(30 deg) -
+    int_0^10 cos^3 / cos^2(10 deg)) ~ 19.9 deg, not 20 (quadrature by numpy here)."""
+    from optimizer.planner.rules import th1_monotone_reach_ok
+
+    req = PlanRequest(start=tuple(map(R, (10, 10, 10))), goal=tuple(map(R, (30, 30, 30))))
+    K2, K3 = req.robot.gains
+
+    def integral(lo: float, hi: float) -> float:
+        x = np.linspace(lo, hi, 100001)
+        return float(np.trapezoid(np.cos(x) ** 3, x))
+
+    for lo2 in (0.0, R(0.5)):
+        reach = K3 / K2 * (integral(lo2, R(30)) / math.cos(R(30)) ** 2
+                           - integral(lo2, R(10)) / math.cos(R(10)) ** 2)
+        assert R(19.5) < reach < R(20.0)
+        assert not th1_monotone_reach_ok(req, lo2, HALF_PI)
+    # a goal 0.5 deg nearer passes
+    near = PlanRequest(start=req.start, goal=tuple(map(R, (30, 30, 29.5))))
+    assert th1_monotone_reach_ok(near, 0.0, HALF_PI)

@@ -67,7 +67,7 @@ from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, Plan
                       SolverTimeoutError)
 from ..problem import MAX_TIME_LIMIT, PlanRequest
 from ..indicators import count_reversals_columns, segment_distance
-from .rules import monotone_reach_ok, monotone_signs
+from .rules import joint_limits, monotone_reach_ok, monotone_signs, th1_monotone_reach_ok
 
 
 @dataclass(frozen=True)
@@ -567,6 +567,9 @@ def solve_rungs(req: PlanRequest,
         if int(count_reversals_columns(sol.nodes[:, 1:2])[0]) == 0:
             return sol, tr, signs, tried
         alt_signs = (0.0, th1_sign)
+        lo, hi = node_bounds(req, joint_limits(req))
+        if not th1_monotone_reach_ok(req, float(lo[1]), float(hi[1])):
+            return sol, tr, signs, tried  # th1 monotone cannot reach th3's goal
         try:
             alt = solve(tr, alt_signs)
         except InfeasibleError as exc:

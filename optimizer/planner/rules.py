@@ -131,6 +131,35 @@ def monotone_reach_ok(req: PlanRequest, th1_monotone: bool) -> bool:
     return True
 
 
+def th1_monotone_reach_ok(req: PlanRequest, lo2: float, hi2: float,
+                          slack: float = 1e-4) -> bool:
+    """A necessary condition for a path in which ``th_1`` does not reverse (``phi`` free) to
+    reach the goal, with ``th_2`` kept within ``[lo2, hi2]``.
+
+    With ``th_1`` monotone, ``dth_3 = (K_3 / K_2) w(th_1, th_2) dth_2`` with
+    ``w = cos(th_2)^{m_3} / cos(th_1)^{m_2}``. Let ``F(t, x) = int_0^x w(t, s) ds``; along the
+    path ``int w dth_2 = F(b_1, b_2) - F(a_1, a_2) - int dF/dth_1 dth_1`` and ``dF/dth_1 >= 0``
+    grows with ``th_2``, so with ``th_1`` moving one way the last integral lies between its
+    values for ``th_2`` held at ``lo2`` and at ``hi2``: ``G(c) = F(b_1, b_2) - F(a_1, a_2) -
+    (F(b_1, c) - F(a_1, c))``. A change of ``th_3`` outside ``(K_3 / K_2) [G(lo2), G(hi2)]``
+    (in either order), widened by ``slack`` (rad: the NLP's RK4 is that far from the exact
+    model), cannot be reached that way. True for fewer than 3 joints.
+    """
+    if req.n < 3:
+        return True
+    a, b = np.array(req.start, float), np.array(req.goal, float)
+    K, m = req.robot.gains, req.robot.exponents
+
+    def F(t: float, x: float) -> float:
+        return _cos_power_integral(0.0, x, m[1]) / math.cos(t) ** m[0]
+
+    def G(c: float) -> float:
+        return F(b[0], b[1]) - F(a[0], a[1]) - (F(b[0], c) - F(a[0], c))
+
+    lo, hi = sorted((K[1] / K[0] * G(lo2), K[1] / K[0] * G(hi2)))
+    return lo - slack <= b[2] - a[2] <= hi + slack
+
+
 def monotone_signs(req: PlanRequest) -> tuple[float, float] | None:
     """Signs of ``(u1, u2)`` of a plan in which neither actuator reverses, or None when the
     goal needs ``phi`` to reverse (:func:`direction_conflict`).
