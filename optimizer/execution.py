@@ -666,17 +666,48 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
     path = SampledPath(t=times, q=q, z=cf.to_chained(q), u=u, v=v)
     jt = jt_check = None
     if req.joint_trajectory:
-        jt, jt_check = joint_trajectory(robot, region, form, path, q0, target)
+        jt, jt_check, peak = joint_trajectory(robot, region, form, path, q0, target, limits)
         _require(jt_check, "JointTrajectory form", "joint_trajectory",
                  ": its points are too sparse for this plan (more samples, or a shorter "
                  "controller_period)")
+        for c, lim in enumerate(limits):
+            if lim is not None and peak[c] > lim * (1.0 + 1e-9):
+                raise InfeasibleError(
+                    f"the JointTrajectory form's rates, interpolated between its points as "
+                    f"joint_trajectory_controller does, reach {peak[c]:.6g} rad/s, above "
+                    f"max_u{c + 1} = {lim:g} rad/s: more samples, or a longer duration",
+                    field="joint_trajectory",
+                    diagnostics={"joint_trajectory": jt_check.as_dict(),
+                                 f"peak_u{c + 1}": float(peak[c])})
     return Execution(path=path, check=check, joint_trajectory=jt, joint_trajectory_check=jt_check,
                      seconds=time.perf_counter() - t_start)
 
 
+def hermite_peak_rates(form: Form, p: np.ndarray) -> np.ndarray:
+    """``max |u_c(t)|`` over ``[0, T]`` of each input of a cubic Hermite form, exactly: on an
+    interval ``u`` is a quadratic in ``s``, whose extremes are at the ends or at its vertex."""
+    K = form.knots.size - 1
+    k = np.repeat(np.arange(K), 3)
+    u = form.local(k, np.tile([0.0, 0.5, 1.0], K), p).reshape(K, 3, 2)
+    u0, uh, u1 = u[:, 0], u[:, 1], u[:, 2]
+    a = 2.0 * (u0 + u1 - 2.0 * uh)                    # u(s) = a s^2 + b s + c
+    b = u1 - u0 - a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(a != 0.0, -b / (2.0 * a), 0.0)
+    inside = (s > 0.0) & (s < 1.0)
+    vertex = np.where(inside, u0 + s * (b + a * s), 0.0)
+    return np.max(np.abs(np.concatenate([u0, u1, vertex])), axis=0)
+
+
+#: A JointTrajectory stretched for the actuator limits gets this much more time than their
+#: ratio asks (its rates come out of a new correction, which moves them by ~1e-9).
+STRETCH_MARGIN = 1e-6
+
+
 def joint_trajectory(robot: Robot, region: Region, form: Form, path: SampledPath,
-                     q0: np.ndarray, target: np.ndarray
-                     ) -> tuple[dict[str, Any], ExecutionCheck]:
+                     q0: np.ndarray, target: np.ndarray,
+                     limits: tuple[float | None, float | None] = (None, None)
+                     ) -> tuple[dict[str, Any], ExecutionCheck, np.ndarray]:
     """The ROS ``trajectory_msgs/JointTrajectory`` form of an executable path, corrected for
     cubic Hermite interpolation.
 
@@ -685,12 +716,21 @@ def joint_trajectory(robot: Robot, region: Region, form: Form, path: SampledPath
     interior positions and all velocities are then corrected so that the original model driven
     by the derivative of the cubic Hermite interpolant ends at the goal.
 
+    Between points the interpolant's derivative overshoots the velocities (the plan's rates
+    jump at its breaks), so with actuator ``limits`` it can exceed them although the plan does
+    not. Then the points' times are stretched by the largest ratio of peak to limit (times
+    ``1 +`` :data:`STRETCH_MARGIN`) and the velocities shrunk by it, and the form is corrected
+    again on those times: the model has no drift, so ``u(t / f) / f`` drives it along the same
+    path, at rates within the limits (``time_scale`` in the answer; 1 when not stretched).
+
     Returns
     -------
     dict
         ``joint_names``, ``points`` (``positions``, ``velocities``, ``time_from_start`` as
         ``sec`` and ``nanosec``) and ``interpolation``.
     ExecutionCheck
+    ndarray (2,)
+        The largest ``|u1|, |u2|`` of the interpolated rates (:func:`hermite_peak_rates`).
     """
     t = path.t
     keep = np.concatenate([np.diff(t) > 0.0, [True]])            # last copy of each time
@@ -707,9 +747,19 @@ def joint_trajectory(robot: Robot, region: Region, form: Form, path: SampledPath
         vel = 0.5 * (path.u[keep] + path.u[first])
     pos = path.q[keep][:, :2]
     hform = hermite_form(times)
-    p0 = np.vstack([pos, vel])
-    p, q, check = correct(robot, hform, p0, q0, target, region, times)
+    p, q, check = correct(robot, hform, np.vstack([pos, vel]), q0, target, region, times)
+    peak = hermite_peak_rates(hform, p)
     m = times.size
+    ratios = [peak[c] / lim for c, lim in enumerate(limits) if lim is not None]
+    scale = 1.0
+    if ratios and max(ratios) > 1.0:
+        scale = max(ratios) * (1.0 + STRETCH_MARGIN)
+        ns = np.rint(ns * scale).astype(np.int64)
+        times = ns * 1e-9
+        hform = hermite_form(times)
+        p, q, check = correct(robot, hform, np.vstack([p[:m], p[m:] / scale]), q0, target,
+                              region, times)
+        peak = hermite_peak_rates(hform, p)
     pos, vel = p[:m], p[m:]
     # no accelerations: with positions and velocities only, joint_trajectory_controller
     # interpolates cubically, the rule verified here
@@ -720,8 +770,9 @@ def joint_trajectory(robot: Robot, region: Region, form: Form, path: SampledPath
               for (a, b), (c, d), x in zip(pos.tolist(), vel.tolist(), ns.tolist())]
     out = {"joint_names": ["phi", "th1"], "points": points,
            "interpolation": "cubic Hermite between consecutive points (positions and "
-                            "velocities), as joint_trajectory_controller"}
-    return out, check
+                            "velocities), as joint_trajectory_controller",
+           "time_scale": scale}
+    return out, check, peak
 
 
 class HandedOutInputs:

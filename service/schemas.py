@@ -305,6 +305,12 @@ class JointTrajectory(BaseModel):
     joint_names: list[str] = Field(..., description='["phi", "th1"].')
     points: list[JointTrajectoryPoint]
     interpolation: str
+    time_scale: float = Field(
+        1.0, ge=1.0,
+        description="How much longer than the plan these points take: with max_u1/max_u2 the "
+                    "cubic interpolant would overshoot the limits next to the plan's rate "
+                    "jumps, so its times are stretched by this factor and its velocities "
+                    "shrunk by it (the same path: the model has no drift); 1 otherwise.")
 
 
 class PlanResponse(BaseModel):

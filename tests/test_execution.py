@@ -84,6 +84,33 @@ def test_joint_trajectory_replays_by_cubic_hermite(method):
     _check_joint_trajectory(p, req, 1e-4)
 
 
+@pytest.mark.parametrize("n", [3, 4])
+def test_joint_trajectory_keeps_the_actuator_limits_between_its_points(n):
+    """With max_u1/max_u2 the plan's rates touch their limits and jump at its breaks, where a
+    cubic Hermite interpolant overshoots: the JointTrajectory is stretched in time (same path:
+    the model has no drift), so the derivative of the interpolant, evaluated here on a dense
+    grid by the Hermite basis itself, stays within the limits, and scipy's replay of it still
+    ends on the goal."""
+    lim = (1.0, 0.8)
+    req, p = _plan(n, "shooting", joint_trajectory=True, max_u1=lim[0], max_u2=lim[1])
+    assert np.max(np.abs(p.inputs.rates), axis=0).max() > 0.99 * min(lim)  # at a limit
+    _check_joint_trajectory(p, req, 1e-4)
+    jt = p.to_dict()["joint_trajectory"]
+    pts = jt["points"]
+    t = np.array([pt["time_from_start"]["sec"] + 1e-9 * pt["time_from_start"]["nanosec"]
+                  for pt in pts])
+    x = np.array([pt["positions"] for pt in pts])
+    v = np.array([pt["velocities"] for pt in pts])
+    s = np.linspace(0.0, 1.0, 101)[:, None, None]
+    h = np.diff(t)[None, :, None]
+    du = ((6 * s * s - 6 * s) * (x[:-1] - x[1:]) / h + (3 * s * s - 4 * s + 1) * v[:-1]
+          + (3 * s * s - 2 * s) * v[1:])                       # (101, K, 2)
+    peak = np.max(np.abs(du), axis=(0, 1))
+    assert np.all(peak <= np.array(lim) * (1.0 + 1e-9)), peak
+    assert jt["time_scale"] >= 1.0 and t[-1] == pytest.approx(p.duration * jt["time_scale"],
+                                                              rel=1e-6)
+
+
 def test_shooting_samples_at_breaks_are_the_break_times_with_both_rates():
     """Every rate break of a shooting plan is a sample time exactly, twice: the previous
     interval's rate, then the new one (holding the second copy holds the new rate)."""

@@ -79,7 +79,8 @@ def test_compose_runs_replicas_behind_a_load_balancer():
     planner, lb = doc["services"]["planner"], doc["services"]["lb"]
     assert planner["deploy"]["replicas"] == 3
     assert planner["build"] == "."
-    assert "healthz" in " ".join(planner["healthcheck"]["test"])
+    # the load balancer waits for warm workers: readiness, not liveness
+    assert "/readyz" in " ".join(planner["healthcheck"]["test"])
     assert all(k.startswith("PLANNER_") for k in planner["environment"])
     assert lb["image"].startswith("nginx")
     assert lb["depends_on"]["planner"]["condition"] == "service_healthy"
