@@ -66,7 +66,7 @@ from ..dynamics import rk4_step, vector_field
 from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, PlannerError,
                       SolverTimeoutError)
 from ..problem import MAX_TIME_LIMIT, PlanRequest
-from ..indicators import count_reversals_columns, segment_distance
+from ..indicators import ACTUATOR_DEAD_BAND, count_reversals_columns, segment_distance
 from .rules import joint_limits, monotone_reach_ok, monotone_signs, th1_monotone_reach_ok
 
 
@@ -84,10 +84,13 @@ class Transcription:
 
 
 class NodeSolution(Protocol):
-    """What :func:`solve_rungs` reads of a method's NLP answer: its node states."""
+    """What :func:`solve_rungs` reads of a method's NLP answer: its node states and rates."""
 
     @property
     def nodes(self) -> np.ndarray: ...
+
+    @property
+    def rates(self) -> np.ndarray: ...
 
 
 SolutionT = TypeVar("SolutionT", bound=NodeSolution)
@@ -112,6 +115,9 @@ DEVIATION_WEIGHT = 10.0
 D_A_WEIGHT = 0.3
 #: ... and under the paper's ``tp_then_da``, which ranks by it.
 PAPER_D_A_WEIGHT = 3.0
+#: A run of an actuator's rate of one sign travelling less than this share of the actuator's
+#: whole travel is a wiggle (:func:`wiggle_free_signs`).
+WIGGLE_SHARE = 0.05
 #: Region modes of the transcription (see the module docstring).
 REGION_MODES = ("hard", "penalty")
 #: Distance (rad) kept from the region's bounds at the nodes (0.5 deg).
@@ -535,23 +541,71 @@ def _reversals_and_deviation(req: PlanRequest, nodes: np.ndarray) -> tuple[int, 
     return rev, segment_distance(nodes[:, 1:], np.array(req.start), np.array(req.goal))
 
 
-def solve_rungs(req: PlanRequest,
-                solve: Callable[[Transcription, tuple[float, float] | None], SolutionT]
-                ) -> tuple[SolutionT, Transcription, tuple[float, float] | None,
-                           list[dict[str, Any]]]:
-    """The first solution of ``solve`` over :func:`rungs`: ``(solution, transcription, signs,
-    attempts of the rungs that failed)``; :class:`InfeasibleError` naming every rung when none
-    converged (a finer or free rung may converge where one failed).
+def wiggle_free_signs(rates: np.ndarray) -> np.ndarray | None:
+    """Per-interval signs ``(N, 2)`` of ``rates`` (per unit of normalised time on ``N`` equal
+    intervals) with their wiggles merged into the neighbouring runs, or None without wiggles.
 
-    Under the default objective a first solution in which ``th_1`` reverses (``phi``'s sign
-    fixed, or both free) is not yet the fewest reversals: the same transcription with
-    ``th_1``'s sign fixed and ``phi`` free may reverse ``phi`` once where the first reversed
-    ``th_1`` once, on a straighter path. It is solved too, and the better of the two by
-    (reversals, deviation) at the nodes is returned.
+    A wiggle is a run of one sign of an actuator's rate whose travel is above the reversal
+    dead band (it counts as two reversals, one at an end of the path) but below
+    :data:`WIGGLE_SHARE` of the actuator's whole travel. The smallest is merged first (it takes
+    its neighbours' sign), until none is left.
+    """
+    N = rates.shape[0]
+    h = 1.0 / N
+    out = np.zeros((N, 2))
+    found = False
+    for c in (0, 1):
+        col = np.asarray(rates[:, c], float)
+        sign = np.sign(col)
+        for k in range(N):  # a zero rate belongs to the run before it (or after, at the start)
+            if sign[k] == 0.0:
+                sign[k] = sign[k - 1] if k else 0.0
+        if sign[0] == 0.0:
+            nz = np.nonzero(sign)[0]
+            sign[:] = sign[nz[0]] if nz.size else 1.0
+        total = float(np.sum(np.abs(col)) * h)
+        while True:
+            edges = np.flatnonzero(np.diff(sign)) + 1
+            starts, ends = np.r_[0, edges], np.r_[edges, N]
+            if starts.size < 2:
+                break
+            travel = np.array([np.sum(np.abs(col[i:j])) * h for i, j in zip(starts, ends)])
+            small = np.flatnonzero((travel > ACTUATOR_DEAD_BAND) & (travel < WIGGLE_SHARE * total))
+            if small.size == 0:
+                break
+            r = int(small[np.argmin(travel[small])])
+            sign[starts[r]:ends[r]] = sign[starts[r] - 1] if r > 0 else sign[ends[r]]
+            found = True
+        out[:, c] = sign
+    return out if found else None
+
+
+def signs_list(signs: Any) -> Any:
+    """Rate signs (a pair, or one pair per interval) as JSON-ready lists (None: free)."""
+    return None if signs is None else np.asarray(signs, float).tolist()
+
+
+def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
+                ) -> tuple[SolutionT, Transcription, Any, list[dict[str, Any]]]:
+    """The first solution of ``solve(transcription, signs[, start_nodes])`` over :func:`rungs`:
+    ``(solution, transcription, signs, attempts of the rungs that failed)``;
+    :class:`InfeasibleError` naming every rung when none converged (a finer or free rung may
+    converge where one failed).
+
+    Under the default objective (fewest reversals, then deviation) two more NLPs may follow,
+    each kept only when better by (reversals, deviation) at the nodes:
+
+    * a solution in which ``th_1`` reverses (``phi``'s sign fixed, or both free) is compared
+      with the same transcription with ``th_1``'s sign fixed and ``phi`` free, which may
+      reverse ``phi`` once where the first reversed ``th_1`` once, on a straighter path
+      (skipped when :func:`~.rules.th1_monotone_reach_ok` rules it out);
+    * a solution with wiggles (:func:`wiggle_free_signs`: short runs of an actuator's rate
+      against its neighbours, each two reversals for little travel, which the deviation term
+      can favour on long moves) is solved again from its own nodes with every interval's
+      rates held to the signs without them.
     """
     failures: list[str] = []
     tried: list[dict[str, Any]] = []
-    th1_sign = float(np.sign(req.goal[0] - req.start[0]))
     for tr, signs in rungs(req):
         try:
             sol = solve(tr, signs)
@@ -560,24 +614,32 @@ def solve_rungs(req: PlanRequest,
                             + f": {exc.message}")
             tried.extend(exc.diagnostics.get("tried", []))
             continue
-        if (req.objective != "reversals_then_deviation" or th1_sign == 0.0
-                or (signs is not None and signs[1] != 0.0)):
+        if req.objective != "reversals_then_deviation":
             return sol, tr, signs, tried
+        best: tuple[Any, Any] = (sol, signs)
         key = _reversals_and_deviation(req, sol.nodes)
-        if int(count_reversals_columns(sol.nodes[:, 1:2])[0]) == 0:
-            return sol, tr, signs, tried
-        alt_signs = (0.0, th1_sign)
-        lo, hi = node_bounds(req, joint_limits(req))
-        if not th1_monotone_reach_ok(req, float(lo[1]), float(hi[1])):
-            return sol, tr, signs, tried  # th1 monotone cannot reach th3's goal
-        try:
-            alt = solve(tr, alt_signs)
-        except InfeasibleError as exc:
-            tried.extend(exc.diagnostics.get("tried", []))
-            return sol, tr, signs, tried
-        if _reversals_and_deviation(req, alt.nodes) < key:
-            return alt, tr, alt_signs, tried
-        return sol, tr, signs, tried
+
+        def consider(alt_signs: Any, start: np.ndarray | None = None) -> None:
+            nonlocal best, key
+            try:
+                alt = solve(tr, alt_signs) if start is None else solve(tr, alt_signs, start)
+            except InfeasibleError as exc:
+                tried.extend(exc.diagnostics.get("tried", []))
+                return
+            alt_key = _reversals_and_deviation(req, alt.nodes)
+            if alt_key < key:
+                best, key = (alt, alt_signs), alt_key
+
+        th1_sign = float(np.sign(req.goal[0] - req.start[0]))
+        if (th1_sign != 0.0 and (signs is None or signs[1] == 0.0)
+                and int(count_reversals_columns(sol.nodes[:, 1:2])[0]) > 0):
+            lo, hi = node_bounds(req, joint_limits(req))
+            if th1_monotone_reach_ok(req, float(lo[1]), float(hi[1])):
+                consider((0.0, th1_sign))
+        pattern = wiggle_free_signs(best[0].rates)
+        if pattern is not None:
+            consider(pattern, best[0].nodes)
+        return best[0], tr, best[1], tried
     raise InfeasibleError("; ".join(failures),
                           diagnostics={"blocking": "nlp_failed", "tried": tried})
 
@@ -624,7 +686,7 @@ def objective_weights(req: PlanRequest, method: str) -> tuple[float, float, floa
 
 def variable_bounds(req: PlanRequest, nlp: MultipleShootingNLP, tr: Transcription,
                     node_lo: np.ndarray | None = None, node_hi: np.ndarray | None = None,
-                    rate_signs: tuple[float, float] | None = None
+                    rate_signs: tuple[float, float] | np.ndarray | None = None
                     ) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
     """``lbx, ubx`` of ``req`` on ``nlp``: the rates within ``tr.rate_bound`` (keeps the NLP's
     RK4 steps accurate, see :data:`LADDER`), ``phi_N`` within the request's ``dphi`` bounds
@@ -636,11 +698,12 @@ def variable_bounds(req: PlanRequest, nlp: MultipleShootingNLP, tr: Transcriptio
     if node_lo is not None and node_hi is not None:
         lbW[:, 1:n + 1], ubW[:, 1:n + 1] = node_lo, node_hi
     lbW[:N, nlp.nx:nlp.nx + 2], ubW[:N, nlp.nx:nlp.nx + 2] = -tr.rate_bound, tr.rate_bound
-    for col, sign in zip((nlp.nx, nlp.nx + 1), rate_signs or (0.0, 0.0)):
-        if sign > 0:
-            lbW[:N, col] = 0.0
-        elif sign < 0:
-            ubW[:N, col] = 0.0
+    # one sign per actuator, or one per interval and actuator (N, 2); 0: either
+    signs = np.broadcast_to(np.zeros(2) if rate_signs is None
+                            else np.asarray(rate_signs, float), (N, 2))
+    for c, col in enumerate((nlp.nx, nlp.nx + 1)):
+        lbW[:N, col] = np.where(signs[:, c] > 0, 0.0, lbW[:N, col])
+        ubW[:N, col] = np.where(signs[:, c] < 0, 0.0, ubW[:N, col])
     if req.phi_change is not None:
         lo_phi = hi_phi = float(req.phi_change)
     else:
@@ -752,7 +815,7 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
 
 
 __all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "DeadlineCallback", "INFEASIBLE",
-           "IPOPT_FIRST_JOINTS",
+           "IPOPT_FIRST_JOINTS", "WIGGLE_SHARE", "signs_list", "wiggle_free_signs",
            "IPOPT_OPTIONS", "LADDER", "MARGIN", "MultipleShootingNLP", "REGION_MODES", "SUCCESS",
            "SolveOutcome", "TIMEOUT", "Transcription", "classify", "correct_rates", "error_for",
            "fatrop_options", "ipopt_options", "multiple_shooting_nlp", "nlp_for", "node_bounds", "rungs", "solve_rungs",

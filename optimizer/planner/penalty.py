@@ -193,9 +193,13 @@ def violation(nodes: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
 
 def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0], *,
                   warm_start: ActuatorSchedule | InputSchedule | None = None,
-                  rate_signs: tuple[float, float] | None = None) -> PenaltySolution:
+                  rate_signs: tuple[float, float] | np.ndarray | None = None,
+                  start_nodes: np.ndarray | None = None) -> PenaltySolution:
     """Solve the penalty NLP of transcription ``tr`` for ``req`` (normalised time), raising
     ``rho`` while the solution violates the region; raise a typed error when it fails.
+
+    ``rate_signs``: one sign per actuator, or per interval and actuator (0: either);
+    ``start_nodes``: node states ``(N+1, n+1)`` to start from instead of the usual starts.
 
     Raises
     ------
@@ -216,10 +220,16 @@ def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0]
         # rates of fixed signs may be infeasible: fatrop's iteration cap bounds the cost of
         # finding out (the free rungs follow), from the one start that travels their way
         solvers = solvers[:1]
-        sign = rate_signs[0] or float(np.sign(req.goal[1] - req.start[1])) or 1.0
+        first = float(np.asarray(rate_signs, float).reshape(-1, 2)[0, 0])
+        sign = first or float(np.sign(req.goal[1] - req.start[1])) or 1.0
         straight = [st for st in starts if st[0] != "warm_start"]
         keep = [st for st in straight if (sign > 0) == ("+" in st[0])] or straight[:1]
         starts = [st for st in starts if st[0] == "warm_start"] + keep
+    if start_nodes is not None:
+        a, b = np.array(req.start), np.array(req.goal)
+        starts = [("previous_solution", "the previous solution's nodes (its rates' signs "
+                   "held: see nlp.solve_rungs)",
+                   np.clip(nlp.guess_from_nodes(start_nodes, a, b), lbw, ubw))]
     elif req.n >= IPOPT_FIRST_JOINTS:
         solvers = [s for s in solvers if s == "ipopt"] or solvers
     tried: list[dict[str, Any]] = []
@@ -297,8 +307,8 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     sol, tr, signs, tried = nlp_layer.solve_rungs(
-        req, lambda tr, rate_signs: solve_penalty(req, deadline, tr, warm_start=warm_start,
-                                                  rate_signs=rate_signs))
+        req, lambda tr, rate_signs, start=None: solve_penalty(
+            req, deadline, tr, warm_start=warm_start, rate_signs=rate_signs, start_nodes=start))
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the penalty NLP")
     t1 = time.perf_counter()
@@ -316,7 +326,7 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
                     "boundary_distance": distance if math.isfinite(distance) else None,
                     "violation": sol.violation,
                     "intervals": N, "rk4_substeps": tr.substeps, "rate_bound": tr.rate_bound,
-                    "monotone": None if signs is None else list(signs),
+                    "monotone": nlp_layer.signs_list(signs),
                     "status": sol.status, "iterations": sol.iterations,
                     "start": sol.start, "start_reason": sol.reason,
                     "tried": tried + list(sol.tried),

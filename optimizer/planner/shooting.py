@@ -127,13 +127,16 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
 
 
 def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0],
-                   monotone: tuple[float, float] | None = None) -> ShootingSolution:
+                   monotone: tuple[float, float] | np.ndarray | None = None,
+                   start_nodes: np.ndarray | None = None) -> ShootingSolution:
     """Solve the NLP of transcription ``tr`` for ``req`` (normalised time); raise a typed error
     when it fails.
 
     Attempts in the order of :data:`ATTEMPTS` (``phi`` travelling +0.6 rad, then -0.6 rad in
     the initial guess; fatrop, then IPOPT from each); the first converged solution is
-    returned. Rates of fixed signs: fatrop alone, one guess.
+    returned. Rates of fixed signs (``monotone``: one sign per actuator, or per interval and
+    actuator): fatrop alone, one guess, from ``start_nodes`` (node states, ``(N+1, n+1)``)
+    when given, else the straight line.
     """
     nlp = nlp_for(req, tr)
     a, b = np.array(req.start), np.array(req.goal)
@@ -148,7 +151,8 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0
         # fixed signs may be infeasible (th1 must overshoot on some goals), and fatrop's
         # iteration cap bounds the cost of finding out (IPOPT took 0.1-0.2 s to give up on
         # 4-joint goals); the free rungs follow
-        sign = monotone[0] or float(np.sign(req.goal[1] - req.start[1])) or 1.0
+        first = float(np.asarray(monotone, float).reshape(-1, 2)[0, 0])
+        sign = first or float(np.sign(req.goal[1] - req.start[1])) or 1.0
         attempts = (("fatrop", sign),)
     p = nlp_layer.parameters(req, *objective_weights(req, "shooting"))
     nlp.load_native()
@@ -160,15 +164,18 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0
         if deadline.remaining <= 1e-3:
             break
         travel = min(max(sign * GUESS_PHI_TRAVEL, lo_phi), hi_phi)
-        out = run_solver(nlp, name, nlp.guess(a, b, req.phi_start, travel), p, lbw, ubw,
-                         deadline.remaining)
-        tried.append({"solver": name, "phi_travel_guess": travel, "status": out.status,
+        if start_nodes is not None:
+            x0 = np.clip(nlp.guess_from_nodes(start_nodes, a, b), lbw, ubw)
+            guess = "the previous solution's nodes"
+        else:
+            x0, guess = nlp.guess(a, b, req.phi_start, travel), f"phi travel {travel:+.3g} rad"
+        out = run_solver(nlp, name, x0, p, lbw, ubw, deadline.remaining)
+        tried.append({"solver": name, "guess": guess, "status": out.status,
                       "iterations": out.iterations})
         if out.success and out.x is not None:
             nodes, rates = nlp.unpack(out.x)
             return ShootingSolution(nodes=nodes, rates=rates, status=f"{name}: {out.status}",
-                                    iterations=out.iterations,
-                                    start=f"phi travel {travel:+.3g} rad", tried=tuple(tried))
+                                    iterations=out.iterations, start=guess, tried=tuple(tried))
         if out.kind == "timeout":
             raise SolverTimeoutError(
                 f"the shooting NLP did not converge within the time limit of "
@@ -196,7 +203,7 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     # the rungs (nlp.rungs): under the default objective rates of fixed signs first (a plan
     # in which no actuator reverses wins whatever its deviation), then free
     sol, tr, mono, tried = nlp_layer.solve_rungs(
-        req, lambda tr, signs: solve_shooting(req, deadline, tr, signs))
+        req, lambda tr, signs, start=None: solve_shooting(req, deadline, tr, signs, start))
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
     t1 = time.perf_counter()
@@ -207,7 +214,7 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     N = rates.shape[0]
     diagnostics = {"objective": req.objective, "singularity": "full",
                    "shooting": {"intervals": N, "rk4_substeps": tr.substeps,
-                                "monotone": None if mono is None else list(mono),
+                                "monotone": nlp_layer.signs_list(mono),
                                 "rate_bound": tr.rate_bound,
                                 "status": sol.status, "iterations": sol.iterations,
                                 "start": sol.start, "tried": tried + list(sol.tried),
