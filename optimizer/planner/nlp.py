@@ -592,8 +592,9 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
     :class:`InfeasibleError` naming every rung when none converged (a finer or free rung may
     converge where one failed).
 
-    Under the default objective (fewest reversals, then deviation) two more NLPs may follow,
-    each kept only when better by (reversals, deviation) at the nodes:
+    Under the default objective (fewest reversals, then deviation) and below
+    :data:`IPOPT_FIRST_JOINTS` joints, two more NLPs may follow, each kept only when better by
+    (reversals, deviation) at the nodes:
 
     * a solution in which ``th_1`` reverses (``phi``'s sign fixed, or both free) is compared
       with the same transcription with ``th_1``'s sign fixed and ``phi`` free, which may
@@ -614,7 +615,9 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
                             + f": {exc.message}")
             tried.extend(exc.diagnostics.get("tried", []))
             continue
-        if req.objective != "reversals_then_deviation":
+        if req.objective != "reversals_then_deviation" or req.n >= IPOPT_FIRST_JOINTS:
+            # (the improvements below are fatrop's, which from 5 joints failed on 6 of the
+            # benchmark's 7 tries, about 20 ms each: see IPOPT_FIRST_JOINTS)
             return sol, tr, signs, tried
         best: tuple[Any, Any] = (sol, signs)
         key = _reversals_and_deviation(req, sol.nodes)
