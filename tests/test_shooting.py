@@ -320,3 +320,26 @@ def test_wiggle_free_signs_merges_short_runs_only():
     u1 = np.full(N, 1.0)
     u1[5] = -1e-6
     assert wiggle_free_signs(np.column_stack([u1, np.ones(N)])) is None
+
+
+def test_finishing_refines_rates_that_the_quadrature_finds_off_the_goal():
+    """When the one quadrature of finish_actuator_plan finds the rates off the goal by more
+    than the correction's target (here: rates moved by 1e-7 after the correction), the defect
+    correction runs once and the handed-out plan ends on the goal; without it, it would not."""
+    import optimizer.planner.shooting as shooting
+    from optimizer.planner.finish import finish_actuator_plan
+
+    req = request(*OPP_A)
+    sol = solve_shooting(req, Deadline(30.0))
+    nlp = shooting.nlp_for(req, shooting.LADDER[0])
+    phi_end = float(sol.nodes[-1, 0])
+    rates, _ = shooting.correct_rates(req, nlp, sol.rates, phi_end)
+    off = rates * (1.0 + 1e-7)
+    plain = finish_actuator_plan(req, off, "shooting", sol.nodes, {}, {})
+    assert plain.verification.terminal_error > 1e-9
+    refined = finish_actuator_plan(
+        req, off, "shooting", sol.nodes, {}, {},
+        refine=lambda end: shooting.correct_rates(req, nlp, off, phi_end, end)[0])
+    assert refined.verification.terminal_error < 1e-10
+    _, q = scipy_path(refined, req)
+    assert np.max(np.abs(q[-1, 1:] - np.array(req.goal))) < 1e-9

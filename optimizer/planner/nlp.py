@@ -154,8 +154,8 @@ MAX_CORRECTIONS = 4
 #: RK4 steps of the correction's end map per RK4 step of the NLP. On the bench's goals (rates
 #: of about 1 rad per unit of normalised time) 8 steps per 0.05 of it end 1e-13 to 2e-12 rad
 #: from the exact model (cascade quadrature), 4 steps 1e-12 to 3e-11; the error grows as the
-#: fifth power of the rates, so at the rung's bound it is about 1e-7, still far inside the
-#: terminal tolerance, and the exact replay that proves the plan measures it.
+#: fifth power of the rates, so at the rung's bound it is about 1e-7: the quadrature that
+#: proves the plan measures it, and the defect correction (``exact_end``) then removes it.
 FINE_SUBSTEPS = 8
 #: A bound of a joint the region leaves open (th_n without joint bounds), for the penalty's
 #: parameters, which must be finite.
