@@ -38,7 +38,9 @@ residual from :func:`~optimizer.verify.integrate_cascade` (Chebyshev quadrature 
 between the form's knots, error estimate ~1e-13 rad), the Jacobian
 ``int Phi(T, s) G(q(s)) B_j(s) ds`` from the adjoint of the linearised cascade, integrated by
 the trapezoidal rule on a grid of three Gauss-Legendre nodes per interval (the Jacobian only
-steers: the residual is exact). Zero to three steps reach :data:`CORRECTION_TARGET`.
+steers: the residual is exact). Zero to three steps reach :data:`CORRECTION_TARGET`. The
+parameters kept are the best met, those whose path stays inside the region first: a step
+can bring the end closer along a path that leaves it.
 
 The region is checked on the same integration at the knots and three interior points of every
 interval; the reported ``margin`` is the smallest distance of ``th_1..th_n`` to the region's
@@ -380,7 +382,15 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
         p = np.clip(p, -lim, lim)
         if not np.array_equal(p, p0):  # the given replay is of other rates
             initial = None
-    best: tuple[float, np.ndarray, Replay, int] | None = None
+    lo, hi = np.asarray(region.lower, float), np.asarray(region.upper, float)
+
+    def outside(r: Replay) -> bool:
+        th = r.q[:, 1:]
+        return bool(r.singular) or not float(np.min(np.minimum(th - lo, hi - th))) > 0.0
+
+    # the best parameters met: inside the region first, then the smallest end error (a step
+    # can bring the end closer along a path that leaves the region: it is not kept)
+    best: tuple[tuple[bool, float], np.ndarray, Replay, int] | None = None
     first_error = math.inf
     steps = 0
     errors: list[float] = []
@@ -396,8 +406,9 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
         if k == 0:
             first_error = float(np.max(np.abs(r[1:])))
         errors.append(err)
-        if best is None or err < best[0]:
-            best, steps = (err, p, rep, off), k
+        key = (outside(rep), err)
+        if best is None or key < best[0]:
+            best, steps = (key, p, rep, off), k
         if err <= CORRECTION_TARGET or k == MAX_CORRECTIONS:
             break
         if off != ng:  # the given first replay has no states on the Jacobian's grid
@@ -416,7 +427,6 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
         raise NumericalError(f"the {form.rule} form could not be integrated: {rep.message}",
                              diagnostics={"rule": form.rule})
     _, p, rep, off = best
-    lo, hi = np.asarray(region.lower, float), np.asarray(region.upper, float)
     th = rep.q[:, 1:]
     margin = float(np.min(np.minimum(th - lo, hi - th)))
     check = ExecutionCheck(

@@ -197,3 +197,23 @@ def test_a_reversing_shooting_plan_replays_by_its_rule(period):
     assert err < (1e-4 if period is None else 1e-6), err
     assert margin > 0.0
     assert np.any(p.path.u[:, 0] < 0) and np.any(p.path.u[:, 0] > 0)
+
+
+def test_a_correction_step_that_leaves_the_region_is_not_kept(monkeypatch):
+    """On this 5-joint goal (deviation weight 30) the exact replay of the linear form misses by
+    2.5e-8 rad; the form's first Gauss-Newton step overshoots (0.2 rad) and the steps then
+    converge onto a path that leaves the region. The form kept is the best one inside the
+    region (here the first, within the 1e-6 rad tolerance), and scipy's replay agrees."""
+    import optimizer.planner.nlp as nlp_layer
+    from test_default_plan import FIVE_JOINT_GOAL, FIVE_JOINT_START
+
+    monkeypatch.setattr(nlp_layer, "DEVIATION_WEIGHT", 30.0)
+    req = PlanRequest(start=FIVE_JOINT_START, goal=FIVE_JOINT_GOAL, robot=Robot.default(5),
+                      method="shooting")
+    p = plan(req)
+    check = p.execution.check
+    assert max(check.errors) > 1e-3          # a step did go astray
+    assert check.margin > 0.0 and check.terminal_error <= 1e-6
+    qf, margin = replay_linear(p.robot, p.path.t, p.path.u, req.q_start())
+    assert float(np.max(np.abs(qf[1:] - np.array(req.goal)))) < 1e-6
+    assert margin > 0.0
