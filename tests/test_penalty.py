@@ -168,8 +168,11 @@ def test_no_worse_than_shooting_on_the_same_region(start, goal):
     p = plan(req)
     assert_verified(p, req)
     ip, is_ = p.indicators, s.indicators
-    assert ip.d_a <= is_.d_a + 1e-5
-    assert ip.d_a_joint_space <= is_.d_a_joint_space + 1e-5
+    # the two NLPs stop at FATROP_TOL of their own optimality conditions: their plans agree to
+    # about 1e-5 rad (1.5e-5 in d_a on one goal)
+    assert ip.d_a <= is_.d_a + 1e-4
+    assert ip.d_a_joint_space <= is_.d_a_joint_space + 1e-4
+    assert ip.deviation <= is_.deviation + 1e-4
     assert ip.t_p <= is_.t_p and ip.phi_reversals <= is_.phi_reversals
     assert ip.energy == pytest.approx(is_.energy, rel=1e-3)
 
@@ -182,7 +185,8 @@ def test_warm_start_from_a_plan_is_used_and_stays_put():
     shot = plan(request(*OPP_A, method="shooting", joint_bounds=bounds))
     req = request(*OPP_A)
     p = pen.plan_penalty(req, Deadline(30.0), warm_start=shot.inputs)
-    assert p.diagnostics["penalty"]["start"] == "warm_start"
+    # its first NLP starts there (a later one may start from that solution: nlp.solve_rungs)
+    assert p.diagnostics["penalty"]["tried"][0]["start"] == "warm_start"
     assert np.max(np.abs(p.inputs.rates - shot.inputs.rates)) < 1e-3
     assert_verified(p, req)
     poly_req = request((10, 10, 10), (30, 30, 30))
