@@ -66,7 +66,9 @@ from ..dynamics import rk4_step, vector_field
 from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, PlannerError,
                       SolverTimeoutError)
 from ..problem import MAX_TIME_LIMIT, PlanRequest
+from ..results import Plan
 from ..indicators import ACTUATOR_DEAD_BAND, count_reversals_columns, segment_distance
+from .finish import finish_actuator_plan
 from .rules import joint_limits, monotone_reach_ok, monotone_signs, th1_monotone_reach_ok
 
 
@@ -650,6 +652,35 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
                           diagnostics={"blocking": "nlp_failed", "tried": tried})
 
 
+def finish_solution(req: PlanRequest, method: str, nlp: MultipleShootingNLP, sol: Any,
+                    tr: Transcription, signs: Any, tried: list[dict[str, Any]],
+                    timing: dict[str, float], details: dict[str, Any]) -> Plan:
+    """The plan of an NLP answer of ``shooting`` or ``penalty``: :func:`correct_rates` onto
+    the goal, then :func:`~.finish.finish_actuator_plan` (with the defect correction as its
+    ``refine``); ``diagnostics[method]`` holds the transcription, the rungs' record and the
+    solver's, updated with the method's own ``details``."""
+    t0 = time.perf_counter()
+    phi_end = float(sol.nodes[-1, 0])
+    rates, errors = correct_rates(req, nlp, sol.rates, phi_end)
+    timing["correction"] = time.perf_counter() - t0
+    record = {"intervals": rates.shape[0], "rk4_substeps": tr.substeps,
+              "rate_bound": tr.rate_bound, "monotone": signs_list(signs),
+              "status": sol.status, "iterations": sol.iterations, "start": sol.start,
+              "tried": tried + list(sol.tried),
+              # the answering solver evaluated compiled C (optimizer.native)
+              "compiled": nlp.compiled and sol.status.startswith("fatrop"),
+              "terminal_error_per_correction": errors, **details}
+
+    def refine(exact_end: np.ndarray) -> np.ndarray:
+        # the quadrature's end missed the goal: correct for the fine map's error there
+        again, more = correct_rates(req, nlp, rates, phi_end, exact_end)
+        errors.extend(more)
+        return again
+
+    diagnostics = {"objective": req.objective, "singularity": "full", method: record}
+    return finish_actuator_plan(req, rates, method, sol.nodes, timing, diagnostics, refine)
+
+
 def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard") -> MultipleShootingNLP:
     """The cached NLP of ``req``'s robot under transcription ``tr``."""
     return multiple_shooting_nlp(tuple(float(k) for k in req.robot.gains),
@@ -821,7 +852,7 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
 
 
 __all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "DeadlineCallback", "INFEASIBLE",
-           "IPOPT_FIRST_JOINTS", "WIGGLE_SHARE", "signs_list", "wiggle_free_signs",
+           "IPOPT_FIRST_JOINTS", "finish_solution", "WIGGLE_SHARE", "signs_list", "wiggle_free_signs",
            "IPOPT_OPTIONS", "LADDER", "MARGIN", "MultipleShootingNLP", "REGION_MODES", "SUCCESS",
            "SolveOutcome", "TIMEOUT", "Transcription", "classify", "correct_rates", "error_for",
            "fatrop_options", "ipopt_options", "multiple_shooting_nlp", "nlp_for", "node_bounds", "rungs", "solve_rungs",

@@ -69,7 +69,6 @@ from .nlp import (IPOPT_FIRST_JOINTS, LADDER, MultipleShootingNLP, Transcription
                   node_bounds, run_solver)
 from .base import Capabilities, Method
 from .context import PlanContext
-from .finish import finish_actuator_plan
 from .rules import joint_limits, limits_region
 
 #: The penalty weight of the first solve from every start. On the benchmark's ten goals the
@@ -311,35 +310,14 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
             req, deadline, tr, warm_start=warm_start, rate_signs=rate_signs, start_nodes=start))
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the penalty NLP")
-    t1 = time.perf_counter()
-    nlp = nlp_for(req, tr, "penalty")
-    N = sol.rates.shape[0]
-    phi_end = float(sol.nodes[-1, 0])
-    rates, errors = nlp_layer.correct_rates(req, nlp, sol.rates, phi_end)
-    timing["correction"] = time.perf_counter() - t1
     region = penalised_region(req)
     th = sol.nodes[:, 1:]
     distance = float(np.min(np.minimum(th - region.lower, region.upper - th)))
-    diagnostics: dict[str, Any] = {
-        "objective": req.objective, "singularity": "full",
-        "penalty": {"penalty_weight": sol.rho,
-                    "boundary_distance": distance if math.isfinite(distance) else None,
-                    "violation": sol.violation,
-                    "intervals": N, "rk4_substeps": tr.substeps, "rate_bound": tr.rate_bound,
-                    "monotone": nlp_layer.signs_list(signs),
-                    "status": sol.status, "iterations": sol.iterations,
-                    "start": sol.start, "start_reason": sol.reason,
-                    "tried": tried + list(sol.tried),
-                    "compiled": nlp.compiled and sol.status.startswith("fatrop"),
-                    "terminal_error_per_correction": errors}}
-
-    def refine(exact_end: np.ndarray) -> np.ndarray:
-        # the quadrature's end missed the goal: correct for the fine map's error there
-        again, more = nlp_layer.correct_rates(req, nlp, rates, phi_end, exact_end)
-        errors.extend(more)
-        return again
-
-    return finish_actuator_plan(req, rates, "penalty", sol.nodes, timing, diagnostics, refine)
+    return nlp_layer.finish_solution(
+        req, "penalty", nlp_for(req, tr, "penalty"), sol, tr, signs, tried, timing,
+        {"penalty_weight": sol.rho,
+         "boundary_distance": distance if math.isfinite(distance) else None,
+         "violation": sol.violation, "start_reason": sol.reason})
 
 
 class PenaltyMethod(Method):

@@ -88,7 +88,6 @@ from .nlp import (CORRECTION_TARGET, D_A_WEIGHT, DEVIATION_WEIGHT, IPOPT_FIRST_J
                   node_bounds, objective_weights, run_solver)
 from .base import Capabilities, Method
 from .context import PlanContext
-from .finish import finish_actuator_plan
 from .rules import joint_limits
 
 #: Solver and sign of phi's initial travel of each attempt on a free rung, in order (the
@@ -206,29 +205,8 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
         req, lambda tr, signs, start=None: solve_shooting(req, deadline, tr, signs, start))
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
-    t1 = time.perf_counter()
-    nlp = nlp_for(req, tr)
-    phi_end = float(sol.nodes[-1, 0])
-    rates, errors = correct_rates(req, nlp, sol.rates, phi_end)
-    timing["correction"] = time.perf_counter() - t1
-    N = rates.shape[0]
-    diagnostics = {"objective": req.objective, "singularity": "full",
-                   "shooting": {"intervals": N, "rk4_substeps": tr.substeps,
-                                "monotone": nlp_layer.signs_list(mono),
-                                "rate_bound": tr.rate_bound,
-                                "status": sol.status, "iterations": sol.iterations,
-                                "start": sol.start, "tried": tried + list(sol.tried),
-                                # the answering solver evaluated compiled C (optimizer.native)
-                                "compiled": nlp.compiled and sol.status.startswith("fatrop"),
-                                "terminal_error_per_correction": errors}}
-
-    def refine(exact_end: np.ndarray) -> np.ndarray:
-        # the quadrature's end missed the goal: correct for the fine map's error there
-        again, more = nlp_layer.correct_rates(req, nlp, rates, phi_end, exact_end)
-        errors.extend(more)
-        return again
-
-    return finish_actuator_plan(req, rates, "shooting", sol.nodes, timing, diagnostics, refine)
+    return nlp_layer.finish_solution(req, "shooting", nlp_for(req, tr), sol, tr, mono, tried,
+                                     timing, {})
 
 
 class ShootingMethod(Method):
