@@ -600,7 +600,8 @@ def piece_values(form: Form, u_exact: Uexact) -> np.ndarray:
 
 def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
             phi_end: float, region: Region | None = None, *,
-            constant: Replay | None = None) -> Execution:
+            constant: Replay | None = None,
+            linear: np.ndarray | None = None) -> Execution:
     """The handed-out forms of a verified plan: sampled, corrected onto the goal, re-integrated.
 
     Parameters
@@ -623,6 +624,9 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
         (each inner break a doubled sample) then holds the rates exactly: its samples are the
         rates (no projection) and this replay is the form's own first replay (not integrated
         twice). Ignored on a controller period.
+    linear : ndarray, optional
+        :func:`linear_times` ``(T, req.samples, breaks)`` when the caller has them already
+        (and checked the period: :func:`check_period`).
 
     Raises
     ------
@@ -641,9 +645,10 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
     q0 = req.q_start()
     target = np.concatenate([[phi_end], req.goal])
     breaks = np.asarray(breaks, float)
-    check_period(req, T)
+    if linear is None:
+        check_period(req, T)
     if req.controller_period is None:
-        times = linear_times(T, req.samples, breaks)
+        times = linear_times(T, req.samples, breaks) if linear is None else linear
         form = linear_form(times)
     else:
         times = period_times(T, float(req.controller_period), breaks)

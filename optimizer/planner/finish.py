@@ -241,7 +241,8 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
     # the handed-out path is what a controller executes: corrected for its rule and verified
     # by it (optimizer.execution), the breaks in seconds exact in its times
     exe = execute(req, schedule.u, breaks, T, float(final[0]), limits_region(req),
-                  constant=rep if times.size else None)
+                  constant=rep if times.size else None,
+                  linear=times if times.size else None)
     timing["execution"] = exe.seconds
     return Plan(robot=robot, method=method, phi_change=dphi, duration=T, inputs=schedule,
                 chained=None, feasible_phi_changes=[], indicators=ind, margin=margin,
