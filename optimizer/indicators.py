@@ -88,32 +88,44 @@ def approximation_distance(tau: np.ndarray, th: np.ndarray) -> np.ndarray:
     return np.max(np.abs(line_deviation(tau, th)), axis=0)
 
 
+def _distances(thT: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """Largest distances of the columns of ``thT`` (n, N) from the LINE through ``a`` and ``b``
+    and from the SEGMENT ``a -> b``: ``(line, segment)``.
+
+    With ``rel = th - a``, ``d = b - a``, ``p = rel . d`` and ``s = clip(p / |d|^2, 0, 1)``:
+    the squared distances are ``|rel|^2 - p^2 / |d|^2`` and ``|rel - s d|^2 = |rel|^2 -
+    s (2 p - s |d|^2)``. Joints as rows: the sums over joints are adds of whole rows.
+    """
+    d = b - a
+    rel = thT - a[:, None]
+    sq = np.einsum("ij,ij->j", rel, rel)
+    nrm = float(d @ d)
+    if nrm == 0.0:
+        r = math.sqrt(float(np.max(sq)))
+        return r, r
+    proj = d @ rel
+    line2 = sq - proj * proj / nrm
+    s = np.clip(proj / nrm, 0.0, 1.0)
+    seg2 = sq - s * (2.0 * proj - s * nrm)
+    return (math.sqrt(max(float(np.max(line2)), 0.0)),
+            math.sqrt(max(float(np.max(seg2)), 0.0)))
+
+
 def joint_space_distance(th: np.ndarray) -> float:
     """Largest perpendicular distance (eq 17) from the samples ``th`` (N, n) to the line through
     the first and last sample."""
-    a, b = th[0], th[-1]
-    l1 = b - a
-    l2 = th - a
-    nrm = float(l1 @ l1)
-    if nrm == 0.0:
-        return float(np.max(np.linalg.norm(l2, axis=1)))
-    d2 = np.sum(l2 * l2, axis=1) - (l2 @ l1) ** 2 / nrm
-    return float(np.sqrt(np.max(np.maximum(d2, 0.0))))
+    thT = np.ascontiguousarray(np.asarray(th, float).T)
+    return _distances(thT, thT[:, 0], thT[:, -1])[0]
 
 
 def segment_distance(th: np.ndarray, a: np.ndarray | None = None,
                      b: np.ndarray | None = None) -> float:
     """Largest distance of the rows of ``th`` (N, n) from the segment ``a -> b`` (default: the
     first and last row), in the unit of ``th``."""
-    th = np.asarray(th, float)
-    a = th[0] if a is None else np.asarray(a, float)
-    b = th[-1] if b is None else np.asarray(b, float)
-    d = b - a
-    rel = th - a
-    nrm = float(d @ d)
-    s = np.zeros(th.shape[0]) if nrm == 0.0 else np.clip((rel @ d) / nrm, 0.0, 1.0)
-    off = rel - s[:, None] * d
-    return float(np.sqrt(np.max(np.sum(off * off, axis=1))))
+    thT = np.ascontiguousarray(np.asarray(th, float).T)
+    a = thT[:, 0] if a is None else np.asarray(a, float)
+    b = thT[:, -1] if b is None else np.asarray(b, float)
+    return _distances(thT, a, b)[1]
 
 
 def count_reversals(x: np.ndarray, dead_band: float = REVERSAL_DEAD_BAND) -> int:
@@ -122,18 +134,29 @@ def count_reversals(x: np.ndarray, dead_band: float = REVERSAL_DEAD_BAND) -> int
     A reversal is counted when the signal comes back from its running extreme by more than
     ``dead_band``; wiggles smaller than that (numerical noise, flat ends) do not count.
     """
+    return _hysteresis_count(_turning_values(x), dead_band)
+
+
+def _turning_values(x: np.ndarray) -> np.ndarray:
+    """The first value of ``x``, its values at its turning points and its last value: between
+    local extrema the signal is monotone, so the hysteresis needs these only."""
     x = np.asarray(x, float)
     if x.size < 3:
-        return 0
-    # Between local extrema the signal is monotone, so the hysteresis below only needs the
-    # turning points (found vectorised) and the ends.
+        return x[:0]
     d = np.diff(x)
     nz = np.nonzero(d)[0]
     if nz.size == 0:
-        return 0
+        return x[:0]
     sg = np.sign(d[nz])
     turns = nz[1:][sg[1:] != sg[:-1]]
-    x = np.concatenate([[x[0]], x[turns], [x[-1]]])
+    return np.concatenate([x[:1], x[turns], x[-1:]])
+
+
+def _hysteresis_count(values: np.ndarray, dead_band: float) -> int:
+    """:func:`count_reversals` of the values :func:`_turning_values` kept."""
+    if values.size == 0:
+        return 0
+    x = values.tolist()
     direction = 0
     ext = x[0]
     count = 0
@@ -223,23 +246,27 @@ def compute_indicators(t: np.ndarray, q: np.ndarray, u: np.ndarray | None) -> In
     n = q.shape[1] - 1
     T = t[-1] - t[0]
     tau = (t - t[0]) / T
-    th = q[:, 1:]
-    # approximation_distance(tau, th), on the joints as contiguous rows (same operations)
-    thT = np.ascontiguousarray(th.T)
+    # the joints as contiguous rows: the per-joint operations run on whole rows
+    thT = np.ascontiguousarray(q[:, 1:].T)
+    # approximation_distance(tau, th) (same operations)
     per = np.max(np.abs(thT - (thT[:, :1] + tau[None, :] * (thT[:, -1:] - thT[:, :1]))), axis=1)
+    line, segment = _distances(thT, thT[:, 0], thT[:, -1])
+    # ||J_R||_F grows with s^2 (every term of its square is a positive multiple of a power
+    # of s^2): its largest value over the samples is at the largest |s|
     s = q[:, 0] - q[0, 0]
-    sens = sensitivity_frobenius(s, n)
+    sens = sensitivity_frobenius(np.array([s[-1], np.max(np.abs(s))]), n)
     energy = math.nan if u is None else float(np.trapezoid(np.sum(u * u, axis=1), t))
+    turns_th1, turns_phi = _turning_values(thT[0]), _turning_values(q[:, 0])
     return Indicators(
         d_a=float(per[0]),
         d_a_per_joint=tuple(float(x) for x in per),
-        d_a_joint_space=joint_space_distance(th),
-        t_p=count_reversals(th[:, 0]),
-        phi_reversals=count_reversals(q[:, 0]),
-        sensitivity=float(sens[-1]),
-        sensitivity_max=float(np.max(sens)),
+        d_a_joint_space=line,
+        t_p=_hysteresis_count(turns_th1, REVERSAL_DEAD_BAND),
+        phi_reversals=_hysteresis_count(turns_phi, REVERSAL_DEAD_BAND),
+        sensitivity=float(sens[0]),
+        sensitivity_max=float(max(sens[0], sens[1])),
         energy=energy,
-        deviation=segment_distance(th),
-        reversals_phi=count_reversals(q[:, 0], ACTUATOR_DEAD_BAND),
-        reversals_th1=count_reversals(th[:, 0], ACTUATOR_DEAD_BAND),
+        deviation=segment,
+        reversals_phi=_hysteresis_count(turns_phi, ACTUATOR_DEAD_BAND),
+        reversals_th1=_hysteresis_count(turns_th1, ACTUATOR_DEAD_BAND),
     )

@@ -16,7 +16,8 @@ from scipy.integrate import solve_ivp
 from optimizer.actuation import ActuatorSchedule
 from optimizer.chained_form import chained_form
 from optimizer.errors import InvalidRequestError
-from optimizer.indicators import ACTUATOR_DEAD_BAND, count_reversals, segment_distance
+from optimizer.indicators import (ACTUATOR_DEAD_BAND, compute_indicators, count_reversals,
+                                  segment_distance)
 from optimizer.model import Robot
 from optimizer.planner import registry
 from optimizer.planner.plan import plan
@@ -78,6 +79,35 @@ def test_segment_distance_against_a_brute_force_projection() -> None:
     pts = np.array([[0.0, 0.0], [2.0, 1.0], [1.0, 0.0]])
     # (the line through them passes at 1 from [2, 1]; the segment's end is sqrt(2) away)
     assert segment_distance(pts) == pytest.approx(math.sqrt(2.0), abs=1e-15)
+
+
+def test_indicators_against_brute_force_values() -> None:
+    """compute_indicators' distances, sensitivities and reversal counts against values
+    computed here point by point (the closed form of ||J_R||_F at every sample, the distance
+    to the line by projection, the reversal count of each signal on its own)."""
+    rng = np.random.default_rng(11)
+    t = np.linspace(0.0, 2.0, 401)
+    q = np.column_stack([np.sin(3.0 * t + rng.uniform()),
+                         0.2 + 0.3 * t + 0.05 * np.sin(7.0 * t),
+                         0.4 - 0.1 * t + 0.02 * rng.normal(size=t.size),
+                         0.5 + 0.05 * t ** 2])
+    ind = compute_indicators(t, q, None)
+    s = q[:, 0] - q[0, 0]
+    # eq 22 by its sum, sample by sample: sqrt(1 + sum_k (n - k) s^2k / (k!)^2), n = 3
+    sens = np.sqrt(1.0 + sum((3 - k) * s ** (2 * k) / math.factorial(k) ** 2 for k in range(3)))
+    assert ind.sensitivity == pytest.approx(sens[-1], rel=1e-14)
+    assert ind.sensitivity_max == pytest.approx(np.max(sens), rel=1e-14)
+    th = q[:, 1:]
+    d = (th[-1] - th[0]) / np.linalg.norm(th[-1] - th[0])
+    rel = th - th[0]
+    line = np.linalg.norm(rel - np.outer(rel @ d, d), axis=1)
+    assert ind.d_a_joint_space == pytest.approx(np.max(line), rel=1e-12)
+    assert ind.deviation == pytest.approx(segment_distance(th), rel=1e-14)
+    assert ind.deviation >= ind.d_a_joint_space
+    assert ind.reversals_phi == count_reversals(q[:, 0], ACTUATOR_DEAD_BAND) > 0
+    assert ind.reversals_th1 == count_reversals(q[:, 1], ACTUATOR_DEAD_BAND)
+    assert ind.t_p == count_reversals(q[:, 1])
+    assert ind.phi_reversals == count_reversals(q[:, 0])
 
 
 @pytest.mark.parametrize("start, goal", goals_3())

@@ -246,6 +246,69 @@ def error_for(kind: str, message: str, *, diagnostics: dict[str, Any] | None = N
     return cls(message, field=field, diagnostics=diagnostics)
 
 
+class BufferedCall:
+    """A CasADi Function called through its buffer (``casadi.Function.buffer``).
+
+    An ordinary call converts every numpy argument to a ``DM`` element by element and every
+    result back: about 30 us per argument, more than the compiled 3-joint NLP's functions take
+    to evaluate, and about 0.3 ms per fatrop solve. Through the buffer the Function reads the
+    arguments' memory in place and writes the results into fresh numpy arrays.
+
+    Parameters
+    ----------
+    function : casadi.Function
+    n_args : int
+        Arguments every call gives (the first ``n_args`` inputs, dense; the others stay
+        unset, which CasADi reads as their defaults).
+    outputs : sequence of int
+        The outputs computed (the others are not asked for).
+
+    Notes
+    -----
+    Matrices are column-major: an ``(r, c)`` input is the C-contiguous ``(c, r)`` array, an
+    ``(r, c)`` result comes back as the flat column-major vector (``.reshape(c, r).T``).
+    Not thread-safe, like the Function.
+    """
+
+    def __init__(self, function: Any, n_args: int, outputs: Sequence[int] = (0,)) -> None:
+        self.function = function
+        self._buffer, self._eval = function.buffer()
+        self._sizes = [int(function.nnz_in(i)) for i in range(n_args)]
+        self._outputs = [(int(j), int(function.nnz_out(j))) for j in outputs]
+
+    def __call__(self, *args: Any) -> list[np.ndarray]:
+        """Evaluate on ``args`` (arrays of the inputs' sizes); the results of ``outputs``.
+
+        Raises
+        ------
+        ValueError
+            An argument of another size.
+        RuntimeError
+            The evaluation failed (CasADi's exception).
+        """
+        if len(args) != len(self._sizes):
+            raise ValueError(f"{self.function.name()} takes {len(self._sizes)} arguments")
+        held = []  # the buffer holds pointers into these until the evaluation is over
+        for i, (arg, size) in enumerate(zip(args, self._sizes)):
+            a = np.ascontiguousarray(arg, dtype=float).reshape(-1)
+            if a.size != size:
+                raise ValueError(f"argument {i} of {self.function.name()} has {a.size} "
+                                 f"values, not {size}")
+            held.append(a)
+            self._buffer.set_arg(i, a.data)
+        results = []
+        for j, size in self._outputs:
+            out = np.empty(size)
+            results.append(out)
+            self._buffer.set_res(j, out.data)
+        self._eval()
+        return results
+
+    def stats(self) -> dict[str, Any]:
+        """The Function's statistics of the last evaluation (a solver's status, iterations)."""
+        return dict(self._buffer.stats())
+
+
 @dataclass(frozen=True)
 class SolveOutcome:
     """One solver run: its class (:func:`classify`), status, iterations, time and answer."""
@@ -318,7 +381,7 @@ class MultipleShootingNLP:
         for k in range(N):
             xe = step(xe, Us[2 * k:2 * k + 2])
         self.end_jacobian = ca.Function("end_jacobian", [q0s, Us],
-                                        [ca.jacobian(xe[:nq], Us)])
+                                        [ca.densify(ca.jacobian(xe[:nq], Us))])
         # the same model with FINE_SUBSTEPS times the steps: the correction's end map, close
         # enough to the exact model (see FINE_SUBSTEPS) that no quadrature runs per step
         xq = ca.SX.sym("q", nq)
@@ -326,6 +389,9 @@ class MultipleShootingNLP:
             lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1], ca.cos)),
             xq, u, h, substeps * FINE_SUBSTEPS)])
         self.fine_path = fine.mapaccum("fine_path", N)
+        self._fine_end = BufferedCall(fine.fold(N), 2)
+        self._end_jacobian = BufferedCall(self.end_jacobian, 2)
+        self._solver_calls: dict[str, BufferedCall] = {}
 
         # p = [phi0, a (n), b (n), w_dev, w_energy, w_da, dphi] and, with the penalty,
         #     [w_sens, rho, lo (n), hi (n)]
@@ -439,6 +505,24 @@ class MultipleShootingNLP:
                         for name, s in self.solvers]
         self.compiled = True
         return True
+
+    def solver_call(self, name: str) -> BufferedCall:
+        """Solver ``name`` (see :attr:`solvers`) as a :class:`BufferedCall` of ``(x0, p, lbx,
+        ubx, lbg, ubg) -> x``."""
+        solver = dict(self.solvers)[name]
+        call = self._solver_calls.get(name)
+        if call is None or call.function is not solver:
+            call = self._solver_calls[name] = BufferedCall(solver, 6)
+        return call
+
+    def fine_end(self, q0: np.ndarray, rates: np.ndarray) -> np.ndarray:
+        """The end state of :attr:`fine_path` from ``q0`` under ``rates`` (N, 2)."""
+        return self._fine_end(q0, rates)[0]
+
+    def rk4_end_jacobian(self, q0: np.ndarray, rates: np.ndarray) -> np.ndarray:
+        """:attr:`end_jacobian` at ``rates`` (N, 2): ``(n+1, 2N)``, columns in the order of
+        ``rates.ravel()``."""
+        return self._end_jacobian(q0, rates)[0].reshape(2 * self.N, self.n + 1).T
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Open variable bounds ``(N+1, stride)`` (row ``k``: ``x_k`` then ``u_k``; the last
@@ -774,11 +858,11 @@ def run_solver(nlp: MultipleShootingNLP, name: str, x0: np.ndarray, p: np.ndarra
     NumericalError
         The solver raised (CasADi's exceptions are not the library's).
     """
-    solver = dict(nlp.solvers)[name]
+    solver = nlp.solver_call(name)
     t0 = time.perf_counter()
     nlp.callback.stop_at = t0 + seconds
     try:
-        sol = solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=nlp.lbg, ubg=nlp.ubg)
+        x = solver(x0, p, lbx, ubx, nlp.lbg, nlp.ubg)[0]
         stats = solver.stats()
     except Exception as exc:  # noqa: BLE001 - CasADi raises RuntimeError on evaluation errors
         raise NumericalError(f"the {name} solver raised: {exc}",
@@ -787,7 +871,6 @@ def run_solver(nlp: MultipleShootingNLP, name: str, x0: np.ndarray, p: np.ndarra
         nlp.callback.stop_at = math.inf
     status = str(stats.get("return_status", "unknown"))
     kind = classify(status, bool(stats.get("success")))
-    x = np.asarray(sol["x"], float).ravel()
     return SolveOutcome(solver=name, kind=kind, status=status,
                         iterations=int(stats.get("iter_count", -1)),
                         seconds=time.perf_counter() - t0,
@@ -828,12 +911,11 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
     target = np.concatenate([[phi_end], req.goal])
     U = np.array(rates, float)
     if exact_end is not None:
-        target = target - (np.asarray(exact_end, float)
-                           - np.asarray(nlp.fine_path(q0, U.T), float)[:, -1])
+        target = target - (np.asarray(exact_end, float) - nlp.fine_end(q0, U))
     errors: list[float] = []
     best: tuple[float, np.ndarray] | None = None
     for k in range(MAX_CORRECTIONS + 1):
-        end = np.asarray(nlp.fine_path(q0, U.T), float)[:, -1]
+        end = nlp.fine_end(q0, U)
         r = end - target
         err = float(np.max(np.abs(r[1:])))
         errors.append(err)
@@ -843,7 +925,7 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
             best = (err, U)
         if err <= 1e-3 * CORRECTION_TARGET or k == MAX_CORRECTIONS:
             break
-        J = np.asarray(nlp.end_jacobian(q0, U.ravel()))
+        J = nlp.rk4_end_jacobian(q0, U)
         # the minimum-norm step by least squares: J J^T can be singular in double precision
         # (nearly parallel rows) while J itself is fine
         step = np.linalg.lstsq(J, r, rcond=None)[0]
@@ -851,7 +933,7 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
     return (U if best is None else best[1]), errors
 
 
-__all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "DeadlineCallback", "INFEASIBLE",
+__all__ = ["BufferedCall", "CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "DeadlineCallback", "INFEASIBLE",
            "IPOPT_FIRST_JOINTS", "finish_solution", "WIGGLE_SHARE", "signs_list", "wiggle_free_signs",
            "IPOPT_OPTIONS", "LADDER", "MARGIN", "MultipleShootingNLP", "REGION_MODES", "SUCCESS",
            "SolveOutcome", "TIMEOUT", "Transcription", "classify", "correct_rates", "error_for",

@@ -1,0 +1,85 @@
+"""The NLP layer's buffered CasADi calls against CasADi's ordinary calls of the same Functions."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from optimizer.model import Robot
+from optimizer.planner import nlp as nlp_layer
+from optimizer.planner.nlp import BufferedCall
+
+
+def test_buffered_call_matches_the_ordinary_call_on_matrices() -> None:
+    """(r, c) inputs are read column-major from the C-contiguous (c, r) array and results are
+    the column-major values, as CasADi's DM holds them."""
+    A = ca.SX.sym("A", 2, 3)
+    v = ca.SX.sym("v", 3)
+    f = ca.Function("f", [A, v], [ca.mtimes(A, v), A.T @ A])
+    rng = np.random.default_rng(3)
+    a, x = rng.normal(size=(2, 3)), rng.normal(size=3)
+    ref = [np.asarray(r, float) for r in f(a, x)]
+    out = BufferedCall(f, 2, outputs=(0, 1))(np.ascontiguousarray(a.T), x)
+    np.testing.assert_array_equal(out[0], ref[0].ravel())
+    np.testing.assert_array_equal(out[1].reshape(3, 3).T, ref[1])
+    # fresh results on every call: an earlier result is not overwritten
+    again = BufferedCall(f, 2)
+    first = again(np.ascontiguousarray(a.T), x)[0]
+    again(np.zeros((3, 2)), x)
+    np.testing.assert_array_equal(first, ref[0].ravel())
+
+
+def test_buffered_call_refuses_wrong_sizes_and_raises_evaluation_errors() -> None:
+    x = ca.MX.sym("x")
+
+    class Failing(ca.Callback):
+        def __init__(self) -> None:
+            ca.Callback.__init__(self)
+            self.construct("failing", {})
+
+        def get_n_in(self) -> int:
+            return 1
+
+        def get_n_out(self) -> int:
+            return 1
+
+        def eval(self, arg):  # type: ignore[override]
+            raise RuntimeError("evaluation failed")
+
+    cb = Failing()
+    f = ca.Function("f", [x], [cb(x)])
+    call = BufferedCall(f, 1)
+    with pytest.raises(ValueError, match="argument 0"):
+        call(np.zeros(2))
+    with pytest.raises(ValueError, match="takes 1 arguments"):
+        call(np.zeros(1), np.zeros(1))
+    with pytest.raises(RuntimeError):
+        call(np.ones(1))
+
+
+def test_the_nlp_solver_and_correction_maps_agree_with_ordinary_calls() -> None:
+    """fatrop through its buffer returns what the ordinary call returns (same iterates), and
+    the fine end map and the RK4 end Jacobian are the Functions' own values."""
+    robot = Robot.default(3)
+    nlp = nlp_layer.multiple_shooting_nlp(tuple(float(k) for k in robot.gains),
+                                          tuple(int(m) for m in robot.exponents), False, 20, 1)
+    a, b = np.radians([10.0, 20.0, 30.0]), np.radians([40.0, 25.0, 15.0])
+    x0 = nlp.guess(a, b, 0.0, 0.6)
+    lb, ub = nlp.bounds()
+    lbx, ubx = nlp.flat(lb), nlp.flat(ub)
+    p = np.concatenate([[0.0], a, b, [30.0, 1.0, 0.3, 0.0]])
+    name = nlp.solvers[0][0]
+    solver = dict(nlp.solvers)[name]
+    ref = np.asarray(solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=nlp.lbg, ubg=nlp.ubg)["x"],
+                     float).ravel()
+    out = nlp_layer.run_solver(nlp, name, x0, p, lbx, ubx, 10.0)
+    assert out.success and out.x is not None
+    np.testing.assert_array_equal(out.x, ref)
+    assert out.iterations == solver.stats()["iter_count"]
+    nodes, rates = nlp.unpack(out.x)
+    q0 = np.concatenate([[0.0], a])
+    np.testing.assert_array_equal(nlp.fine_end(q0, rates),
+                                  np.asarray(nlp.fine_path(q0, rates.T), float)[:, -1])
+    np.testing.assert_array_equal(nlp.rk4_end_jacobian(q0, rates),
+                                  np.asarray(nlp.end_jacobian(q0, rates.ravel()), float))
