@@ -112,6 +112,10 @@ class Replay:
         Number of input evaluations ``u(t)``.
     panels : int
         Cascade only: quadrature panels after refinement.
+    mesh_t, mesh_q : ndarray or None
+        Cascade only: the quadrature's own mesh in time order, every panel's start and its
+        Chebyshev nodes, then ``T`` (``(M,)``, ``(M, n+1)``): states computed directly, not
+        interpolated, and clustered toward the panel ends, where the inputs jump.
 
     Notes
     -----
@@ -132,6 +136,8 @@ class Replay:
     error_estimate: float | None = None
     evaluations: int = 0
     panels: int = 0
+    mesh_t: np.ndarray | None = None
+    mesh_q: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -633,10 +639,12 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
     if estimate > tol:
         msg += (" (above the target: refinement bounds reached)" if bounded else
                 " (above the target: limited by the inputs' rounding noise)")
+    mesh_t = np.append((a[:, None] + half[:, None] * (rule.xb[:p + 1] + 1.0)).ravel(), T)
+    mesh_q = np.vstack([Xb[:, :, :p + 1].transpose(0, 2, 1).reshape(-1, nq), final])
     return Replay(t=t_eval, q=q, final=final, singular=singular_time is not None,
                   singular_time=singular_time, success=True, message=msg, energy=energy,
                   integrator=CASCADE_NAME, error_estimate=estimate, evaluations=evaluations,
-                  panels=a.size)
+                  panels=a.size, mesh_t=mesh_t, mesh_q=mesh_q)
 
 
 class PlannedInputs:

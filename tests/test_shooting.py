@@ -80,6 +80,35 @@ def test_plans_reach_the_goal_inside_the_region(start, goal, robot):
         float(np.sum(np.diff(p.inputs.breaks) * np.sum(p.inputs.rates ** 2, axis=1))), rel=1e-8)
 
 
+
+@pytest.mark.parametrize("fallback", [False, True], ids=["cascade_mesh", "dop853_grid"])
+def test_indicators_are_the_scipy_paths(fallback, monkeypatch):
+    """The indicators of an actuator plan (on the quadrature's mesh; on a uniform grid of a
+    DOP853 replay when the quadrature is not accepted) against the scipy path's, measured
+    densely here: deviation, d_a and the reversals."""
+    from optimizer.indicators import ACTUATOR_DEAD_BAND, count_reversals, segment_distance
+    from optimizer.planner import finish
+    from optimizer.verify import DOP853_NAME, integrate_cascade
+
+    if fallback:  # an estimate no quadrature meets: the DOP853 fallback answers
+        monkeypatch.setattr(finish, "integrate_cascade",
+                            lambda *a, **k: integrate_cascade(*a, **{**k, "tol": 1e-30,
+                                                                     "accept": 1e-30,
+                                                                     "max_rounds": 0}))
+    req = request(*OPP_B)
+    p = plan(req)
+    assert (p.verification.integrator == DOP853_NAME) == fallback
+    t, q = scipy_path(p, req, per_interval=201)
+    th = q[:, 1:]
+    ind = p.indicators
+    assert ind.deviation == pytest.approx(
+        segment_distance(th, np.array(OPP_B[0]), np.array(OPP_B[1])), abs=1e-6)
+    tau = t / t[-1]
+    line1 = OPP_B[0][0] + tau * (OPP_B[1][0] - OPP_B[0][0])
+    assert ind.d_a == pytest.approx(float(np.max(np.abs(th[:, 0] - line1))), abs=1e-6)
+    assert ind.reversals_phi == count_reversals(q[:, 0], ACTUATOR_DEAD_BAND)
+    assert ind.reversals_th1 == count_reversals(q[:, 1], ACTUATOR_DEAD_BAND)
+
 def test_the_deviation_term_beats_the_minimum_energy_plan_on_deviation():
     """Default weights against pure minimum energy (weights.d_a = 0): the default plan is closer
     to the line, the minimum-energy plan cheaper; each is optimal for its own objective."""

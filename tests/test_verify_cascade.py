@@ -139,6 +139,21 @@ def test_piecewise_schedule_matches_reference(piecewise):
     np.testing.assert_allclose(rep.q[at], ref[1][at], rtol=0, atol=1e-10)
 
 
+def test_the_mesh_holds_the_exact_states(piecewise):
+    """The quadrature's own mesh (panel starts and nodes, then T) is in time order, holds every
+    break and carries the states of the reference there."""
+    robot, q0, inputs, t, _ = piecewise
+    rep = integrate_cascade(robot, inputs.u, q0, 2.0, t, inputs.breaks)
+    assert rep.mesh_t is not None and rep.mesh_q is not None
+    assert np.all(np.diff(rep.mesh_t) > 0.0) and rep.mesh_t[0] == 0.0 and rep.mesh_t[-1] == 2.0
+    assert np.all(np.isin(inputs.breaks, rep.mesh_t))
+    assert rep.mesh_q.shape == (rep.mesh_t.size, 4)
+    _, at_mesh, _ = reference(inputs.u_scalar, q0, 2.0, robot.gains, robot.exponents,
+                              rep.mesh_t, inputs.breaks)
+    np.testing.assert_allclose(rep.mesh_q, at_mesh, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(rep.mesh_q[-1], rep.final)
+
+
 def test_breaks_are_needed_for_piecewise_inputs(piecewise):
     """Without the breaks the panels straddle the input jumps: the estimate must notice (more
     panels, or a fallback), and the answer must still be right."""

@@ -10,9 +10,11 @@ Every method ends here, whatever its inputs:
   model): :func:`finish_actuator_plan` takes the original model re-integrated under the rates
   and checks, samples and measures that.
 
-Both measure the indicators on the same dense grid (:data:`INDICATOR_SAMPLES` points) with
-:func:`~optimizer.indicators.compute_indicators`, and both refuse a plan whose re-integrated
-path misses the goal by more than :data:`~.rules.TERMINAL_TOLERANCE` or leaves the joint limits.
+Both measure the indicators with :func:`~optimizer.indicators.compute_indicators`: chained
+plans on the searches' dense grid (:data:`INDICATOR_SAMPLES` points), actuator plans on the
+mesh of the quadrature that re-integrates them (its nodes cluster at the breaks, where such a
+path has its kinks). Both refuse a plan whose re-integrated path misses the goal by more than
+:data:`~.rules.TERMINAL_TOLERANCE` or leaves the joint limits.
 """
 
 from __future__ import annotations
@@ -33,8 +35,8 @@ from ..indicators import compute_indicators
 from ..problem import PlanRequest
 from ..results import Plan
 from ..steering import ChainedPath, InputSchedule
-from ..verify import (CASCADE_TOL, PlannedInputs, Replay, Verification, integrate_cascade,
-                      verify_plan)
+from ..verify import (CASCADE_TOL, PlannedInputs, Replay, Verification, integrate,
+                      integrate_cascade, verify_plan)
 from .family import SEARCH_SAMPLES
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region, make_region
 
@@ -162,8 +164,8 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
     ``rates`` (N, 2) are per unit of normalised time on N equal intervals
     (:func:`actuator_schedule` makes them a schedule in seconds). One quadrature of the
     original model under them (cascade quadrature between the breaks, error estimate <= 1e-11
-    rad, DOP853 as fallback) proves the plan: on the indicators' dense grid (indicators), at
-    the breaks (the region check: enough, every joint is monotone between them, see
+    rad, DOP853 as fallback) proves the plan: on its own mesh (the indicators), at the
+    breaks (the region check: enough, every joint is monotone between them, see
     :mod:`.shooting`), at its end (the terminal error) and at the handed-out path's times. The
     linear form of the handed-out path holds these rates exactly, so the same replay is that
     form's own (:func:`optimizer.execution.execute`, its ``constant``); a controller period's
@@ -186,32 +188,39 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
     goal = np.array(req.goal)
     t0 = time.perf_counter()
 
-    def replay(U: np.ndarray) -> tuple[ActuatorSchedule, np.ndarray, np.ndarray, Replay]:
+    def replay(U: np.ndarray) -> tuple[ActuatorSchedule, np.ndarray, Replay]:
         sched = actuator_schedule(req, U)
         T = sched.duration
         check_period(req, T)
-        td = np.linspace(0.0, T, INDICATOR_SAMPLES)
         times = (linear_times(T, req.samples, sched.breaks) if req.controller_period is None
                  else np.empty(0))
-        rep = integrate_cascade(robot, sched.u, q0, T,
-                                np.concatenate([td, sched.breaks, times]), sched.breaks,
-                                nodes=REPLAY_NODES, initial_panels=1, fallback=sched.u_scalar)
-        return sched, td, times, rep
+        rep = integrate_cascade(robot, sched.u, q0, T, np.concatenate([sched.breaks, times]),
+                                sched.breaks, nodes=REPLAY_NODES, initial_panels=1,
+                                fallback=sched.u_scalar)
+        return sched, times, rep
 
     def miss(r: Replay) -> float:
         return float(np.max(np.abs(r.final[1:] - goal))) if r.success else math.inf
 
-    schedule, td, times, rep = replay(rates)
+    schedule, times, rep = replay(rates)
     if refine is not None and rep.success and miss(rep) > CORRECTION_TARGET:
         again = replay(refine(rep.final))
-        if miss(again[3]) < miss(rep):
-            schedule, td, times, rep = again
-    timing["verification"] = time.perf_counter() - t0
+        if miss(again[2]) < miss(rep):
+            schedule, times, rep = again
     T, breaks = schedule.duration, schedule.breaks
     if not rep.success:
         raise NumericalError(f"the re-integration failed: {rep.message}",
                              diagnostics={"method": method})
-    qd, qb = rep.q[:td.size], rep.q[td.size:td.size + breaks.size]
+    # the indicators on the quadrature's own mesh (its states are computed there, and its
+    # nodes cluster at the breaks, where the path has its kinks); on a uniform grid of a
+    # DOP853 replay when the quadrature was not accepted
+    if rep.mesh_t is not None and rep.mesh_q is not None:
+        td, qd = rep.mesh_t, rep.mesh_q
+    else:
+        td = np.linspace(0.0, T, INDICATOR_SAMPLES)
+        qd = integrate(robot, schedule.u_scalar, q0, T, td).q
+    timing["verification"] = time.perf_counter() - t0
+    qb = rep.q[:breaks.size]
     lo, hi = joint_limits(req)
     th = qb[:, 1:]
     margins = np.minimum(th - lo, hi - th)
