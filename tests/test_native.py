@@ -94,7 +94,7 @@ def test_the_penalty_nlp_is_compiled_too_and_plans_the_same(tmp_path):
 
 def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp_path):
     robot = Robot(gains=(0.9, 1.1))            # other expressions: a key of their own
-    req = _request(robot, OPP_B)
+    req = _request(robot, OPP_A)               # (a goal fatrop answers: compiled functions)
     native.configure(tmp_path)
     p = plan(req)
     # the first answer does not wait for the compiler

@@ -15,6 +15,7 @@ from optimizer.analysis import robustness
 from optimizer.errors import InfeasibleError, InvalidRequestError, SolverTimeoutError
 from optimizer.model import Robot
 from optimizer.planner.context import Deadline
+from optimizer.planner.nlp import ladder
 from optimizer.planner.plan import plan
 from optimizer.planner.shooting import solve_shooting
 from optimizer.problem import PlanRequest
@@ -217,7 +218,8 @@ def test_replays_use_the_rates():
 def test_json_carries_the_rates():
     d = plan(request(*OPP_A)).to_dict()
     segs = d["coefficients"]["segments"]
-    assert len(segs) == 20 and all(len(s["u"]) == 2 and s["v2"] == [] for s in segs)
+    assert len(segs) == ladder(3)[0].intervals == 12
+    assert all(len(s["u"]) == 2 and s["v2"] == [] for s in segs)
     assert d["b0"] is None and d["method"] == "shooting"
 
 
@@ -260,7 +262,7 @@ def test_correction_reaches_the_exact_goal_from_the_rk4_rates():
     req = request((0.5236, 0.6981, 0.6981, 0.6981), (0.6109, 0.7854, 0.6632, 0.7854),
                   robot=Robot.default(4))
     sol = solve_shooting(req, Deadline(30.0))
-    nlp = shooting.nlp_for(req, shooting.LADDER[0])
+    nlp = shooting.nlp_for(req, shooting.ladder(req.n)[0])
     rates, errors = shooting.correct_rates(req, nlp, sol.rates, float(sol.nodes[-1, 0]))
     assert errors[0] > 1e-9 and errors[-1] <= shooting.CORRECTION_TARGET
     for U, tol_lo, tol_hi in ((sol.rates, 1e-9, 1e-3), (rates, 0.0, 1e-8)):
@@ -283,7 +285,7 @@ def test_correction_with_a_measured_miss_aims_past_the_goal_by_that_miss():
     req = request((0.5236, 0.6981, 0.6981, 0.6981), (0.6109, 0.7854, 0.6632, 0.7854),
                   robot=Robot.default(4))
     sol = solve_shooting(req, Deadline(30.0))
-    nlp = shooting.nlp_for(req, shooting.LADDER[0])
+    nlp = shooting.nlp_for(req, shooting.ladder(req.n)[0])
     phi_end = float(sol.nodes[-1, 0])
     rates, _ = shooting.correct_rates(req, nlp, sol.rates, phi_end)
     fine_end = np.asarray(nlp.fine_path(req.q_start(), rates.T))[:, -1]
@@ -360,7 +362,7 @@ def test_finishing_refines_rates_that_the_quadrature_finds_off_the_goal():
 
     req = request(*OPP_A)
     sol = solve_shooting(req, Deadline(30.0))
-    nlp = shooting.nlp_for(req, shooting.LADDER[0])
+    nlp = shooting.nlp_for(req, shooting.ladder(req.n)[0])
     phi_end = float(sol.nodes[-1, 0])
     rates, _ = shooting.correct_rates(req, nlp, sol.rates, phi_end)
     off = rates * (1.0 + 1e-7)

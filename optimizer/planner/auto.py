@@ -9,7 +9,7 @@ What runs (each method through :mod:`.registry`, its capabilities checked there)
   the ``d_a``-optimal time law); only when the family cannot reach the goal, ``shooting``, and
   ``penalty`` if that fails.
 * **The default objective** (fewest reversals, then smallest joint-space deviation) and
-  ``weighted``: ``shooting`` first. Its NLP minimises the deviation directly over forty rates
+  ``weighted``: ``shooting`` first. Its NLP minimises the deviation directly over 24 to 40 rates
   on the original model, where the family has one parameter, so the family is not waited for;
   it runs only when ``shooting`` fails (``weighted`` runs both, the weights decide). ``penalty``
   solves the same transcription with the region as an exact penalty: at equal objective it

@@ -212,12 +212,12 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
         raise NumericalError(f"the re-integration failed: {rep.message}",
                              diagnostics={"method": method})
     # the indicators on the quadrature's own mesh (its states are computed there, and its
-    # nodes cluster at the breaks, where the path has its kinks); on a uniform grid of a
-    # DOP853 replay when the quadrature was not accepted
+    # nodes cluster at the breaks, where the path has its kinks); on a uniform grid and the
+    # breaks of a DOP853 replay when the quadrature was not accepted
     if rep.mesh_t is not None and rep.mesh_q is not None:
         td, qd = rep.mesh_t, rep.mesh_q
     else:
-        td = np.linspace(0.0, T, INDICATOR_SAMPLES)
+        td = np.union1d(np.linspace(0.0, T, INDICATOR_SAMPLES), breaks)
         qd = integrate(robot, schedule.u_scalar, q0, T, td).q
     timing["verification"] = time.perf_counter() - t0
     qb = rep.q[:breaks.size]

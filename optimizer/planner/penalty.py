@@ -29,7 +29,7 @@ Search
 * ``rho`` starts at :data:`RHO_START` and is multiplied by :data:`RHO_GROWTH` at most
   :data:`RHO_INCREASES` times, each time warm-started from the last solution, only while that
   solution violates the region by more than :data:`VIOLATION_TOL` at some node. The first
-  solution inside is kept; the ladder's finer transcription (:data:`~.nlp.LADDER`) is tried
+  solution inside is kept; the ladder's finer transcription (:func:`~.nlp.ladder`) is tried
   when every start fails on the first.
 
 Finishing
@@ -65,7 +65,7 @@ from ..results import Plan
 from ..steering import ChainedPath, InputSchedule
 from ..verify import integrate_cascade
 from . import nlp as nlp_layer
-from .nlp import (IPOPT_FIRST_JOINTS, LADDER, MultipleShootingNLP, Transcription, nlp_for,
+from .nlp import (IPOPT_FIRST_JOINTS, MultipleShootingNLP, Transcription, nlp_for,
                   node_bounds, run_solver)
 from .base import Capabilities, Method
 from .context import PlanContext
@@ -114,7 +114,7 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
     """Build (and cache) the first rung's penalty NLP of a robot; with compiled functions
     configured (:mod:`optimizer.native`) this also starts their build (``wait``: builds them
     before it returns)."""
-    tr = LADDER[0]
+    tr = nlp_layer.ladder(len(gains) + 1)[0]
     nlp = nlp_layer.multiple_shooting_nlp(tuple(float(k) for k in gains),
                                           tuple(int(m) for m in exponents), fixed_phi,
                                           tr.intervals, tr.substeps, "penalty")
@@ -190,7 +190,7 @@ def violation(nodes: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
     return float(max(0.0, np.max(lo - th), np.max(th - hi)))
 
 
-def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0], *,
+def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription | None = None, *,
                   warm_start: ActuatorSchedule | InputSchedule | None = None,
                   rate_signs: tuple[float, float] | np.ndarray | None = None,
                   start_nodes: np.ndarray | None = None) -> PenaltySolution:
@@ -207,6 +207,8 @@ def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0]
     InfeasibleError
         No start gave a solution inside the region.
     """
+    if tr is None:
+        tr = nlp_layer.ladder(req.n)[0]
     nlp = nlp_for(req, tr, "penalty")
     lo, hi = node_bounds(req, joint_limits(req))
     lbw, ubw, phi_range = nlp_layer.variable_bounds(req, nlp, tr, rate_signs=rate_signs)

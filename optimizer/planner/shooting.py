@@ -11,8 +11,9 @@ Transcription (:mod:`.nlp`, region mode ``"hard"``; normalised time ``tau = t / 
 ------------------------------------------------------------------------------------
 * equal intervals with piecewise-constant actuator rates ``U = (U1, U2)`` (``u = U / T``),
   node states ``q_k = (phi, th_1..th_n)``, continuity by classical RK4 steps; the number of
-  intervals, of steps and the rate bound are a rung of :data:`LADDER` (20 intervals of one
-  step first; 50 of two when that NLP does not converge);
+  intervals, of steps and the rate bound are a rung of :func:`~.nlp.ladder` (one step per
+  interval on 12 intervals for 3 joints, 20 for more, first; 50 of two when that NLP does not
+  converge);
 * ``q_0`` = the start, ``th(1)`` = the goal; ``phi(1) - phi(0)`` within the request's
   ``phi_change_bounds`` (or equal to ``phi_change``);
 * ``th_1..th_n`` inside the region (:class:`~optimizer.region.Region`: ``(0, pi/2)`` for
@@ -32,7 +33,7 @@ Transcription (:mod:`.nlp`, region mode ``"hard"``; normalised time ``tau = t / 
 
 Correction onto the exact goal
 ------------------------------
-The NLP's RK4 (one step per interval, rates bounded: :data:`LADDER`) is cheap but not
+The NLP's RK4 (one step per interval, rates bounded: :func:`~.nlp.ladder`) is cheap but not
 exact: the original model under its rates ends 1e-8 to 1e-5 rad from the goal. Newton steps
 (:func:`correct_rates`) on the same RK4 with eight times the steps (within ~1e-12 rad of the
 exact model on these rates), with the NLP model's Jacobian, bring that to ~1e-12 rad in one or
@@ -83,6 +84,7 @@ from ..problem import PlanRequest
 from ..results import Plan
 from . import nlp as nlp_layer
 from .nlp import (CORRECTION_TARGET, D_A_WEIGHT, DEVIATION_WEIGHT, IPOPT_FIRST_JOINTS, LADDER,
+                  LADDER_3_JOINTS, ladder,
                   MARGIN,
                   MultipleShootingNLP, Transcription, correct_rates, multiple_shooting_nlp, nlp_for,
                   node_bounds, objective_weights, run_solver)
@@ -117,7 +119,7 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
     """Build (and cache) the first rung's NLP of a robot ahead of its first request; with
     compiled functions configured (:mod:`optimizer.native`) this also starts their build
     (``wait``: builds them before it returns)."""
-    tr = LADDER[0]
+    tr = ladder(len(gains) + 1)[0]
     nlp = multiple_shooting_nlp(tuple(float(k) for k in gains),
                                 tuple(int(m) for m in exponents), fixed_phi, tr.intervals,
                                 tr.substeps)
@@ -125,11 +127,11 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
     return nlp
 
 
-def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0],
+def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = None,
                    monotone: tuple[float, float] | np.ndarray | None = None,
                    start_nodes: np.ndarray | None = None) -> ShootingSolution:
-    """Solve the NLP of transcription ``tr`` for ``req`` (normalised time); raise a typed error
-    when it fails.
+    """Solve the NLP of transcription ``tr`` (default: the first rung of
+    :func:`~.nlp.ladder`) for ``req`` (normalised time); raise a typed error when it fails.
 
     Attempts in the order of :data:`ATTEMPTS` (``phi`` travelling +0.6 rad, then -0.6 rad in
     the initial guess; fatrop, then IPOPT from each); the first converged solution is
@@ -137,6 +139,8 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription = LADDER[0
     actuator): fatrop alone, one guess, from ``start_nodes`` (node states, ``(N+1, n+1)``)
     when given, else the straight line.
     """
+    if tr is None:
+        tr = ladder(req.n)[0]
     nlp = nlp_for(req, tr)
     a, b = np.array(req.start), np.array(req.goal)
     lo, hi = node_bounds(req, joint_limits(req))
@@ -213,13 +217,15 @@ class ShootingMethod(Method):
     name = "shooting"
     capabilities = Capabilities(constraint_points=False, fixed_phi_change=True,
                                 reverses_phi=True, inputs="actuator")
-    options = {"ladder": [dataclasses.asdict(t) for t in LADDER], "margin": MARGIN,
+    options = {"ladder": {"3 joints": [dataclasses.asdict(t) for t in LADDER_3_JOINTS],
+                          "more joints": [dataclasses.asdict(t) for t in LADDER]},
+               "margin": MARGIN,
                "deviation_weight": DEVIATION_WEIGHT, "d_a_weight": D_A_WEIGHT}
 
     def run(self, req: PlanRequest, ctx: PlanContext) -> Plan:
         return plan_shooting(req, ctx.deadline)
 
 
-__all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "LADDER", "MARGIN",
+__all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "LADDER", "LADDER_3_JOINTS", "MARGIN",
            "ShootingMethod", "correct_rates", "plan_shooting", "prepare",
            "solve_shooting"]
