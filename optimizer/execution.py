@@ -371,10 +371,6 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
     ng = grid.size
     t_eval = np.concatenate([grid, t_out])
     rows = p0.shape[0]
-    gram = form.gram_diagonal(rows)
-    free = form.free & (gram > 0.0)
-    sw = np.zeros(rows)
-    sw[free] = 1.0 / np.sqrt(gram[free])             # least L2 norm of the change of u
     p = p0.copy()
     lim = np.array([np.inf if x is None else float(x) for x in limits])
     bounded = np.isfinite(lim)
@@ -416,6 +412,10 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
             if not rep.success:
                 break
         J = _jacobian(robot, form, p, rep.q[:ng], rows)          # (n+1, rows, 2)
+        gram = form.gram_diagonal(rows)
+        free = form.free & (gram > 0.0)
+        sw = np.zeros(rows)
+        sw[free] = 1.0 / np.sqrt(gram[free])             # least L2 norm of the change of u
         scale = np.repeat(sw[:, None], 2, axis=1)
         if bounded.any():
             head = np.clip((lim - np.abs(p)) / np.where(bounded, lim, 1.0), 0.0, 1.0)

@@ -67,7 +67,7 @@ from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, Plan
                       SolverTimeoutError)
 from ..problem import MAX_TIME_LIMIT, PlanRequest
 from ..results import Plan
-from ..indicators import ACTUATOR_DEAD_BAND, count_reversals_columns, segment_distance
+from ..indicators import ACTUATOR_DEAD_BAND, count_reversals, segment_distance
 from .finish import finish_actuator_plan
 from .rules import joint_limits, monotone_reach_ok, monotone_signs, th1_monotone_reach_ok
 
@@ -639,7 +639,7 @@ def _reversals_and_deviation(req: PlanRequest, nodes: np.ndarray) -> tuple[int, 
     ``th_1`` together, then the largest distance of the nodes from the segment start -> goal
     (the plan's own indicators come later, from its re-integrated path)."""
     nodes = np.asarray(nodes, float)
-    rev = int(np.sum(count_reversals_columns(nodes[:, :2])))
+    rev = count_reversals(nodes[:, 0]) + count_reversals(nodes[:, 1])
     return rev, segment_distance(nodes[:, 1:], np.array(req.start), np.array(req.goal))
 
 
@@ -739,7 +739,7 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
 
         th1_sign = float(np.sign(req.goal[0] - req.start[0]))
         if (th1_sign != 0.0 and (signs is None or signs[1] == 0.0)
-                and int(count_reversals_columns(sol.nodes[:, 1:2])[0]) > 0):
+                and count_reversals(sol.nodes[:, 1]) > 0):
             lo, hi = node_bounds(req, joint_limits(req))
             if th1_monotone_reach_ok(req, float(lo[1]), float(hi[1])):
                 consider((0.0, th1_sign))
