@@ -351,6 +351,14 @@ def test_wiggle_free_signs_merges_short_runs_only():
     u1 = np.full(N, 1.0)
     u1[5] = -1e-6
     assert wiggle_free_signs(np.column_stack([u1, np.ones(N)])) is None
+    # zero rates (a sign-held rung's bound) belong to the run before them, leading zeros to
+    # the first run: the later long runs keep their own signs
+    u2 = np.r_[0.0, 0.0, np.full(8, 3.0), 0.0, np.full(9, -3.0)]
+    u1 = np.full(N, 2.0)
+    u1[-1] = -0.5                      # the end wiggle again, so that there is a pattern
+    signs = wiggle_free_signs(np.column_stack([u1, u2]))
+    assert signs is not None
+    assert np.array_equal(signs[:, 1], np.r_[np.full(11, 1.0), np.full(9, -1.0)])
 
 
 def test_finishing_refines_rates_that_the_quadrature_finds_off_the_goal():

@@ -563,26 +563,31 @@ class MultipleShootingNLP:
         Q = np.empty((N + 1, n + 1))
         Q[:, 0] = phi0 + travel * s
         Q[:, 1:] = a + np.outer(s, b - a)
-        W = np.concatenate([self.guess_from_nodes(Q, a, b), np.zeros(self.nu)]).reshape(
-            N + 1, self.stride)
-        W[:, n + 2] = 1e-4  # th1 on its line
-        W[:N, n + 3], W[:N, n + 4] = travel, b[0] - a[0]
-        return self.flat(W)
+        # every node on both lines: the epigraphs just above 0
+        return self._table(Q, 1e-4, 1e-4, np.array([travel, b[0] - a[0]]))
 
     def guess_from_nodes(self, Q: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """A guess through node states ``Q`` (N+1, n+1): the rates of ``phi`` and ``th1``
         that join them, the deviations' epigraphs just above their values, zero slacks."""
-        N, n = self.N, self.n
+        N = self.N
         d = Q[:, 1:] - a
         ell = b - a
         nrm = float(ell @ ell)
         S0 = float(np.max(np.sum(d * d, axis=1) - ((d @ ell) ** 2 / nrm if nrm > 0 else 0.0)))
         line1 = a[0] + (b[0] - a[0]) * np.linspace(0.0, 1.0, N + 1)
+        return self._table(Q, max(S0, 0.0) + 1e-4,
+                           float(np.max((Q[:, 1] - line1) ** 2)) + 1e-4,
+                           N * np.diff(Q[:, :2], axis=0))
+
+    def _table(self, Q: np.ndarray, S: float, S1: float, rates: np.ndarray) -> np.ndarray:
+        """The variables of node states ``Q``, epigraphs ``S``, ``S1`` and ``rates`` ((N, 2),
+        or one pair for every interval), zero slacks, as the NLP's vector."""
+        N, n = self.N, self.n
         W = np.zeros((N + 1, self.stride))
         W[:, :n + 1] = Q
-        W[:, n + 1] = max(S0, 0.0) + 1e-4
-        W[:, n + 2] = float(np.max((Q[:, 1] - line1) ** 2)) + 1e-4
-        W[:N, n + 3:n + 5] = N * np.diff(Q[:, :2], axis=0)
+        W[:, n + 1] = S
+        W[:, n + 2] = S1
+        W[:N, n + 3:n + 5] = rates
         return self.flat(W)
 
     def unpack(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -656,22 +661,24 @@ def wiggle_free_signs(rates: np.ndarray) -> np.ndarray | None:
     h = 1.0 / N
     out = np.zeros((N, 2))
     found = False
+    index = np.arange(N)
     for c in (0, 1):
         col = np.asarray(rates[:, c], float)
         sign = np.sign(col)
-        for k in range(N):  # a zero rate belongs to the run before it (or after, at the start)
-            if sign[k] == 0.0:
-                sign[k] = sign[k - 1] if k else 0.0
-        if sign[0] == 0.0:
-            nz = np.nonzero(sign)[0]
-            sign[:] = sign[nz[0]] if nz.size else 1.0
-        total = float(np.sum(np.abs(col)) * h)
+        nz = np.flatnonzero(sign)
+        if nz.size == 0:
+            sign[:] = 1.0
+        else:  # a zero rate belongs to the run before it (the first run, at the start)
+            last = np.maximum.accumulate(np.where(sign != 0.0, index, nz[0]))
+            sign = sign[last]
+        size = np.abs(col) * h
+        total = float(np.sum(size))
         while True:
             edges = np.flatnonzero(np.diff(sign)) + 1
-            starts, ends = np.r_[0, edges], np.r_[edges, N]
-            if starts.size < 2:
+            if edges.size == 0:
                 break
-            travel = np.array([np.sum(np.abs(col[i:j])) * h for i, j in zip(starts, ends)])
+            starts, ends = np.r_[0, edges], np.r_[edges, N]
+            travel = np.add.reduceat(size, starts)
             small = np.flatnonzero((travel > ACTUATOR_DEAD_BAND) & (travel < WIGGLE_SHARE * total))
             if small.size == 0:
                 break

@@ -5,6 +5,7 @@ A leaf of the planner (imports nothing of it).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -23,13 +24,21 @@ def make_region(req: PlanRequest, criterion: str | None = None) -> Region:
 
 
 def joint_limits(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds (rad) every joint ``th_1..th_n`` keeps on the whole path.
+    """Bounds (rad) every joint ``th_1..th_n`` keeps on the whole path (read-only arrays).
 
     ``th_1..th_{n-1}`` lie in the region where the chained form is invertible, (0, pi/2),
     narrowed by ``joint_bounds``. ``th_n`` takes no part in that region, but a joint that
     leaves (0, pi/2) is of no use to the arm either: it keeps (0, pi/2) too unless
     ``joint_bounds`` says otherwise (narrower or wider), or its start or goal lies outside.
     """
+    try:
+        return _joint_limits(req)  # a plan asks several times (requests are frozen)
+    except TypeError:  # an unhashable field: computed each time
+        return _joint_limits.__wrapped__(req)
+
+
+@functools.lru_cache(maxsize=64)
+def _joint_limits(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
     region = make_region(req, "full")
     lo = np.array(region.lower, float)
     hi = np.array(region.upper, float)
@@ -37,6 +46,8 @@ def joint_limits(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
     last = None if req.joint_bounds is None else req.joint_bounds[n - 1]
     if last is None and all(0.0 < x[n - 1] < HALF_PI for x in (req.start, req.goal)):
         lo[n - 1], hi[n - 1] = 0.0, HALF_PI
+    lo.setflags(write=False)
+    hi.setflags(write=False)
     return lo, hi
 
 
