@@ -154,16 +154,19 @@ def library_key(source: str, cfg: NativeConfig) -> str:
     return h.hexdigest()[:24]
 
 
-def nlp_source(solver: Any) -> str:
+def nlp_source(solver: Any, extra: tuple[Any, ...] = ()) -> str:
     """C source of the functions ``solver`` (an ``nlpsol``) evaluates and of its problem, the
     oracle ``nlp(x, p) -> (f, g)``: what ``casadi.nlpsol(name, plugin, library, opts)``
-    loads."""
+    loads; and of the ``extra`` Functions (``casadi.external(name, library)`` loads each by
+    its name)."""
     import casadi as ca
 
     cg = ca.CodeGenerator("nlp_functions.c", {"with_header": False})
     cg.add(solver.oracle())
     for name in solver.get_function():
         cg.add(solver.get_function(name))
+    for f in extra:
+        cg.add(f)
     return str(cg.dump())
 
 

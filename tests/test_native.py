@@ -74,6 +74,23 @@ def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(tmp_path)
     assert np.all((q[:, 1:3] > 0.0) & (q[:, 1:3] < np.pi / 2))
 
 
+def test_the_correction_maps_are_compiled_with_the_nlp(tmp_path):
+    """The library also holds the correction's fine end map and RK4 end Jacobian: once loaded
+    they are the compiled ones, with the virtual machine's values."""
+    req = _request()
+    native.configure(tmp_path)
+    m = shooting.prepare(req.robot.gains, req.robot.exponents, wait=True)
+    assert m.compiled
+    q0 = req.q_start()
+    rates = np.random.default_rng(5).uniform(-1.0, 1.0, (m.N, 2))
+    vm_end = np.asarray(m.fine_path(q0, rates.T), float)[:, -1]
+    vm_jac = np.asarray(m.end_jacobian(q0, rates.ravel()), float)
+    for call in (m._fine_end, m._end_jacobian):
+        assert call.function.class_name() != "SXFunction"  # loaded from the library
+    np.testing.assert_allclose(m.fine_end(q0, rates), vm_end, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(m.rk4_end_jacobian(q0, rates), vm_jac, rtol=0, atol=1e-12)
+
+
 def test_the_penalty_nlp_is_compiled_too_and_plans_the_same(tmp_path):
     """Every NLP of the shared transcription gets compiled functions: the penalty method's
     (another region mode, another library) gives the virtual machine's plan, on the goal."""

@@ -402,7 +402,12 @@ class MultipleShootingNLP:
             lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1], ca.cos)),
             xq, u, h, substeps * FINE_SUBSTEPS)])
         self.fine_path = fine.mapaccum("fine_path", N)
-        self._fine_end = BufferedCall(fine.fold(N), 2)
+        # the correction's maps, compiled with the NLP's functions when those are
+        # (load_native); the end state alone (no path) is all the correction needs
+        Ur = ca.SX.sym("U", 2, N)
+        self._correction_maps = (ca.Function("fine_end", [xq, Ur], [fine.fold(N)(xq, Ur)]),
+                                 self.end_jacobian)
+        self._fine_end = BufferedCall(self._correction_maps[0], 2)
         self._end_jacobian = BufferedCall(self.end_jacobian, 2)
         self._solver_calls: dict[str, BufferedCall] = {}
 
@@ -503,7 +508,8 @@ class MultipleShootingNLP:
             self._native_cfg, self.native = cfg, None
             fatrop = dict(self.solvers).get("fatrop")
             if cfg is not None and fatrop is not None and self.native_ok:
-                self.native = native.library_for(native.nlp_source(fatrop), wait=wait)
+                self.native = native.library_for(
+                    native.nlp_source(fatrop, self._correction_maps), wait=wait)
             every = 0.0
         if self.native is None:
             return False
@@ -512,9 +518,13 @@ class MultipleShootingNLP:
             return False
         try:
             solver = ca.nlpsol(f"{self._name}_fatrop", "fatrop", str(path), self._native_opts)
+            fine_end, end_jacobian = (ca.external(f.name(), str(path))
+                                      for f in self._correction_maps)
         except Exception:  # noqa: BLE001 - an unloadable library: keep the virtual machine
             self.native = None
             return False
+        self._fine_end = BufferedCall(fine_end, 2)
+        self._end_jacobian = BufferedCall(end_jacobian, 2)
         self.solvers = [("fatrop", solver) if name == "fatrop" else (name, s)
                         for name, s in self.solvers]
         self.compiled = True
