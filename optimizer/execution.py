@@ -367,9 +367,16 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
         States of the original model under them at ``t_out``.
     check : ExecutionCheck
     """
-    grid = _grid(form)
-    ng = grid.size
-    t_eval = np.concatenate([grid, t_out])
+    # the Jacobian's grid, built when a step is needed (a given first replay on the goal
+    # needs none)
+    grid_cache: list[np.ndarray] = []
+
+    def t_eval() -> np.ndarray:
+        if not grid_cache:
+            grid_cache.append(_grid(form))
+        return np.concatenate([grid_cache[0], t_out])
+
+    ng = (form.knots.size - 1) * (GAUSS + 2)   # the size of _grid(form)
     rows = p0.shape[0]
     p = p0.copy()
     lim = np.array([np.inf if x is None else float(x) for x in limits])
@@ -394,7 +401,7 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
         if k == 0 and initial is not None:
             rep, off = initial, initial.q.shape[0] - t_out.size
         else:
-            rep, off = replay_form(robot, form, p, q0, t_eval), ng
+            rep, off = replay_form(robot, form, p, q0, t_eval()), ng
         if not rep.success:
             break
         r = rep.final - target
@@ -408,7 +415,7 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
         if err <= CORRECTION_TARGET or k == MAX_CORRECTIONS:
             break
         if off != ng:  # the given first replay has no states on the Jacobian's grid
-            rep = replay_form(robot, form, p, q0, t_eval)
+            rep = replay_form(robot, form, p, q0, t_eval())
             if not rep.success:
                 break
         J = _jacobian(robot, form, p, rep.q[:ng], rows)          # (n+1, rows, 2)

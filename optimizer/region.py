@@ -262,8 +262,8 @@ class Region:
         self.criterion = criterion
         self.cf = transform or chained_form(robot)
         n = robot.n
-        lo = np.array([0.0] * (n - 1) + [-np.inf])
-        hi = np.array([HALF_PI] * (n - 1) + [np.inf])
+        lo = [0.0] * (n - 1) + [-math.inf]
+        hi = [HALF_PI] * (n - 1) + [math.inf]
         if joint_bounds is not None:
             if len(joint_bounds) != n:
                 raise InvalidRequestError(f"joint_bounds must have n = {n} entries",
@@ -281,14 +281,15 @@ class Region:
                         f"joint_bounds[{i}] = [{l}, {h}] must lie inside [0, pi/2] (the region "
                         f"where the chained form is invertible)", field=f"joint_bounds[{i}]")
                 lo[i], hi[i] = l, h
-        self.lower = lo
-        self.upper = hi
+        # (the bounds are worked out on floats: a region is built for every request)
+        self.lower = np.array(lo)
+        self.upper = np.array(hi)
         self.has_custom_bounds = joint_bounds is not None
         self._n = n
         self._m = robot.exponents
         # joints 1..n-1 with their default range (0, pi/2): the margin is min(th, pi/2 - th)
-        self._default = [bool(lo[j - 1] == 0.0 and hi[j - 1] == HALF_PI) for j in range(1, n)]
-        self._thn_bounded = bool(np.isfinite(lo[n - 1]) or np.isfinite(hi[n - 1]))
+        self._default = [lo[j - 1] == 0.0 and hi[j - 1] == HALF_PI for j in range(1, n)]
+        self._thn_bounded = math.isfinite(lo[n - 1]) or math.isfinite(hi[n - 1])
         self._lv: _Levels | None = None
         # n = 3 with the default ranges: a short path for points all inside (see _values3)
         self._fast3 = n == 3 and all(self._default) and not self._thn_bounded
@@ -316,10 +317,9 @@ class Region:
     def check_point_q(self, q: np.ndarray, field: str) -> None:
         """Raise :class:`InvalidRequestError` when a joint-space point is outside the region."""
         q = np.asarray(q, float)
-        for i in range(self.robot.n):
-            th = q[i + 1]
-            if not (self.lower[i] < th < self.upper[i]):
-                lo, hi = self.lower[i], self.upper[i]
+        for i, (th, lo, hi) in enumerate(zip(q[1:].tolist(), self.lower.tolist(),
+                                            self.upper.tolist())):
+            if not (lo < th < hi):
                 raise InvalidRequestError(
                     f"{field}[{i}] = {th:.6g} rad ({math.degrees(th):.4g} deg) is outside "
                     f"({lo:.6g}, {hi:.6g}) rad: the chained-form transform is singular or the joint "

@@ -392,8 +392,8 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                       initial_panels: int = CASCADE_INITIAL_PANELS,
                       initial_width: float | None = None, split: int = CASCADE_SPLIT,
                       max_rounds: int = CASCADE_MAX_ROUNDS, max_panels: int = CASCADE_MAX_PANELS,
-                      fallback: Callable[[float, np.ndarray], np.ndarray] | None = None
-                      ) -> Replay:
+                      fallback: Callable[[float, np.ndarray], np.ndarray] | None = None,
+                      constant_pieces: bool = False) -> Replay:
     """Integrate the original model under OPEN-LOOP inputs by cumulative quadrature.
 
     The model is triangular: ``phi = int u1``, ``th1 = int u2``, then
@@ -437,6 +437,10 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
     fallback : callable ``(t, q) -> u``, optional
         Scalar inputs for :func:`integrate` (DOP853), used when the estimate is above
         ``accept`` or not finite. Without it such a run returns ``success=False``.
+    constant_pieces : bool
+        The inputs are constant between ``breaks`` (actuator schedules): they are read once
+        per panel, at its middle, and their quadrature is exact (no error estimate of their
+        own); the joints' integrands are resolved as always.
 
     Returns
     -------
@@ -527,13 +531,23 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
         if new_a.size:
             # the inputs on the new panels only, and their coefficient tails
             tnn = new_a[:, None] + 0.5 * new_h[:, None] * (rule.x + 1.0)
-            Un = np.asarray(u_of_t(tnn.ravel()), float).reshape(new_a.size, p, 2)
-            evaluations += tnn.size
+            if constant_pieces:
+                t_read = new_a + 0.5 * new_h
+                Um = np.asarray(u_of_t(t_read), float).reshape(new_a.size, 2)
+                Un = np.broadcast_to(Um[:, None, :], (new_a.size, p, 2))
+                evaluations += t_read.size
+            else:
+                Un = np.asarray(u_of_t(tnn.ravel()), float).reshape(new_a.size, p, 2)
+                evaluations += tnn.size
             if not np.isfinite(Un).all():
                 t_bad = float(np.min(tnn[~np.isfinite(Un).all(axis=2)]))
                 return failed(f"the planned inputs are not finite at t = {t_bad:.6g} s", t_bad)
             Un = Un.transpose(2, 0, 1)
-            e, c = _tails(rule, np.concatenate([Un, (Un[0] ** 2 + Un[1] ** 2)[None]]), new_h)
+            if constant_pieces:  # a constant's quadrature is exact
+                e, c = np.zeros((3, new_a.size)), np.zeros((3, new_a.size, p))
+            else:
+                e, c = _tails(rule, np.concatenate([Un, (Un[0] ** 2 + Un[1] ** 2)[None]]),
+                              new_h)
             if a.size:
                 a, h = np.concatenate([a, new_a]), np.concatenate([h, new_h])
                 tn = np.concatenate([tn, tnn])
@@ -542,6 +556,7 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                 in_coef = np.concatenate([in_coef, c], axis=1)
             else:
                 a, h, tn, U, in_err, in_coef = new_a, new_h, tnn, Un, e, c
+            if rounds == 0 and not constant_pieces:
                 # weights of the inputs' errors in the worst state, from the first mesh (only
                 # scales of the tolerance): u2 reaches th_n through the Lambda bounds, u1 every
                 # th_i directly (times K_i) and down the chain; the energy's is relative
@@ -552,7 +567,8 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                 w_in = np.array([max(1.0, float(np.max(K * chain[1:]))), chain[0],
                                  1.0 / e_scale if e_scale > 0.0 else 1.0])
             new_a = new_h = np.empty(0)
-        mark = _marks(in_err, in_coef, w_in, share * h)
+        mark = (np.zeros(a.size, bool) if constant_pieces
+                else _marks(in_err, in_coef, w_in, share * h))
         if not (mark.any() and fits(mark)):
             # the inputs are resolved: the cascade on this mesh, in time order
             if rounds:

@@ -276,6 +276,25 @@ def test_correction_reaches_the_exact_goal_from_the_rk4_rates():
     assert abs(np.sum(rates[:, 0]) - np.sum(sol.rates[:, 0])) < 1e-12  # phi's end is held
 
 
+@pytest.mark.parametrize("rows_apart", [1.0, 1e-9])
+def test_the_newton_step_is_the_least_norm_solution(rows_apart):
+    """The correction's step against numpy's SVD least squares: on a well-conditioned
+    Jacobian, and on one whose rows are nearly parallel (J J^T singular in double precision),
+    where the normal equations must give way to the SVD."""
+    from optimizer.planner.nlp import minimum_norm_step
+
+    rng = np.random.default_rng(11)
+    J = rng.normal(size=(5, 24))
+    J[2] = J[1] + rows_apart * rng.normal(size=24)
+    r = rng.normal(size=5)
+    ref = np.linalg.lstsq(J, r, rcond=None)[0]
+    x = minimum_norm_step(J, r)
+    assert np.all(np.isfinite(x))
+    np.testing.assert_allclose(x, ref, rtol=1e-6, atol=1e-9 * np.max(np.abs(ref)))
+    if rows_apart == 1.0:
+        np.testing.assert_allclose(J @ x, r, atol=1e-12)
+
+
 def test_correction_with_a_measured_miss_aims_past_the_goal_by_that_miss():
     """Given the exact end state of the rates (a quadrature's), the correction subtracts the
     fine map's error there from the goal: the fine map of the returned rates ends at the goal

@@ -154,6 +154,32 @@ def test_the_mesh_holds_the_exact_states(piecewise):
     np.testing.assert_array_equal(rep.mesh_q[-1], rep.final)
 
 
+@pytest.mark.parametrize("nodes", [12, 8])
+def test_constant_pieces_read_once_per_panel_and_match_reference(nodes):
+    """Piecewise-constant rates (an actuator schedule, phi reversing): read once per panel
+    (``constant_pieces``) the replay matches the reference and the general path, on the same
+    mesh; the joints' integrands are refined (more so with fewer nodes), and the new panels
+    read their rates too."""
+    from optimizer.actuation import ActuatorSchedule
+
+    robot = Robot.default(3)
+    q0 = np.concatenate([[0.2], D([20.0, 50.0, 40.0])])
+    rates = np.array([[0.8, 0.3], [0.5, -0.2], [-0.4, 0.1], [-0.7, 0.25], [0.3, -0.1]])
+    sched = ActuatorSchedule(breaks=np.array([0.0, 0.3, 0.5, 0.9, 1.2, 1.6]), rates=rates)
+    T = sched.duration
+    t = np.unique(np.concatenate([np.linspace(0.0, T, 41), sched.breaks]))
+    ref = reference(sched.u_scalar, q0, T, robot.gains, robot.exponents, t, sched.breaks)
+    fast = integrate_cascade(robot, sched.u, q0, T, t, sched.breaks, nodes=nodes,
+                             initial_panels=1, constant_pieces=True)
+    general = integrate_cascade(robot, sched.u, q0, T, t, sched.breaks, nodes=nodes,
+                                initial_panels=1)
+    assert fast.integrator == CASCADE_NAME and fast.error_estimate <= 1e-11
+    assert_matches_reference(fast, ref)
+    assert fast.panels == general.panels > sched.pieces
+    assert fast.evaluations * (nodes - 1) < general.evaluations
+    np.testing.assert_allclose(fast.q, general.q, rtol=0, atol=1e-13)
+
+
 def test_breaks_are_needed_for_piecewise_inputs(piecewise):
     """Without the breaks the panels straddle the input jumps: the estimate must notice (more
     panels, or a fallback), and the answer must still be right."""

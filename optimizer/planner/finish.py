@@ -196,7 +196,7 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
                  else np.empty(0))
         rep = integrate_cascade(robot, sched.u, q0, T, np.concatenate([sched.breaks, times]),
                                 sched.breaks, nodes=REPLAY_NODES, initial_panels=1,
-                                fallback=sched.u_scalar)
+                                fallback=sched.u_scalar, constant_pieces=True)
         return sched, times, rep
 
     def miss(r: Replay) -> float:

@@ -548,6 +548,13 @@ class MultipleShootingNLP:
         ``rates.ravel()``."""
         return self._end_jacobian(q0, rates)[0].reshape(2 * self.N, self.n + 1).T
 
+    @functools.cached_property
+    def _unit_grid(self) -> np.ndarray:
+        """The nodes' normalised times ``k / N`` (read only)."""
+        s = np.linspace(0.0, 1.0, self.N + 1)
+        s.setflags(write=False)
+        return s
+
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Open variable bounds ``(N+1, stride)`` (row ``k``: ``x_k`` then ``u_k``; the last
         row's ``u`` part is not in ``w``), with the epigraphs and slacks >= 0 and the start's
@@ -569,10 +576,10 @@ class MultipleShootingNLP:
         """Straight lines in joint space (inside the region's box when start and goal are),
         ``phi`` moving by ``travel``; consistent rates."""
         N, n = self.N, self.n
-        s = np.linspace(0.0, 1.0, N + 1)
+        s = self._unit_grid
         Q = np.empty((N + 1, n + 1))
         Q[:, 0] = phi0 + travel * s
-        Q[:, 1:] = a + np.outer(s, b - a)
+        Q[:, 1:] = a + s[:, None] * (b - a)
         # every node on both lines: the epigraphs just above 0
         return self._table(Q, 1e-4, 1e-4, np.array([travel, b[0] - a[0]]))
 
@@ -584,7 +591,7 @@ class MultipleShootingNLP:
         ell = b - a
         nrm = float(ell @ ell)
         S0 = float(np.max(np.sum(d * d, axis=1) - ((d @ ell) ** 2 / nrm if nrm > 0 else 0.0)))
-        line1 = a[0] + (b[0] - a[0]) * np.linspace(0.0, 1.0, N + 1)
+        line1 = a[0] + (b[0] - a[0]) * self._unit_grid
         return self._table(Q, max(S0, 0.0) + 1e-4,
                            float(np.max((Q[:, 1] - line1) ** 2)) + 1e-4,
                            N * np.diff(Q[:, :2], axis=0))
@@ -739,7 +746,7 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
             # benchmark's 7 tries, about 20 ms each: see IPOPT_FIRST_JOINTS)
             return sol, tr, signs, tried
         best: tuple[Any, Any] = (sol, signs)
-        key = _reversals_and_deviation(req, sol.nodes)
+        key: tuple[int, float] | None = None   # the best's, computed once there is a rival
 
         def consider(alt_signs: Any, start: np.ndarray | None = None) -> None:
             nonlocal best, key
@@ -748,6 +755,8 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
             except InfeasibleError as exc:
                 tried.extend(exc.diagnostics.get("tried", []))
                 return
+            if key is None:
+                key = _reversals_and_deviation(req, best[0].nodes)
             alt_key = _reversals_and_deviation(req, alt.nodes)
             if alt_key < key:
                 # the superseded solution's attempts stay in the record, before the winner's
@@ -760,7 +769,9 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
             lo, hi = node_bounds(req, joint_limits(req))
             if th1_monotone_reach_ok(req, float(lo[1]), float(hi[1])):
                 consider((0.0, th1_sign))
-        pattern = wiggle_free_signs(best[0].rates)
+        # rates held to one sign per actuator (the first rung) have no runs to merge
+        held = best[1] is not None and np.ndim(best[1]) == 1 and all(best[1])
+        pattern = None if held else wiggle_free_signs(best[0].rates)
         if pattern is not None:
             consider(pattern, best[0].nodes)
         return best[0], tr, best[1], tried
@@ -807,13 +818,13 @@ def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard") -> Multip
 def node_bounds(req: PlanRequest, limits: tuple[np.ndarray, np.ndarray],
                 margin: float = MARGIN) -> tuple[np.ndarray, np.ndarray]:
     """Per joint: its limits ``(lo, hi)`` moved in by ``margin`` (less near start or goal)."""
-    a, b = np.array(req.start), np.array(req.goal)
-    lo, hi = (np.array(x, float) for x in limits)
-    inner_lo = np.minimum(a, b) - lo
-    inner_hi = hi - np.maximum(a, b)
-    lo_m = np.where(np.isfinite(lo), lo + np.minimum(margin, 0.5 * inner_lo), -np.inf)
-    hi_m = np.where(np.isfinite(hi), hi - np.minimum(margin, 0.5 * inner_hi), np.inf)
-    return lo_m, hi_m
+    lo_m, hi_m = [], []
+    for a, b, lo, hi in zip(req.start, req.goal, *(np.asarray(x, float).tolist()
+                                                      for x in limits)):
+        # (an infinite bound stays infinite; the margin is at most half the room left)
+        lo_m.append(lo + min(margin, 0.5 * (min(a, b) - lo)) if math.isfinite(lo) else -math.inf)
+        hi_m.append(hi - min(margin, 0.5 * (hi - max(a, b))) if math.isfinite(hi) else math.inf)
+    return np.array(lo_m), np.array(hi_m)
 
 
 def objective_weights(req: PlanRequest, method: str) -> tuple[float, float, float]:
@@ -852,11 +863,11 @@ def variable_bounds(req: PlanRequest, nlp: MultipleShootingNLP, tr: Transcriptio
         lbW[:, 1:n + 1], ubW[:, 1:n + 1] = node_lo, node_hi
     lbW[:N, nlp.nx:nlp.nx + 2], ubW[:N, nlp.nx:nlp.nx + 2] = -tr.rate_bound, tr.rate_bound
     # one sign per actuator, or one per interval and actuator (N, 2); 0: either
-    signs = np.broadcast_to(np.zeros(2) if rate_signs is None
-                            else np.asarray(rate_signs, float), (N, 2))
-    for c, col in enumerate((nlp.nx, nlp.nx + 1)):
-        lbW[:N, col] = np.where(signs[:, c] > 0, 0.0, lbW[:N, col])
-        ubW[:N, col] = np.where(signs[:, c] < 0, 0.0, ubW[:N, col])
+    if rate_signs is not None:
+        signs = np.broadcast_to(np.asarray(rate_signs, float), (N, 2))
+        rate_lb, rate_ub = lbW[:N, nlp.nx:nlp.nx + 2], ubW[:N, nlp.nx:nlp.nx + 2]  # views
+        rate_lb[signs > 0] = 0.0
+        rate_ub[signs < 0] = 0.0
     if req.phi_change is not None:
         lo_phi = hi_phi = float(req.phi_change)
     else:
@@ -909,6 +920,32 @@ def run_solver(nlp: MultipleShootingNLP, name: str, x0: np.ndarray, p: np.ndarra
                         x=x if np.all(np.isfinite(x)) else None)
 
 
+#: Relative residual ``|J x - r| / |r|`` below which the normal equations' step is kept.
+STEP_RESIDUAL = 1e-9
+
+
+def minimum_norm_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The least-norm ``x`` with ``J x = r`` (``J``: few rows, full row rank), as
+    ``np.linalg.lstsq`` gives it.
+
+    ``x = J^T y`` with ``(J J^T) y = r`` lies in the row space of ``J``; when it also solves
+    ``J x = r`` (relative residual below :data:`STEP_RESIDUAL`) it is the least-norm solution.
+    ``J J^T`` can be singular in double precision (nearly parallel rows) while ``J`` itself is
+    fine: then the residual shows it and the SVD-based least squares answers instead. The
+    normal equations are a small solve, where the SVD's setup dominates a Newton step here.
+    """
+    try:
+        x = J.T @ np.linalg.solve(J @ J.T, r)
+    except np.linalg.LinAlgError:
+        x = None
+    if x is not None:
+        res = J @ x - r
+        scale = float(r @ r)
+        if math.isfinite(float(x @ x)) and float(res @ res) <= STEP_RESIDUAL ** 2 * scale:
+            return x
+    return np.linalg.lstsq(J, r, rcond=None)[0]
+
+
 def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
                   phi_end: float, exact_end: np.ndarray | None = None
                   ) -> tuple[np.ndarray, list[float]]:
@@ -958,15 +995,12 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
         if err <= 1e-3 * CORRECTION_TARGET or k == MAX_CORRECTIONS:
             break
         J = nlp.rk4_end_jacobian(q0, U)
-        # the minimum-norm step by least squares: J J^T can be singular in double precision
-        # (nearly parallel rows) while J itself is fine
-        step = np.linalg.lstsq(J, r, rcond=None)[0]
-        U = U - step.reshape(N, 2)
+        U = U - minimum_norm_step(J, r).reshape(N, 2)
     return (U if best is None else best[1]), errors
 
 
 __all__ = ["BufferedCall", "CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "DeadlineCallback", "INFEASIBLE",
-           "IPOPT_FIRST_JOINTS", "finish_solution", "WIGGLE_SHARE", "signs_list", "wiggle_free_signs",
+           "IPOPT_FIRST_JOINTS", "finish_solution", "minimum_norm_step", "STEP_RESIDUAL", "WIGGLE_SHARE", "signs_list", "wiggle_free_signs",
            "IPOPT_OPTIONS", "LADDER", "LADDER_3_JOINTS", "MARGIN", "MultipleShootingNLP", "REGION_MODES", "SUCCESS",
            "SolveOutcome", "TIMEOUT", "Transcription", "classify", "correct_rates", "error_for",
            "fatrop_options", "ipopt_options", "ladder", "multiple_shooting_nlp", "nlp_for", "node_bounds", "rungs", "solve_rungs",

@@ -16,7 +16,7 @@ from ..results import Plan
 from .auto import plan_auto
 from .context import Deadline, PlanContext
 from .registry import AUTO, get
-from .rules import check_endpoints, make_region
+from .rules import check_endpoints, clear_request_caches, full_region
 
 
 def plan(req: PlanRequest) -> Plan:
@@ -33,7 +33,8 @@ def plan(req: PlanRequest) -> Plan:
     """
     ctx = PlanContext(Deadline(req.time_limit))
     t0 = time.perf_counter()
-    check_endpoints(req, make_region(req, "full"))
+    clear_request_caches()
+    check_endpoints(req, full_region(req))
     if req.method == AUTO:
         result = plan_auto(req, ctx)
     else:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Any, Callable, TypeVar
 
 import numpy as np
 
@@ -16,6 +17,7 @@ from ..region import Region
 #: A plan is verified when the re-integrated original model ends this close to the goal (rad).
 TERMINAL_TOLERANCE = 1e-6
 HALF_PI = 0.5 * math.pi
+T = TypeVar("T")
 
 
 def make_region(req: PlanRequest, criterion: str | None = None) -> Region:
@@ -23,6 +25,38 @@ def make_region(req: PlanRequest, criterion: str | None = None) -> Region:
     return Region(req.robot, criterion or req.singularity, req.joint_bounds)
 
 
+def _per_request(f: Callable[[PlanRequest], T]) -> Callable[[PlanRequest], T]:
+    """``f(req)`` computed once per request while a plan asks for it several times (requests
+    are frozen); :func:`clear_request_caches` forgets it when the next plan starts, so that a
+    plan never reuses another's work. An unhashable request is computed each time."""
+    cached = functools.lru_cache(maxsize=8)(f)
+    _CACHES.append(cached)
+
+    @functools.wraps(f)
+    def get(req: PlanRequest) -> T:
+        try:
+            return cached(req)
+        except TypeError:
+            return f(req)
+    return get
+
+
+_CACHES: list[Any] = []
+
+
+def clear_request_caches() -> None:
+    """Forget the per-request values of the previous plans (called as each plan starts)."""
+    for c in _CACHES:
+        c.cache_clear()
+
+
+@_per_request
+def full_region(req: PlanRequest) -> Region:
+    """The full region of the request (shared within a plan: read only)."""
+    return make_region(req, "full")
+
+
+@_per_request
 def joint_limits(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
     """Bounds (rad) every joint ``th_1..th_n`` keeps on the whole path (read-only arrays).
 
@@ -31,15 +65,7 @@ def joint_limits(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
     leaves (0, pi/2) is of no use to the arm either: it keeps (0, pi/2) too unless
     ``joint_bounds`` says otherwise (narrower or wider), or its start or goal lies outside.
     """
-    try:
-        return _joint_limits(req)  # a plan asks several times (requests are frozen)
-    except TypeError:  # an unhashable field: computed each time
-        return _joint_limits.__wrapped__(req)
-
-
-@functools.lru_cache(maxsize=64)
-def _joint_limits(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
-    region = make_region(req, "full")
+    region = full_region(req)
     lo = np.array(region.lower, float)
     hi = np.array(region.upper, float)
     n = req.n
@@ -51,8 +77,10 @@ def _joint_limits(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+@_per_request
 def limits_region(req: PlanRequest) -> Region:
-    """The full region with every joint held to its limits (:func:`joint_limits`)."""
+    """The full region with every joint held to its limits (:func:`joint_limits`; shared
+    within a plan: read only)."""
     lo, hi = joint_limits(req)
     return Region(req.robot, "full", [(float(a), float(b)) if np.isfinite(a) or np.isfinite(b)
                                       else None for a, b in zip(lo, hi)])
@@ -70,7 +98,7 @@ def direction_conflict(req: PlanRequest) -> str | None:
     With ``v1`` constant every ``th_i`` (i >= 2) moves monotonically in the direction of
     ``dphi`` (``th_i' = K_i cos(th_{i-1})^m_i u1`` with a positive factor in the region).
     """
-    d = np.array(req.goal[1:]) - np.array(req.start[1:])
+    d = [g - s for g, s in zip(req.goal[1:], req.start[1:])]
     up = [i + 2 for i, x in enumerate(d) if x > 0]
     down = [i + 2 for i, x in enumerate(d) if x < 0]
     if up and down:
@@ -87,10 +115,10 @@ def direction_conflict(req: PlanRequest) -> str | None:
 def phi_search_bounds(req: PlanRequest) -> tuple[float, float]:
     """The request's ``dphi`` bounds, cut to the sign the joints' motion demands."""
     lo, hi = req.phi_change_bounds
-    d = np.array(req.goal[1:]) - np.array(req.start[1:])
-    if np.all(d >= 0):
+    d = [g - s for g, s in zip(req.goal[1:], req.start[1:])]
+    if all(x >= 0 for x in d):
         lo = max(lo, 0.0)
-    elif np.all(d <= 0):
+    elif all(x <= 0 for x in d):
         hi = min(hi, 0.0)
     return lo, hi
 
@@ -119,18 +147,18 @@ def monotone_reach_ok(req: PlanRequest, th1_monotone: bool) -> bool:
     NLP need not be asked (it takes tens of iterations to give up).
     """
     n = req.n
-    a, b = np.array(req.start, float), np.array(req.goal, float)
-    lo_lim, hi_lim = joint_limits(req)
+    a, b = [float(x) for x in req.start], [float(x) for x in req.goal]
     K, m = req.robot.gains, req.robot.exponents
-    if np.any(a[1:] == b[1:]):
+    if any(x == y for x, y in zip(a[1:], b[1:])):
         return False  # th_i' = K_i cos(.)^m u1 != 0 while phi moves: th_i must change
     for i in range(2, n):  # joints th_i -> th_{i+1}, 1-based; arrays 0-based
         prev = i - 2                                   # th_{i-1}
         if prev == 0 and not th1_monotone:
-            r_lo, r_hi = max(lo_lim[0], 0.0), min(hi_lim[0], HALF_PI)
+            lo_lim, hi_lim = joint_limits(req)
+            r_lo, r_hi = max(float(lo_lim[0]), 0.0), min(float(hi_lim[0]), HALF_PI)
         else:
             r_lo, r_hi = min(a[prev], b[prev]), max(a[prev], b[prev])
-        c_hi, c_lo = np.cos(r_lo) ** m[i - 2], np.cos(r_hi) ** m[i - 2]
+        c_hi, c_lo = math.cos(r_lo) ** m[i - 2], math.cos(r_hi) ** m[i - 2]
         integral = abs(_cos_power_integral(a[i - 1], b[i - 1], m[i - 1]))
         ratio = K[i - 1] / K[i - 2]
         need = abs(b[i] - a[i])
@@ -192,4 +220,5 @@ def monotone_signs(req: PlanRequest) -> tuple[float, float] | None:
         return None
     if s1 == 0.0:
         return None
-    return s1, float(np.sign(req.goal[0] - req.start[0]))
+    d1 = req.goal[0] - req.start[0]
+    return s1, float((d1 > 0) - (d1 < 0))
