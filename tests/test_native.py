@@ -8,6 +8,8 @@ original model, as in ``test_shooting.py``.
 
 from __future__ import annotations
 
+import math
+
 import os
 import shutil
 import stat
@@ -111,7 +113,11 @@ def test_the_penalty_nlp_is_compiled_too_and_plans_the_same(tmp_path):
 
 def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp_path):
     robot = Robot(gains=(0.9, 1.1))            # other expressions: a key of their own
-    req = _request(robot, OPP_A)               # (a goal fatrop answers: compiled functions)
+    # a goal whose NLPs fatrop answers (the compiled functions are fatrop's): the worked
+    # example, all joints one way; on goals that need phi to reverse fatrop may reach its
+    # iteration cap and leave the answer to IPOPT, whatever the library
+    req = PlanRequest(start=(math.radians(10.0),) * 3, goal=(math.radians(30.0),) * 3,
+                      method="shooting", robot=robot)
     native.configure(tmp_path)
     p = plan(req)
     # the first answer does not wait for the compiler
