@@ -470,8 +470,15 @@ def linear_times(T: float, samples: int, breaks: np.ndarray) -> np.ndarray:
     # intervals next to a break, and a break that falls on a sample (up to rounding) is exact
     t = _snap(np.linspace(0.0, T, int(samples)), inner, 0.25 * T / (int(samples) - 1))
     t[0], t[-1] = 0.0, T
-    t = np.unique(np.concatenate([t, inner]))
-    return np.insert(t, np.searchsorted(t, inner), inner)
+    merged = np.concatenate([t, inner])
+    merged.sort()
+    first = np.empty(merged.size, bool)            # the distinct values, in order
+    first[0] = True
+    np.not_equal(merged[1:], merged[:-1], out=first[1:])
+    t = merged[first]
+    copies = np.ones(t.size, np.intp)              # every inner break twice
+    copies[np.searchsorted(t, inner)] = 2
+    return np.repeat(t, copies)
 
 
 def period_times(T: float, period: float, breaks: np.ndarray) -> np.ndarray:

@@ -164,6 +164,30 @@ def test_piece_values_hold_piecewise_constant_rates_exactly():
         assert np.array_equal(p[rows], sched.rates[[k, k + 1]])
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_linear_times_follow_their_rule(seed):
+    """The linear form's times against their definition, checked point by point: 0 and T at
+    the ends, in order, every inner break exactly twice (also one that falls on a sample), and
+    every evenly spaced sample kept or moved onto a break within a quarter of the spacing."""
+    from optimizer.execution import linear_times
+
+    rng = np.random.default_rng(seed)
+    T, samples = float(rng.uniform(0.5, 5.0)), int(rng.integers(5, 120))
+    grid = np.linspace(0.0, T, samples)
+    inner = np.sort(rng.uniform(0.0, T, int(rng.integers(1, 12))))
+    inner[0] = grid[int(rng.integers(1, samples - 1))]       # a break on a sample
+    times = linear_times(T, samples, np.concatenate([[0.0], inner, [T]]))
+    assert times[0] == 0.0 and times[-1] == T and np.all(np.diff(times) >= 0.0)
+    values, counts = np.unique(times, return_counts=True)
+    assert all(counts[values == b][0] == 2 for b in inner)
+    assert np.all(counts[~np.isin(values, inner)] == 1)
+    quarter = 0.25 * T / (samples - 1)
+    for g in grid[1:-1]:
+        near = inner[np.abs(inner - g) <= quarter]
+        assert g in values or near.size > 0
+    assert np.all(np.isin(values, np.concatenate([grid, inner])))
+
+
 def test_controller_period_must_fit_the_duration():
     start, goal = GOALS[3][0]
     for bad in (0.0, -0.01, 5e-5, 0.6, math.inf):
