@@ -401,3 +401,39 @@ def test_finishing_refines_rates_that_the_quadrature_finds_off_the_goal():
     assert refined.verification.terminal_error < 1e-10
     _, q = scipy_path(refined, req)
     assert np.max(np.abs(q[-1, 1:] - np.array(req.goal))) < 1e-9
+
+
+#: Goals whose joints th2, th3 move both ways (generated goals, in degrees).
+BOTH_WAYS = [((33.8608, 26.9024, 21.7798), (22.1209, 26.9375, 20.7809)),
+             ((8.5655, 75.9792, 77.0036), (25.122, 74.5429, 77.0158)),
+             ((67.0844, 33.9927, 56.7857), (84.6182, 33.3439, 58.4467))]
+
+
+@pytest.mark.parametrize("pair", BOTH_WAYS, ids=["down", "up_steep", "up"])
+def test_where_phi_must_reverse_the_th1_held_nlp_alone_gives_the_fewest_reversals(
+        pair, monkeypatch):
+    """Joints moving both ways need phi to reverse: a path with th1 held to its sign and one
+    reversal of phi has the fewest reversals there is. That NLP runs first and the free one
+    not at all; the plan is no worse, by the default rule, than the free NLP's, solved here
+    apart."""
+    import optimizer.planner.shooting as shooting
+    from optimizer.planner import nlp as nlp_layer
+    from optimizer.planner.rules import direction_conflict
+
+    req = request(*(tuple(np.radians(x)) for x in pair))
+    assert direction_conflict(req) is not None
+    held_signs = []
+    solve = shooting.solve_shooting
+
+    def recording(req, deadline, tr=None, monotone=None, start_nodes=None):
+        held_signs.append(None if monotone is None else np.asarray(monotone).tolist())
+        return solve(req, deadline, tr, monotone, start_nodes)
+
+    monkeypatch.setattr(shooting, "solve_shooting", recording)
+    p = plan(req)
+    th1_sign = float(np.sign(req.goal[0] - req.start[0]))
+    assert held_signs[0] == [0.0, th1_sign] and None not in held_signs
+    assert p.indicators.reversals == 1 and p.indicators.reversals_th1 == 0
+    free = solve(req, Deadline(30.0), ladder(req.n)[0], None)
+    rev, dev = nlp_layer._reversals_and_deviation(req, free.nodes)
+    assert (1, p.indicators.deviation) <= (rev, dev + 1e-4)

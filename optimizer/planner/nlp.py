@@ -69,7 +69,8 @@ from ..problem import MAX_TIME_LIMIT, PlanRequest
 from ..results import Plan
 from ..indicators import ACTUATOR_DEAD_BAND, count_reversals, segment_distance
 from .finish import finish_actuator_plan
-from .rules import joint_limits, monotone_reach_ok, monotone_signs, th1_monotone_reach_ok
+from .rules import (direction_conflict, joint_limits, monotone_reach_ok, monotone_signs,
+                    th1_monotone_reach_ok)
 
 
 @dataclass(frozen=True)
@@ -725,7 +726,10 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
     * a solution in which ``th_1`` reverses (``phi``'s sign fixed, or both free) is compared
       with the same transcription with ``th_1``'s sign fixed and ``phi`` free, which may
       reverse ``phi`` once where the first reversed ``th_1`` once, on a straighter path
-      (skipped when :func:`~.rules.th1_monotone_reach_ok` rules it out);
+      (skipped when :func:`~.rules.th1_monotone_reach_ok` rules it out). Where ``phi`` must
+      reverse (:func:`~.rules.direction_conflict`: no path has fewer than one reversal) that
+      NLP runs first, and when its path reverses once (``phi``) it is among the fewest and
+      the free NLP is not run;
     * a solution with wiggles (:func:`wiggle_free_signs`: short runs of an actuator's rate
       against its neighbours, each two reversals for little travel, which the deviation term
       can favour on long moves) is solved again from its own nodes with every interval's
@@ -733,28 +737,43 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
     """
     failures: list[str] = []
     tried: list[dict[str, Any]] = []
+    improve = req.objective == "reversals_then_deviation" and req.n < IPOPT_FIRST_JOINTS
+    th1_sign = float(np.sign(req.goal[0] - req.start[0]))
+    th1_held = (0.0, th1_sign)
+    # where phi must reverse (the joints move both ways: no path has fewer than one reversal),
+    # a path with th1 held to its sign and one reversal of phi is one of the fewest: that
+    # NLP goes first, and the free one runs only when it does not give such a path
+    ahead_first = (improve and th1_sign != 0.0 and direction_conflict(req) is not None
+                   and th1_reach_ok(req))
     for tr, signs in rungs(req):
-        try:
-            sol = solve(tr, signs)
-        except InfeasibleError as exc:
-            failures.append(f"{tr.intervals} intervals" + (" (monotone)" if signs else "")
-                            + f": {exc.message}")
-            tried.extend(exc.diagnostics.get("tried", []))
-            continue
-        if req.objective != "reversals_then_deviation" or req.n >= IPOPT_FIRST_JOINTS:
+        ahead: Any = None
+        if ahead_first and signs is None:
+            try:
+                ahead = solve(tr, th1_held)
+            except InfeasibleError as exc:
+                tried.extend(exc.diagnostics.get("tried", []))
+        if ahead is not None and _reversals_and_deviation(req, ahead.nodes)[0] <= 1:
+            sol, signs, ahead = ahead, th1_held, None
+        else:
+            try:
+                sol = solve(tr, signs)
+            except InfeasibleError as exc:
+                if ahead is None:
+                    failures.append(f"{tr.intervals} intervals" + (" (monotone)" if signs else "")
+                                    + f": {exc.message}")
+                    tried.extend(exc.diagnostics.get("tried", []))
+                    continue
+                tried.extend(exc.diagnostics.get("tried", []))
+                sol, signs, ahead = ahead, th1_held, None
+        if not improve:
             # (the improvements below are fatrop's, which from 5 joints failed on 6 of the
             # benchmark's 7 tries, about 20 ms each: see IPOPT_FIRST_JOINTS)
             return sol, tr, signs, tried
         best: tuple[Any, Any] = (sol, signs)
         key: tuple[int, float] | None = None   # the best's, computed once there is a rival
 
-        def consider(alt_signs: Any, start: np.ndarray | None = None) -> None:
+        def compare(alt: Any, alt_signs: Any) -> None:
             nonlocal best, key
-            try:
-                alt = solve(tr, alt_signs) if start is None else solve(tr, alt_signs, start)
-            except InfeasibleError as exc:
-                tried.extend(exc.diagnostics.get("tried", []))
-                return
             if key is None:
                 key = _reversals_and_deviation(req, best[0].nodes)
             alt_key = _reversals_and_deviation(req, alt.nodes)
@@ -762,13 +781,22 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
                 # the superseded solution's attempts stay in the record, before the winner's
                 tried.extend(getattr(best[0], "tried", ()))
                 best, key = (alt, alt_signs), alt_key
+            else:
+                tried.extend(getattr(alt, "tried", ()))
 
-        th1_sign = float(np.sign(req.goal[0] - req.start[0]))
-        if (th1_sign != 0.0 and (signs is None or signs[1] == 0.0)
-                and count_reversals(sol.nodes[:, 1]) > 0):
-            lo, hi = node_bounds(req, joint_limits(req))
-            if th1_monotone_reach_ok(req, float(lo[1]), float(hi[1])):
-                consider((0.0, th1_sign))
+        def consider(alt_signs: Any, start: np.ndarray | None = None) -> None:
+            try:
+                alt = solve(tr, alt_signs) if start is None else solve(tr, alt_signs, start)
+            except InfeasibleError as exc:
+                tried.extend(exc.diagnostics.get("tried", []))
+                return
+            compare(alt, alt_signs)
+
+        if ahead is not None:  # solved first, without the fewest reversals: compared
+            compare(ahead, th1_held)
+        elif (th1_sign != 0.0 and (signs is None or signs[1] == 0.0)
+                and count_reversals(sol.nodes[:, 1]) > 0 and th1_reach_ok(req)):
+            consider(th1_held)
         # rates held to one sign per actuator (the first rung) have no runs to merge
         held = best[1] is not None and np.ndim(best[1]) == 1 and all(best[1])
         pattern = None if held else wiggle_free_signs(best[0].rates)
@@ -777,6 +805,12 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
         return best[0], tr, best[1], tried
     raise InfeasibleError("; ".join(failures),
                           diagnostics={"blocking": "nlp_failed", "tried": tried})
+
+
+def th1_reach_ok(req: PlanRequest) -> bool:
+    """:func:`~.rules.th1_monotone_reach_ok` with ``th_2`` within its node bounds."""
+    lo, hi = node_bounds(req, joint_limits(req))
+    return th1_monotone_reach_ok(req, float(lo[1]), float(hi[1]))
 
 
 def finish_solution(req: PlanRequest, method: str, nlp: MultipleShootingNLP, sol: Any,
