@@ -189,11 +189,11 @@ def th1_monotone_reach_ok(req: PlanRequest, lo2: float, hi2: float,
     a, b = np.array(req.start, float), np.array(req.goal, float)
     K, m = req.robot.gains, req.robot.exponents
 
-    def F(t: float, x: float) -> float:
-        return _cos_power_integral(0.0, x, m[1]) / math.cos(t) ** m[0]
+    ca, cb = math.cos(a[0]) ** m[0], math.cos(b[0]) ** m[0]
+    ends = _cos_power_integral(0.0, b[1], m[1]) / cb - _cos_power_integral(0.0, a[1], m[1]) / ca
 
-    def G(c: float) -> float:
-        return F(b[0], b[1]) - F(a[0], a[1]) - (F(b[0], c) - F(a[0], c))
+    def G(c: float) -> float:  # F(b_1, b_2) - F(a_1, a_2) - (F(b_1, c) - F(a_1, c))
+        return ends - _cos_power_integral(0.0, c, m[1]) * (1.0 / cb - 1.0 / ca)
 
     lo, hi = sorted((K[1] / K[0] * G(lo2), K[1] / K[0] * G(hi2)))
     return lo - slack <= b[2] - a[2] <= hi + slack
