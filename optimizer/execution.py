@@ -367,16 +367,17 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
         States of the original model under them at ``t_out``.
     check : ExecutionCheck
     """
-    # the Jacobian's grid, built when a step is needed (a given first replay on the goal
+    # the Jacobian's grid, built when a step needs it (a given first replay on the goal
     # needs none)
-    grid_cache: list[np.ndarray] = []
+    grid: np.ndarray | None = None
 
-    def t_eval() -> np.ndarray:
-        if not grid_cache:
-            grid_cache.append(_grid(form))
-        return np.concatenate([grid_cache[0], t_out])
+    def replay_on_grid(p: np.ndarray) -> tuple[Replay, int]:
+        """The replay of ``p`` on the grid, then ``t_out``; and the grid's size."""
+        nonlocal grid
+        if grid is None:
+            grid = _grid(form)
+        return replay_form(robot, form, p, q0, np.concatenate([grid, t_out])), grid.size
 
-    ng = (form.knots.size - 1) * (GAUSS + 2)   # the size of _grid(form)
     rows = p0.shape[0]
     p = p0.copy()
     lim = np.array([np.inf if x is None else float(x) for x in limits])
@@ -398,10 +399,11 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
     steps = 0
     errors: list[float] = []
     for k in range(MAX_CORRECTIONS + 1):
-        if k == 0 and initial is not None:
-            rep, off = initial, initial.q.shape[0] - t_out.size
+        given = initial if k == 0 else None
+        if given is not None:
+            rep, off = given, given.q.shape[0] - t_out.size
         else:
-            rep, off = replay_form(robot, form, p, q0, t_eval()), ng
+            rep, off = replay_on_grid(p)
         if not rep.success:
             break
         r = rep.final - target
@@ -414,11 +416,11 @@ def correct(robot: Robot, form: Form, p0: np.ndarray, q0: np.ndarray, target: np
             best, steps = (key, p, rep, off), k
         if err <= CORRECTION_TARGET or k == MAX_CORRECTIONS:
             break
-        if off != ng:  # the given first replay has no states on the Jacobian's grid
-            rep = replay_form(robot, form, p, q0, t_eval())
+        if given is not None:  # the given first replay has no states on the Jacobian's grid
+            rep, off = replay_on_grid(p)
             if not rep.success:
                 break
-        J = _jacobian(robot, form, p, rep.q[:ng], rows)          # (n+1, rows, 2)
+        J = _jacobian(robot, form, p, rep.q[:off], rows)         # (n+1, rows, 2)
         gram = form.gram_diagonal(rows)
         free = form.free & (gram > 0.0)
         sw = np.zeros(rows)

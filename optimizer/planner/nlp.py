@@ -758,12 +758,11 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
             try:
                 sol = solve(tr, signs)
             except InfeasibleError as exc:
+                tried.extend(exc.diagnostics.get("tried", []))
                 if ahead is None:
                     failures.append(f"{tr.intervals} intervals" + (" (monotone)" if signs else "")
                                     + f": {exc.message}")
-                    tried.extend(exc.diagnostics.get("tried", []))
                     continue
-                tried.extend(exc.diagnostics.get("tried", []))
                 sol, signs, ahead = ahead, th1_held, None
         if not improve:
             # (the improvements below are fatrop's, which from 5 joints failed on 6 of the
