@@ -339,6 +339,17 @@ class SolveOutcome:
         return self.kind == "success"
 
 
+#: Memory held by the spent solver memories of one solver before it is built anew (bytes;
+#: 59 KB a memory for 3 joints and 12 intervals, 320 KB for 8 joints and 50).
+SPENT_MEMORY_BYTES = 48 * 2**20
+
+
+def _memory_bytes(solver: Any) -> int:
+    """The work vectors of one memory of ``solver`` (bytes; measured RSS per memory is within
+    0.65-1.1 times this)."""
+    return 8 * (int(solver.sz_w()) + int(solver.sz_iw()))
+
+
 # ---------------------------------------------------------------------- the transcription
 class MultipleShootingNLP:
     """The transcription of the module docstring for one robot, with its solvers (built once,
@@ -410,7 +421,6 @@ class MultipleShootingNLP:
                                  self.end_jacobian)
         self._fine_end = BufferedCall(self._correction_maps[0], 2)
         self._end_jacobian = BufferedCall(self.end_jacobian, 2)
-        self._solver_calls: dict[str, BufferedCall] = {}
 
         # p = [phi0, a (n), b (n), w_dev, w_energy, w_da, dphi] and, with the penalty,
         #     [w_sens, rho, lo (n), hi (n)]
@@ -480,14 +490,18 @@ class MultipleShootingNLP:
         first = ladder(n)[0]
         self.native_ok = (intervals, substeps) == (first.intervals, first.substeps)
         name = "shooting" if region == "hard" else "penalty"
+        # how each solver is built, kept so that it can be built anew (see solver_call)
+        self._factories: dict[str, Callable[[], Any]] = {}
         if ca.has_nlpsol("fatrop"):
             fatrop_opts = fatrop_options([nx] * (N + 1), [nu] * N + [0], ng, eq)
-            self.solvers.append(("fatrop", ca.nlpsol(f"{name}_fatrop", "fatrop", nlp,
-                                                     fatrop_opts)))
+            self._factories["fatrop"] = functools.partial(
+                ca.nlpsol, f"{name}_fatrop", "fatrop", nlp, fatrop_opts)
             # for the same functions compiled (optimizer.native), see load_native
             self._native_opts = {k: v for k, v in fatrop_opts.items() if k != "expand"}
-        self.solvers.append(("ipopt", ca.nlpsol(f"{name}_ipopt", "ipopt", nlp,
-                                                ipopt_options(self.callback))))
+        self._factories["ipopt"] = functools.partial(
+            ca.nlpsol, f"{name}_ipopt", "ipopt", nlp, ipopt_options(self.callback))
+        self.solvers = [(key, build()) for key, build in self._factories.items()]
+        self._spent: dict[str, list[BufferedCall]] = {key: [] for key in self._factories}
         self._name = name
         self.lbg = np.where(self.equality, 0.0, -np.inf)
         self.ubg = np.zeros(n_g)
@@ -518,7 +532,9 @@ class MultipleShootingNLP:
         if path is None:
             return False
         try:
-            solver = ca.nlpsol(f"{self._name}_fatrop", "fatrop", str(path), self._native_opts)
+            build = functools.partial(ca.nlpsol, f"{self._name}_fatrop", "fatrop", str(path),
+                                      self._native_opts)
+            solver = build()
             fine_end, end_jacobian = (ca.external(f.name(), str(path))
                                       for f in self._correction_maps)
         except Exception:  # noqa: BLE001 - an unloadable library: keep the virtual machine
@@ -526,18 +542,35 @@ class MultipleShootingNLP:
             return False
         self._fine_end = BufferedCall(fine_end, 2)
         self._end_jacobian = BufferedCall(end_jacobian, 2)
-        self.solvers = [("fatrop", solver) if name == "fatrop" else (name, s)
-                        for name, s in self.solvers]
+        self._factories["fatrop"] = build
+        self._replace("fatrop", solver)
         self.compiled = True
         return True
 
+    def _replace(self, name: str, solver: Any) -> None:
+        self.solvers = [(key, solver if key == name else s) for key, s in self.solvers]
+        self._spent[name] = []  # their memories go with the solver they belong to
+
     def solver_call(self, name: str) -> BufferedCall:
         """Solver ``name`` (see :attr:`solvers`) as a :class:`BufferedCall` of ``(x0, p, lbx,
-        ubx, lbg, ubg) -> x``."""
+        ubx, lbg, ubg) -> x`` on a memory that no solve has used: call it once.
+
+        A CasADi solver keeps work vectors per memory, and fatrop reads some of them before
+        it writes them: a solve on a used memory starts from what the previous solve left
+        (the README's example needed 12 iterations on a fresh memory and 29, then failing,
+        after one hard request). Each solve therefore takes a fresh memory (0.03-0.1 ms), so
+        that its answer is a function of its arguments alone. A memory given back would be
+        handed out again, so the spent ones are kept until they hold about
+        :data:`SPENT_MEMORY_BYTES`; then the solver is built anew (the old one frees them).
+        """
         solver = dict(self.solvers)[name]
-        call = self._solver_calls.get(name)
-        if call is None or call.function is not solver:
-            call = self._solver_calls[name] = BufferedCall(solver, 6)
+        spent = self._spent[name]
+        if spent and len(spent) * _memory_bytes(solver) > SPENT_MEMORY_BYTES:
+            solver = self._factories[name]()
+            self._replace(name, solver)
+            spent = self._spent[name]
+        call = BufferedCall(solver, 6)
+        spent.append(call)
         return call
 
     def fine_end(self, q0: np.ndarray, rates: np.ndarray) -> np.ndarray:
