@@ -96,3 +96,19 @@ def test_the_same_requests_in_two_orders_and_in_fresh_processes_get_the_same_ans
     # th1 must overshoot on this goal (docs/methods.md: th3 moves at most ~17 deg with th1
     # monotone), so a plan has at least one reversal of th1
     assert here_forward[0]["indicators"]["reversals"]["th1"] >= 1
+
+
+def test_a_solver_is_built_anew_once_its_spent_memories_pass_the_budget(monkeypatch):
+    from optimizer.planner import nlp
+
+    monkeypatch.setattr(nlp, "SPENT_MEMORY_BYTES", 1)  # every second solve rebuilds
+    spec = REQUESTS[0]
+    first = _answer(spec)
+    req = _request(spec)
+    tr = nlp.ladder(req.n)[0]
+    msn = nlp.nlp_for(req, tr)
+    before = dict(msn.solvers)["fatrop"]
+    assert _canonical([_answer(spec)]) == _canonical([first])
+    assert _canonical([_answer(spec)]) == _canonical([first])
+    assert dict(msn.solvers)["fatrop"] is not before
+    assert len(msn._spent["fatrop"]) <= 1
