@@ -16,7 +16,9 @@ from ..results import Plan
 from .auto import plan_auto
 from .context import Deadline, PlanContext
 from .registry import AUTO, get
-from .rules import check_endpoints, clear_request_caches, full_region
+from ..errors import InfeasibleError
+from .nlp import ladder
+from .rules import check_endpoints, clear_request_caches, full_region, travel_reach_error
 
 
 def plan(req: PlanRequest) -> Plan:
@@ -35,9 +37,32 @@ def plan(req: PlanRequest) -> Plan:
     t0 = time.perf_counter()
     clear_request_caches()
     check_endpoints(req, full_region(req))
+    check_reach(req)
     if req.method == AUTO:
         result = plan_auto(req, ctx)
     else:
         result = get(req.method).plan(req, ctx)
     result.timing["total"] = time.perf_counter() - t0
     return result
+
+
+def check_reach(req: PlanRequest) -> None:
+    """Refuse at once a goal that no method's paths can reach within the joint limits.
+
+    The most ``phi`` travels in any method's path: the NLPs' largest rate bound (rad per unit
+    of normalised time, so rad over the path), the paper's family its ``|dphi|`` bound, and
+    with ``max_u1`` and a ``duration`` at most their product.
+
+    Raises
+    ------
+    InfeasibleError
+        Naming ``joint_bounds`` (:func:`~.rules.travel_reach_error`).
+    """
+    travel = max(max(t.rate_bound for t in ladder(req.n)),
+                 max(abs(x) for x in req.phi_change_bounds))
+    if req.max_u1 is not None and req.duration is not None:
+        travel = min(travel, req.max_u1 * req.duration)
+    why = travel_reach_error(req, travel)
+    if why is not None:
+        raise InfeasibleError(why, field="joint_bounds",
+                              diagnostics={"phi_travel_bound": travel})

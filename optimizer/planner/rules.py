@@ -199,6 +199,53 @@ def th1_monotone_reach_ok(req: PlanRequest, lo2: float, hi2: float,
     return lo - slack <= b[2] - a[2] <= hi + slack
 
 
+def travel_reach_error(req: PlanRequest, phi_travel: float) -> str | None:
+    """Why no path with at most ``phi_travel`` rad of ``phi`` motion (the sum of ``|dphi|``
+    over the path) reaches the goal within the joint limits, or None.
+
+    Along any path, ``phi`` reversing or not, ``dth_{i+1} = r dth_i`` with ``r =
+    (K_{i+1} / K_i) cos(th_i)^{m_{i+1}} / cos(th_{i-1})^{m_i}``; with ``th_{i-1}`` and ``th_i``
+    within their limits ``r`` lies in ``[r_lo, r_hi]``, so ``|dth_{i+1} - r_mid dth_i|`` over the
+    path is at most ``(r_hi - r_lo) / 2`` times the travel of ``th_i``, itself at most
+    ``K_i max cos(th_{i-1})^{m_i}`` times ``phi_travel`` (``th_2``'s travel for ``i = 1``
+    alike). Narrow limits make ``r`` nearly constant, and then a joint moves with the one
+    before it, by a bounded amount however ``phi`` goes back and forth: the NLPs would search
+    to their time limit for a path whose length their rate bounds exclude.
+    """
+    lo, hi = joint_limits(req)
+    lo = np.clip(lo, 0.0, HALF_PI)
+    hi = np.clip(hi, 0.0, HALF_PI)
+    a, b = np.array(req.start, float), np.array(req.goal, float)
+    K, m = req.robot.gains, req.robot.exponents
+    n = req.n
+
+    def cos_range(j: int, power: int) -> tuple[float, float]:  # of cos(th_j)^power, 0-based j
+        return math.cos(hi[j]) ** power, math.cos(lo[j]) ** power
+
+    travel = np.zeros(n)  # the largest travel of each th_i (0-based), i >= 1
+    travel[1] = K[0] * cos_range(0, m[0])[1] * phi_travel
+    for i in range(1, n - 1):  # th_{i+1} (0-based) from th_i and th_{i-1}
+        c_prev_lo, c_prev_hi = cos_range(i - 1, m[i - 1])
+        c_lo, c_hi = cos_range(i, m[i])
+        if c_prev_lo <= 0.0:
+            return None  # th_{i-1} may reach pi/2 within its limits: r is unbounded
+        ratio = K[i] / K[i - 1]
+        r_lo, r_hi = ratio * c_lo / c_prev_hi, ratio * c_hi / c_prev_lo
+        r_mid = 0.5 * (r_lo + r_hi)
+        reach = 0.5 * (r_hi - r_lo) * travel[i]
+        need = abs((b[i + 1] - a[i + 1]) - r_mid * (b[i] - a[i]))
+        if need > reach + 1e-9:
+            names = f"th{i} and th{i + 1}"
+            most = abs(r_mid * (b[i] - a[i])) + reach
+            return (f"th{i + 2} cannot move {abs(b[i + 1] - a[i + 1]):.4g} rad with {names} "
+                    f"kept within their limits: there it follows th{i + 1} at a rate between "
+                    f"{r_lo:.4g} and {r_hi:.4g}, so with at most {phi_travel:g} rad of phi "
+                    f"travel (the planner's largest) th{i + 2} moves at most {most:.4g} rad. "
+                    f"Widen joint_bounds of th{i} and th{i + 1}, or move th{i + 2} less")
+        travel[i + 1] = min(r_hi * travel[i], K[i] * c_hi * phi_travel)
+    return None
+
+
 def monotone_signs(req: PlanRequest) -> tuple[float, float] | None:
     """Signs of ``(u1, u2)`` of a plan in which neither actuator reverses, or None when the
     goal needs ``phi`` to reverse (:func:`direction_conflict`).
