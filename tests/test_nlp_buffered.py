@@ -8,7 +8,7 @@ import pytest
 
 from optimizer.model import Robot
 from optimizer.planner import nlp as nlp_layer
-from optimizer.planner.nlp import BufferedCall
+from optimizer.planner.solvers import BufferedCall, run_solver
 
 
 def test_buffered_call_matches_the_ordinary_call_on_matrices() -> None:
@@ -73,7 +73,7 @@ def test_the_nlp_solver_and_correction_maps_agree_with_ordinary_calls() -> None:
     solver = dict(nlp.solvers)[name]
     ref = np.asarray(solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=nlp.lbg, ubg=nlp.ubg)["x"],
                      float).ravel()
-    out = nlp_layer.run_solver(nlp, name, x0, p, lbx, ubx, 10.0)
+    out = run_solver(nlp, name, x0, p, lbx, ubx, 10.0)
     assert out.success and out.x is not None
     np.testing.assert_array_equal(out.x, ref)
     assert out.iterations == solver.stats()["iter_count"]

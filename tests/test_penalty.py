@@ -20,6 +20,7 @@ from optimizer.errors import (InfeasibleError, InvalidRequestError, NumericalErr
                               SolverTimeoutError)
 from optimizer.model import Robot
 from optimizer.planner import nlp as nlp_layer
+from optimizer.planner import solvers
 from optimizer.planner import penalty as pen
 from optimizer.planner.context import Deadline
 from optimizer.planner.plan import plan
@@ -261,9 +262,9 @@ def test_solver_exception_becomes_a_numerical_error(monkeypatch):
         raise RuntimeError("evaluation failed")
 
     nlp = pen.prepare(Robot().gains, Robot().exponents)
-    monkeypatch.setattr(nlp_layer.BufferedCall, "__call__", raising)
+    monkeypatch.setattr(solvers.BufferedCall, "__call__", raising)
     with pytest.raises(NumericalError):
-        nlp_layer.run_solver(nlp, "fatrop", np.zeros(nlp.nw), np.zeros(nlp.np),
+        solvers.run_solver(nlp, "fatrop", np.zeros(nlp.nw), np.zeros(nlp.np),
                              np.full(nlp.nw, -np.inf), np.full(nlp.nw, np.inf), 1.0)
 
 
@@ -275,6 +276,6 @@ def test_solver_exception_becomes_a_numerical_error(monkeypatch):
     ("Maximum_Iterations_Exceeded", False, "failure", NumericalError),
 ])
 def test_status_classes_map_to_typed_errors(status, success, kind, error):
-    assert nlp_layer.classify(status, success) == kind
+    assert solvers.classify(status, success) == kind
     if error is not None:
-        assert type(nlp_layer.error_for(kind, "x")) is error
+        assert type(solvers.error_for(kind, "x")) is error

@@ -281,7 +281,7 @@ def test_the_newton_step_is_the_least_norm_solution(rows_apart):
     """The correction's step against numpy's SVD least squares: on a well-conditioned
     Jacobian, and on one whose rows are nearly parallel (J J^T singular in double precision),
     where the normal equations must give way to the SVD."""
-    from optimizer.planner.nlp import minimum_norm_step
+    from optimizer.planner.correction import minimum_norm_step
 
     rng = np.random.default_rng(11)
     J = rng.normal(size=(5, 24))
@@ -324,7 +324,8 @@ def test_a_six_joint_goal_needs_the_finer_transcription():
     for n in (5, 5, 5, 6):  # the draw sequence of the goal that the first rung missed
         a = rng.uniform(20, 60, n)
         b = np.clip(a + rng.uniform(-8, 8, n), 5, 80)
-    req = request(tuple(np.radians(a)), tuple(np.radians(b)), robot=Robot.default(6))
+    req = request(tuple(np.radians(a)), tuple(np.radians(b)), robot=Robot.default(6),
+                  time_limit=60.0)  # about 6 s calm; a loaded 2-core machine takes 20
     with pytest.raises(InfeasibleError):
         solve_shooting(req, Deadline(60.0), shooting.LADDER[0])
     p = plan(req)
@@ -350,7 +351,7 @@ def test_wiggle_free_signs_merges_short_runs_only():
     """Runs of a rate's sign that travel less than WIGGLE_SHARE of the actuator's travel (and
     more than the reversal dead band) take their neighbours' sign, the smallest first; long
     runs, and runs too small to count as reversals, stay."""
-    from optimizer.planner.nlp import WIGGLE_SHARE, wiggle_free_signs
+    from optimizer.planner.rungs import WIGGLE_SHARE, wiggle_free_signs
 
     N = 20
     u1 = np.full(N, 2.0)
@@ -417,7 +418,7 @@ def test_where_phi_must_reverse_the_th1_held_nlp_alone_gives_the_fewest_reversal
     not at all; the plan is no worse, by the default rule, than the free NLP's, solved here
     apart."""
     import optimizer.planner.shooting as shooting
-    from optimizer.planner import nlp as nlp_layer
+    from optimizer.planner import rungs
     from optimizer.planner.rules import direction_conflict
 
     req = request(*(tuple(np.radians(x)) for x in pair))
@@ -435,5 +436,5 @@ def test_where_phi_must_reverse_the_th1_held_nlp_alone_gives_the_fewest_reversal
     assert held_signs[0] == [0.0, th1_sign] and None not in held_signs
     assert p.indicators.reversals == 1 and p.indicators.reversals_th1 == 0
     free = solve(req, Deadline(30.0), ladder(req.n)[0], None)
-    rev, dev = nlp_layer._reversals_and_deviation(req, free.nodes)
+    rev, dev = rungs._reversals_and_deviation(req, free.nodes)
     assert (1, p.indicators.deviation) <= (rev, dev + 1e-4)

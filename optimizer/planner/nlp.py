@@ -1,7 +1,5 @@
-"""The NLP layer below the methods: solver presets, the deadline, status classes, and one
-multiple-shooting transcription of the ORIGINAL model (shared by ``shooting`` and ``penalty``).
-
-This module imports nothing from the methods or the orchestrator.
+"""The multiple-shooting transcription of the ORIGINAL model shared by ``shooting`` and
+``penalty`` (the NLP layer: it imports nothing from the methods or the orchestrator).
 
 Transcription (normalised time ``tau = t / T`` in [0, 1]; ``T`` only rescales the rates)
 ----------------------------------------------------------------------------------------
@@ -32,15 +30,10 @@ states, so that every constraint couples one stage only) and ``u_k = U_k`` (``"h
 the stage's own rows (start at ``k = 0``; deviation epigraphs and, with the penalty, the slack
 rows inside; goal and, when fixed, ``dphi`` at ``k = N``).
 
-Solvers
--------
-fatrop (an interior-point solver for this stage structure, bundled with CasADi) and IPOPT, with
-the options of :func:`fatrop_options` and :func:`ipopt_options`. IPOPT is stopped at the
-deadline by :class:`DeadlineCallback`; fatrop by its iteration cap :data:`FATROP_MAX_ITER` (tens
-of milliseconds). :func:`run_solver` runs one of them and classifies its return status
-(:data:`SUCCESS`, :data:`TIMEOUT`, :data:`INFEASIBLE`); :func:`error_for` turns a class into the
-library's typed error. With compiled functions configured (:mod:`optimizer.native`), fatrop
-evaluates the first rung's functions as compiled C once their library is built
+The solvers (fatrop, IPOPT), their options and one call of them are :mod:`.solvers`; the ladder
+of rungs a method climbs is :mod:`.rungs`; the correction of an answer onto the exact model's
+goal is :mod:`.correction`. With compiled functions configured (:mod:`optimizer.native`),
+fatrop evaluates the first rung's functions as compiled C once their library is built
 (:meth:`MultipleShootingNLP.load_native`).
 
 Caching, threads
@@ -56,21 +49,17 @@ import functools
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol, Sequence, TypeVar
+from typing import Any, Callable
 
 import casadi as ca
 import numpy as np
 
 from .. import native
 from ..dynamics import rk4_step, vector_field
-from ..errors import (InfeasibleError, InvalidRequestError, NumericalError, PlannerError,
-                      SolverTimeoutError)
-from ..problem import MAX_TIME_LIMIT, PlanRequest
-from ..results import Plan
-from ..indicators import ACTUATOR_DEAD_BAND, count_reversals, segment_distance
-from .finish import finish_actuator_plan
-from .rules import (direction_conflict, joint_limits, monotone_reach_ok, monotone_signs,
-                    th1_monotone_reach_ok)
+from ..errors import InvalidRequestError
+from ..problem import PlanRequest
+from .solvers import (SPENT_MEMORY_BYTES, BufferedCall, DeadlineCallback, fatrop_options,
+                      ipopt_options, memory_bytes)
 
 
 @dataclass(frozen=True)
@@ -84,19 +73,6 @@ class Transcription:
     substeps: int
     rate_bound: float
 
-
-
-class NodeSolution(Protocol):
-    """What :func:`solve_rungs` reads of a method's NLP answer: its node states and rates."""
-
-    @property
-    def nodes(self) -> np.ndarray: ...
-
-    @property
-    def rates(self) -> np.ndarray: ...
-
-
-SolutionT = TypeVar("SolutionT", bound=NodeSolution)
 
 #: Tried in order until one NLP converges. The first: 20 intervals, one RK4 step each, at most
 #: 0.5 rad per interval (without a bound the NLP found a spurious optimum with phi moving 2 rad
@@ -132,42 +108,10 @@ DEVIATION_WEIGHT = 30.0
 D_A_WEIGHT = 0.3
 #: ... and under the paper's ``tp_then_da``, which ranks by it.
 PAPER_D_A_WEIGHT = 3.0
-#: A run of an actuator's rate of one sign travelling less than this share of the actuator's
-#: whole travel is a wiggle (:func:`wiggle_free_signs`).
-WIGGLE_SHARE = 0.05
 #: Region modes of the transcription (see the module docstring).
 REGION_MODES = ("hard", "penalty")
 #: Distance (rad) kept from the region's bounds at the nodes (0.5 deg).
 MARGIN = math.radians(0.5)
-#: Iteration cap of fatrop (it converged in 15-38 iterations on the bench's goals; a failing run
-#: ends early and the next attempt starts).
-FATROP_MAX_ITER = 60
-#: From this many joints on, free rungs go to IPOPT without fatrop: on the 15 five-joint goals
-#: of the benchmark fatrop reached its cap on 11 of 12 free rungs (0.3 ms per iteration: about
-#: 20 ms lost each), where IPOPT converged from the same guess on all 15 in 22-69 iterations.
-IPOPT_FIRST_JOINTS = 5
-#: fatrop's convergence tolerance: the optimum to 1e-6 is plenty, the goal's precision comes
-#: from the correction on the exact model (1e-8 took one or two more iterations, same plans).
-FATROP_TOL = 1e-6
-#: fatrop's initial barrier parameter. Its default, 0.1, failed from the straight-line guess on
-#: some goals; 1.0 converged at the first attempt on 30 of 40 random 3- and 4-joint goals
-#: (0.1: 23 of 40) and halved the median time.
-FATROP_MU_INIT = 1.0
-#: IPOPT options of every NLP here (``max_wall_time``: the library's largest time limit, a
-#: backstop; the deadline itself is the callback's).
-IPOPT_OPTIONS: dict[str, Any] = {"print_level": 0, "sb": "yes", "tol": 1e-8,
-                                 "acceptable_tol": 1e-6, "max_iter": 300,
-                                 "max_wall_time": float(MAX_TIME_LIMIT)}
-#: Return statuses that are converged solutions (IPOPT's names; fatrop reports ``success``).
-SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-#: Return statuses that mean "ran out of time".
-TIMEOUT = ("User_Requested_Stop", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded")
-#: Return statuses that mean "no point satisfies the constraints" (IPOPT's local certificate).
-INFEASIBLE = ("Infeasible_Problem_Detected",)
-#: The Newton correction stops once the model ends this close to the goal (rad)...
-CORRECTION_TARGET = 1e-9
-#: ... or after this many steps.
-MAX_CORRECTIONS = 4
 #: RK4 steps of the correction's end map per RK4 step of the NLP. On the bench's goals (rates
 #: of about 1 rad per unit of normalised time) 8 steps per 0.05 of it end 1e-13 to 2e-12 rad
 #: from the exact model (cascade quadrature), 4 steps 1e-12 to 3e-11; the error grows as the
@@ -180,174 +124,6 @@ OPEN_BOUND = 1e3
 
 
 # ---------------------------------------------------------------------- solver presets
-class DeadlineCallback(ca.Callback):
-    """IPOPT iteration callback: asks IPOPT to stop once ``stop_at`` (perf_counter) has passed.
-
-    IPOPT options are frozen when an ``nlpsol`` is created, so a cached solver cannot take
-    ``max_wall_time = deadline.remaining`` per call; this stops it at the granularity of one
-    iteration instead. ``stop_at`` is mutable state of a cached object: one thread per process.
-    """
-
-    def __init__(self, nx: int, ng: int, npar: int) -> None:
-        ca.Callback.__init__(self)
-        self._dims = {"x": nx, "lam_x": nx, "g": ng, "lam_g": ng, "p": npar, "lam_p": npar}
-        self.stop_at = math.inf
-        self.construct("nlp_deadline", {})
-
-    def get_n_in(self) -> int:
-        return ca.nlpsol_n_out()
-
-    def get_n_out(self) -> int:
-        return 1
-
-    def get_name_in(self, i: int) -> str:
-        return ca.nlpsol_out(i)
-
-    def get_name_out(self, i: int) -> str:
-        return "ret"
-
-    def get_sparsity_in(self, i: int) -> ca.Sparsity:
-        name = ca.nlpsol_out(i)
-        return ca.Sparsity.scalar() if name == "f" else ca.Sparsity.dense(self._dims[name], 1)
-
-    def eval(self, arg: Sequence[Any]) -> list:  # type: ignore[override]
-        # a nonzero return makes IPOPT stop with User_Requested_Stop
-        return [1 if time.perf_counter() > self.stop_at else 0]
-
-
-def ipopt_options(callback: DeadlineCallback | None = None, **ipopt: Any) -> dict[str, Any]:
-    """``nlpsol`` options of IPOPT: :data:`IPOPT_OPTIONS` updated by ``ipopt``, the deadline
-    ``callback``, no printing, no exception on failure (the status is classified instead)."""
-    opts: dict[str, Any] = {"ipopt": {**IPOPT_OPTIONS, **ipopt}, "print_time": False,
-                            "error_on_fail": False}
-    if callback is not None:
-        opts["iteration_callback"] = callback
-    return opts
-
-
-def fatrop_options(nx: Sequence[int], nu: Sequence[int], ng: Sequence[int],
-                   equality: Sequence[bool], *, expand: bool = True) -> dict[str, Any]:
-    """``nlpsol`` options of fatrop for a stage-wise NLP of ``len(nu) - 1`` intervals
-    (``nx``, ``nu``, ``ng``: per stage; ``equality``: per constraint row)."""
-    opts: dict[str, Any] = {
-        "structure_detection": "manual", "nx": list(nx), "nu": list(nu), "ng": list(ng),
-        "N": len(nu) - 1, "equality": list(equality), "print_time": False,
-        "error_on_fail": False,
-        "fatrop": {"print_level": 0, "tol": FATROP_TOL, "max_iter": FATROP_MAX_ITER,
-                   "mu_init": FATROP_MU_INIT}}
-    if expand:
-        opts["expand"] = True
-    return opts
-
-
-def classify(status: str, success: bool) -> str:
-    """The class of a solver's return: ``"success"``, ``"timeout"``, ``"infeasible"`` or
-    ``"failure"``."""
-    if success:
-        return "success"
-    if status in TIMEOUT:
-        return "timeout"
-    if status in INFEASIBLE:
-        return "infeasible"
-    return "failure"
-
-
-def error_for(kind: str, message: str, *, diagnostics: dict[str, Any] | None = None,
-              field: str | None = None) -> PlannerError:
-    """The library's typed error of a class of :func:`classify` (``failure``: numerical)."""
-    cls: type[PlannerError] = {"timeout": SolverTimeoutError,
-                               "infeasible": InfeasibleError}.get(kind, NumericalError)
-    return cls(message, field=field, diagnostics=diagnostics)
-
-
-class BufferedCall:
-    """A CasADi Function called through its buffer (``casadi.Function.buffer``).
-
-    An ordinary call converts every numpy argument to a ``DM`` element by element and every
-    result back: about 30 us per argument, more than the compiled 3-joint NLP's functions take
-    to evaluate, and about 0.3 ms per fatrop solve. Through the buffer the Function reads the
-    arguments' memory in place and writes the results into fresh numpy arrays.
-
-    Parameters
-    ----------
-    function : casadi.Function
-    n_args : int
-        Arguments every call gives (the first ``n_args`` inputs, dense; the others stay
-        unset, which CasADi reads as their defaults).
-    outputs : sequence of int
-        The outputs computed (the others are not asked for).
-
-    Notes
-    -----
-    Matrices are column-major: an ``(r, c)`` input is the C-contiguous ``(c, r)`` array, an
-    ``(r, c)`` result comes back as the flat column-major vector (``.reshape(c, r).T``).
-    Not thread-safe, like the Function.
-    """
-
-    def __init__(self, function: Any, n_args: int, outputs: Sequence[int] = (0,)) -> None:
-        self.function = function
-        self._buffer, self._eval = function.buffer()
-        self._sizes = [int(function.nnz_in(i)) for i in range(n_args)]
-        self._outputs = [(int(j), int(function.nnz_out(j))) for j in outputs]
-
-    def __call__(self, *args: Any) -> list[np.ndarray]:
-        """Evaluate on ``args`` (arrays of the inputs' sizes); the results of ``outputs``.
-
-        Raises
-        ------
-        ValueError
-            An argument of another size.
-        RuntimeError
-            The evaluation failed (CasADi's exception).
-        """
-        if len(args) != len(self._sizes):
-            raise ValueError(f"{self.function.name()} takes {len(self._sizes)} arguments")
-        held = []  # the buffer holds pointers into these until the evaluation is over
-        for i, (arg, size) in enumerate(zip(args, self._sizes)):
-            a = np.ascontiguousarray(arg, dtype=float).reshape(-1)
-            if a.size != size:
-                raise ValueError(f"argument {i} of {self.function.name()} has {a.size} "
-                                 f"values, not {size}")
-            held.append(a)
-            self._buffer.set_arg(i, a.data)
-        results = []
-        for j, size in self._outputs:
-            out = np.empty(size)
-            results.append(out)
-            self._buffer.set_res(j, out.data)
-        self._eval()
-        return results
-
-    def stats(self) -> dict[str, Any]:
-        """The Function's statistics of the last evaluation (a solver's status, iterations)."""
-        return dict(self._buffer.stats())
-
-
-@dataclass(frozen=True)
-class SolveOutcome:
-    """One solver run: its class (:func:`classify`), status, iterations, time and answer."""
-
-    solver: str
-    kind: str
-    status: str
-    iterations: int
-    seconds: float
-    x: np.ndarray | None
-
-    @property
-    def success(self) -> bool:
-        return self.kind == "success"
-
-
-#: Memory held by the spent solver memories of one solver before it is built anew (bytes;
-#: 59 KB a memory for 3 joints and 12 intervals, 320 KB for 8 joints and 50).
-SPENT_MEMORY_BYTES = 48 * 2**20
-
-
-def _memory_bytes(solver: Any) -> int:
-    """The work vectors of one memory of ``solver`` (bytes; measured RSS per memory is within
-    0.65-1.1 times this)."""
-    return 8 * (int(solver.sz_w()) + int(solver.sz_iw()))
 
 
 # ---------------------------------------------------------------------- the transcription
@@ -565,7 +341,7 @@ class MultipleShootingNLP:
         """
         solver = dict(self.solvers)[name]
         spent = self._spent[name]
-        if spent and len(spent) * _memory_bytes(solver) > SPENT_MEMORY_BYTES:
+        if spent and len(spent) * memory_bytes(solver) > SPENT_MEMORY_BYTES:
             solver = self._factories[name]()
             self._replace(name, solver)
             spent = self._spent[name]
@@ -671,209 +447,6 @@ def multiple_shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...], 
     return MultipleShootingNLP(gains, exponents, fixed_phi, intervals, substeps, region)
 
 
-def rungs(req: PlanRequest) -> list[tuple[Transcription, tuple[float, float] | None]]:
-    """The transcriptions a method tries in turn, each with the signs its rates are held to.
-
-    Under the default objective (fewest actuator reversals first) a plan in which no actuator
-    reverses wins whatever its deviation: the first rung with rates of fixed signs
-    (:func:`~.rules.monotone_signs`), then with phi's sign alone fixed, then :func:`ladder`
-    free.
-    """
-    steps = ladder(req.n)
-    out: list[tuple[Transcription, tuple[float, float] | None]] = [(t, None) for t in steps]
-    signs = monotone_signs(req) if req.objective == "reversals_then_deviation" else None
-    if signs is not None:
-        # only the rungs the goal's reach does not rule out (monotone_reach_ok)
-        out[:0] = (([(steps[0], signs)] if signs[1] != 0.0 and monotone_reach_ok(req, True)
-                    else [])
-                   + ([(steps[0], (signs[0], 0.0))] if monotone_reach_ok(req, False) else []))
-    return out
-
-
-def _reversals_and_deviation(req: PlanRequest, nodes: np.ndarray) -> tuple[int, float]:
-    """The default rule's key of an NLP's answer, read from its nodes: reversals of ``phi`` and
-    ``th_1`` together, then the largest distance of the nodes from the segment start -> goal
-    (the plan's own indicators come later, from its re-integrated path)."""
-    nodes = np.asarray(nodes, float)
-    rev = count_reversals(nodes[:, 0]) + count_reversals(nodes[:, 1])
-    return rev, segment_distance(nodes[:, 1:], np.array(req.start), np.array(req.goal))
-
-
-def wiggle_free_signs(rates: np.ndarray) -> np.ndarray | None:
-    """Per-interval signs ``(N, 2)`` of ``rates`` (per unit of normalised time on ``N`` equal
-    intervals) with their wiggles merged into the neighbouring runs, or None without wiggles.
-
-    A wiggle is a run of one sign of an actuator's rate whose travel is above the reversal
-    dead band (it counts as two reversals, one at an end of the path) but below
-    :data:`WIGGLE_SHARE` of the actuator's whole travel. The smallest is merged first (it takes
-    its neighbours' sign), until none is left.
-    """
-    N = rates.shape[0]
-    h = 1.0 / N
-    out = np.zeros((N, 2))
-    found = False
-    index = np.arange(N)
-    for c in (0, 1):
-        col = np.asarray(rates[:, c], float)
-        sign = np.sign(col)
-        nz = np.flatnonzero(sign)
-        if nz.size == 0:
-            sign[:] = 1.0
-        else:  # a zero rate belongs to the run before it (the first run, at the start)
-            last = np.maximum.accumulate(np.where(sign != 0.0, index, nz[0]))
-            sign = sign[last]
-        size = np.abs(col) * h
-        total = float(np.sum(size))
-        while True:
-            edges = np.flatnonzero(np.diff(sign)) + 1
-            if edges.size == 0:
-                break
-            starts, ends = np.r_[0, edges], np.r_[edges, N]
-            travel = np.add.reduceat(size, starts)
-            small = np.flatnonzero((travel > ACTUATOR_DEAD_BAND) & (travel < WIGGLE_SHARE * total))
-            if small.size == 0:
-                break
-            r = int(small[np.argmin(travel[small])])
-            sign[starts[r]:ends[r]] = sign[starts[r] - 1] if r > 0 else sign[ends[r]]
-            found = True
-        out[:, c] = sign
-    return out if found else None
-
-
-def signs_list(signs: Any) -> Any:
-    """Rate signs (a pair, or one pair per interval) as JSON-ready lists (None: free)."""
-    return None if signs is None else np.asarray(signs, float).tolist()
-
-
-def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
-                ) -> tuple[SolutionT, Transcription, Any, list[dict[str, Any]]]:
-    """The first solution of ``solve(transcription, signs[, start_nodes])`` over :func:`rungs`:
-    ``(solution, transcription, signs, attempts of the rungs that failed)``;
-    :class:`InfeasibleError` naming every rung when none converged (a finer or free rung may
-    converge where one failed).
-
-    Under the default objective (fewest reversals, then deviation) and below
-    :data:`IPOPT_FIRST_JOINTS` joints, two more NLPs may follow, each kept only when better by
-    (reversals, deviation) at the nodes:
-
-    * a solution in which ``th_1`` reverses (``phi``'s sign fixed, or both free) is compared
-      with the same transcription with ``th_1``'s sign fixed and ``phi`` free, which may
-      reverse ``phi`` once where the first reversed ``th_1`` once, on a straighter path
-      (skipped when :func:`~.rules.th1_monotone_reach_ok` rules it out). Where ``phi`` must
-      reverse (:func:`~.rules.direction_conflict`: no path has fewer than one reversal) that
-      NLP runs first, and when its path reverses once (``phi``) it is among the fewest and
-      the free NLP is not run;
-    * a solution with wiggles (:func:`wiggle_free_signs`: short runs of an actuator's rate
-      against its neighbours, each two reversals for little travel, which the deviation term
-      can favour on long moves) is solved again from its own nodes with every interval's
-      rates held to the signs without them.
-    """
-    failures: list[str] = []
-    tried: list[dict[str, Any]] = []
-    improve = req.objective == "reversals_then_deviation" and req.n < IPOPT_FIRST_JOINTS
-    th1_sign = float(np.sign(req.goal[0] - req.start[0]))
-    th1_held = (0.0, th1_sign)
-    # where phi must reverse (the joints move both ways: no path has fewer than one reversal),
-    # a path with th1 held to its sign and one reversal of phi is one of the fewest: that
-    # NLP goes first, and the free one runs only when it does not give such a path
-    ahead_first = (improve and th1_sign != 0.0 and direction_conflict(req) is not None
-                   and th1_reach_ok(req))
-    for tr, signs in rungs(req):
-        ahead: Any = None
-        if ahead_first and signs is None:
-            try:
-                ahead = solve(tr, th1_held)
-            except InfeasibleError as exc:
-                tried.extend(exc.diagnostics.get("tried", []))
-        if ahead is not None and _reversals_and_deviation(req, ahead.nodes)[0] <= 1:
-            sol, signs, ahead = ahead, th1_held, None
-        else:
-            try:
-                sol = solve(tr, signs)
-            except InfeasibleError as exc:
-                tried.extend(exc.diagnostics.get("tried", []))
-                if ahead is None:
-                    failures.append(f"{tr.intervals} intervals" + (" (monotone)" if signs else "")
-                                    + f": {exc.message}")
-                    continue
-                sol, signs, ahead = ahead, th1_held, None
-        if not improve:
-            # (the improvements below are fatrop's, which from 5 joints failed on 6 of the
-            # benchmark's 7 tries, about 20 ms each: see IPOPT_FIRST_JOINTS)
-            return sol, tr, signs, tried
-        best: tuple[Any, Any] = (sol, signs)
-        key: tuple[int, float] | None = None   # the best's, computed once there is a rival
-
-        def compare(alt: Any, alt_signs: Any) -> None:
-            nonlocal best, key
-            if key is None:
-                key = _reversals_and_deviation(req, best[0].nodes)
-            alt_key = _reversals_and_deviation(req, alt.nodes)
-            if alt_key < key:
-                # the superseded solution's attempts stay in the record, before the winner's
-                tried.extend(getattr(best[0], "tried", ()))
-                best, key = (alt, alt_signs), alt_key
-            else:
-                tried.extend(getattr(alt, "tried", ()))
-
-        def consider(alt_signs: Any, start: np.ndarray | None = None) -> None:
-            try:
-                alt = solve(tr, alt_signs) if start is None else solve(tr, alt_signs, start)
-            except InfeasibleError as exc:
-                tried.extend(exc.diagnostics.get("tried", []))
-                return
-            compare(alt, alt_signs)
-
-        if ahead is not None:  # solved first, without the fewest reversals: compared
-            compare(ahead, th1_held)
-        elif (th1_sign != 0.0 and (signs is None or signs[1] == 0.0)
-                and count_reversals(sol.nodes[:, 1]) > 0 and th1_reach_ok(req)):
-            consider(th1_held)
-        # rates held to one sign per actuator (the first rung) have no runs to merge
-        held = best[1] is not None and np.ndim(best[1]) == 1 and all(best[1])
-        pattern = None if held else wiggle_free_signs(best[0].rates)
-        if pattern is not None:
-            consider(pattern, best[0].nodes)
-        return best[0], tr, best[1], tried
-    raise InfeasibleError("; ".join(failures),
-                          diagnostics={"blocking": "nlp_failed", "tried": tried})
-
-
-def th1_reach_ok(req: PlanRequest) -> bool:
-    """:func:`~.rules.th1_monotone_reach_ok` with ``th_2`` within its node bounds."""
-    lo, hi = node_bounds(req, joint_limits(req))
-    return th1_monotone_reach_ok(req, float(lo[1]), float(hi[1]))
-
-
-def finish_solution(req: PlanRequest, method: str, nlp: MultipleShootingNLP, sol: Any,
-                    tr: Transcription, signs: Any, tried: list[dict[str, Any]],
-                    timing: dict[str, float], details: dict[str, Any]) -> Plan:
-    """The plan of an NLP answer of ``shooting`` or ``penalty``: :func:`correct_rates` onto
-    the goal, then :func:`~.finish.finish_actuator_plan` (with the defect correction as its
-    ``refine``); ``diagnostics[method]`` holds the transcription, the rungs' record and the
-    solver's, updated with the method's own ``details``."""
-    t0 = time.perf_counter()
-    phi_end = float(sol.nodes[-1, 0])
-    rates, errors = correct_rates(req, nlp, sol.rates, phi_end)
-    timing["correction"] = time.perf_counter() - t0
-    record = {"intervals": rates.shape[0], "rk4_substeps": tr.substeps,
-              "rate_bound": tr.rate_bound, "monotone": signs_list(signs),
-              "status": sol.status, "iterations": sol.iterations, "start": sol.start,
-              "tried": tried + list(sol.tried),
-              # the answering solver evaluated compiled C (optimizer.native)
-              "compiled": nlp.compiled and sol.status.startswith("fatrop"),
-              "terminal_error_per_correction": errors, **details}
-
-    def refine(exact_end: np.ndarray) -> np.ndarray:
-        # the quadrature's end missed the goal: correct for the fine map's error there
-        again, more = correct_rates(req, nlp, rates, phi_end, exact_end)
-        errors.extend(more)
-        return again
-
-    diagnostics = {"objective": req.objective, "singularity": "full", method: record}
-    return finish_actuator_plan(req, rates, method, sol.nodes, timing, diagnostics, refine)
-
-
 def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard") -> MultipleShootingNLP:
     """The cached NLP of ``req``'s robot under transcription ``tr``."""
     return multiple_shooting_nlp(tuple(float(k) for k in req.robot.gains),
@@ -955,120 +528,3 @@ def parameters(req: PlanRequest, w_dev: float, w_energy: float, w_da: float,
         p += [np.array([w_sens, rho]), np.clip(lo, -OPEN_BOUND, OPEN_BOUND),
               np.clip(hi, -OPEN_BOUND, OPEN_BOUND)]
     return np.concatenate(p).astype(float)
-
-
-def run_solver(nlp: MultipleShootingNLP, name: str, x0: np.ndarray, p: np.ndarray,
-               lbx: np.ndarray, ubx: np.ndarray, seconds: float) -> SolveOutcome:
-    """Run solver ``name`` of ``nlp`` from ``x0`` for at most about ``seconds`` (IPOPT: the
-    deadline callback; fatrop: its iteration cap).
-
-    Raises
-    ------
-    NumericalError
-        The solver raised (CasADi's exceptions are not the library's).
-    """
-    solver = nlp.solver_call(name)
-    t0 = time.perf_counter()
-    nlp.callback.stop_at = t0 + seconds
-    try:
-        x = solver(x0, p, lbx, ubx, nlp.lbg, nlp.ubg)[0]
-        stats = solver.stats()
-    except Exception as exc:  # noqa: BLE001 - CasADi raises RuntimeError on evaluation errors
-        raise NumericalError(f"the {name} solver raised: {exc}",
-                             diagnostics={"solver": name}) from exc
-    finally:
-        nlp.callback.stop_at = math.inf
-    status = str(stats.get("return_status", "unknown"))
-    kind = classify(status, bool(stats.get("success")))
-    return SolveOutcome(solver=name, kind=kind, status=status,
-                        iterations=int(stats.get("iter_count", -1)),
-                        seconds=time.perf_counter() - t0,
-                        x=x if np.all(np.isfinite(x)) else None)
-
-
-#: Relative residual ``|J x - r| / |r|`` below which the normal equations' step is kept.
-STEP_RESIDUAL = 1e-9
-
-
-def minimum_norm_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """The least-norm ``x`` with ``J x = r`` (``J``: few rows, full row rank), as
-    ``np.linalg.lstsq`` gives it.
-
-    ``x = J^T y`` with ``(J J^T) y = r`` lies in the row space of ``J``; when it also solves
-    ``J x = r`` (relative residual below :data:`STEP_RESIDUAL`) it is the least-norm solution.
-    ``J J^T`` can be singular in double precision (nearly parallel rows) while ``J`` itself is
-    fine: then the residual shows it and the SVD-based least squares answers instead. The
-    normal equations are a small solve, where the SVD's setup dominates a Newton step here.
-    """
-    try:
-        x = J.T @ np.linalg.solve(J @ J.T, r)
-    except np.linalg.LinAlgError:
-        x = None
-    if x is not None:
-        res = J @ x - r
-        scale = float(r @ r)
-        if math.isfinite(float(x @ x)) and float(res @ res) <= STEP_RESIDUAL ** 2 * scale:
-            return x
-    return np.linalg.lstsq(J, r, rcond=None)[0]
-
-
-def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
-                  phi_end: float, exact_end: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, list[float]]:
-    """Newton steps that move the NLP's rates onto the goal of the original model.
-
-    The NLP's RK4 (one step per interval) ends 1e-8 to 1e-5 rad from the goal of the original
-    model under its rates. Each step measures the end error with the fine end map
-    (:attr:`MultipleShootingNLP.fine_path`: the same RK4 with :data:`FINE_SUBSTEPS` times the
-    steps, within ~1e-12 rad of the exact model) and applies the minimum-norm change of the
-    rates that cancels it to first order, with the Jacobian of the NLP's RK4 model (close to
-    the exact one: the error falls by orders of magnitude per step). ``phi``'s end is held at
-    the NLP's value (its row is exact). The proof is not here: the caller re-integrates the
-    corrected rates by quadrature (:func:`optimizer.planner.finish.finish_actuator_plan`).
-
-    Parameters
-    ----------
-    exact_end : ndarray (n+1,), optional
-        The exact model's end state under ``rates`` (that quadrature), when it missed the
-        goal: the fine map's error there (``exact_end`` minus its own end) is subtracted from
-        the goal, so the steps aim the fine map at where it must end for the exact model to
-        reach the goal (a defect correction; the error changes little with the rates).
-
-    Returns
-    -------
-    rates : ndarray (N, 2)
-        The best rates met (a step that made things worse is not kept).
-    errors : list of float
-        ``max |th(1) - goal|`` of the fine end map before each step and after the last.
-    """
-    N = rates.shape[0]
-    q0 = req.q_start()
-    target = np.concatenate([[phi_end], req.goal])
-    U = np.array(rates, float)
-    if exact_end is not None:
-        target = target - (np.asarray(exact_end, float) - nlp.fine_end(q0, U))
-    errors: list[float] = []
-    best: tuple[float, np.ndarray] | None = None
-    for k in range(MAX_CORRECTIONS + 1):
-        end = nlp.fine_end(q0, U)
-        r = end - target
-        err = float(np.max(np.abs(r[1:])))
-        errors.append(err)
-        if not math.isfinite(err):
-            break
-        if best is None or err < best[0]:
-            best = (err, U)
-        if err <= 1e-3 * CORRECTION_TARGET or k == MAX_CORRECTIONS:
-            break
-        J = nlp.rk4_end_jacobian(q0, U)
-        U = U - minimum_norm_step(J, r).reshape(N, 2)
-    return (U if best is None else best[1]), errors
-
-
-__all__ = ["BufferedCall", "CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "DeadlineCallback", "INFEASIBLE",
-           "IPOPT_FIRST_JOINTS", "finish_solution", "minimum_norm_step", "STEP_RESIDUAL", "WIGGLE_SHARE", "signs_list", "wiggle_free_signs",
-           "IPOPT_OPTIONS", "LADDER", "LADDER_3_JOINTS", "MARGIN", "MultipleShootingNLP", "REGION_MODES", "SUCCESS",
-           "SolveOutcome", "TIMEOUT", "Transcription", "classify", "correct_rates", "error_for",
-           "fatrop_options", "ipopt_options", "ladder", "multiple_shooting_nlp", "nlp_for", "node_bounds", "rungs", "solve_rungs",
-           "objective_weights", "parameters", "run_solver", "sensitivity_frobenius",
-           "variable_bounds"]

@@ -24,7 +24,7 @@ Search
   (joint-space straight line, inside the region's box; ``phi`` travelling +0.6 rad, then
   -0.6 rad: which way ``phi`` should go first is not known in advance). fatrop from each,
   then IPOPT from each when fatrop does not converge (:data:`SOLVERS`; IPOPT alone from
-  :data:`~.nlp.IPOPT_FIRST_JOINTS` joints on; rates of fixed signs: fatrop from the start
+  :data:`~.rungs.IPOPT_FIRST_JOINTS` joints on; rates of fixed signs: fatrop from the start
   that travels their way).
 * ``rho`` starts at :data:`RHO_START` and is multiplied by :data:`RHO_GROWTH` at most
   :data:`RHO_INCREASES` times, each time warm-started from the last solution, only while that
@@ -35,7 +35,7 @@ Search
 Finishing
 ---------
 As ``shooting``'s plans: Newton steps on the exact model move the rates onto the goal
-(:func:`~.nlp.correct_rates`), then ``finish_actuator_plan`` checks the re-integrated path in
+(:func:`~.correction.correct_rates`), then ``finish_actuator_plan`` checks the re-integrated path in
 the region (at the interval ends, which suffices for piecewise-constant rates), samples and
 measures it. ``plan.diagnostics["penalty"]`` says how large ``rho`` ended
 (``penalty_weight``), how far the NLP's nodes were from the region's boundary
@@ -65,8 +65,10 @@ from ..results import Plan
 from ..steering import ChainedPath, InputSchedule
 from ..verify import integrate_cascade
 from . import nlp as nlp_layer
-from .nlp import (IPOPT_FIRST_JOINTS, MultipleShootingNLP, Transcription, nlp_for,
-                  node_bounds, run_solver)
+from .correction import finish_solution
+from .nlp import MultipleShootingNLP, Transcription, nlp_for, node_bounds
+from .rungs import IPOPT_FIRST_JOINTS, solve_rungs
+from .solvers import run_solver
 from .base import Capabilities, Method
 from .context import PlanContext
 from .rules import joint_limits, limits_region
@@ -307,7 +309,7 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
             field="constraint_points")
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
-    sol, tr, signs, tried = nlp_layer.solve_rungs(
+    sol, tr, signs, tried = solve_rungs(
         req, lambda tr, rate_signs, start=None: solve_penalty(
             req, deadline, tr, warm_start=warm_start, rate_signs=rate_signs, start_nodes=start))
     timing["nlp"] = time.perf_counter() - t0
@@ -315,7 +317,7 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
     region = penalised_region(req)
     th = sol.nodes[:, 1:]
     distance = float(np.min(np.minimum(th - region.lower, region.upper - th)))
-    return nlp_layer.finish_solution(
+    return finish_solution(
         req, "penalty", nlp_for(req, tr, "penalty"), sol, tr, signs, tried, timing,
         {"penalty_weight": sol.rho,
          "boundary_distance": distance if math.isfinite(distance) else None,

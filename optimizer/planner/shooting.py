@@ -27,8 +27,8 @@ Transcription (:mod:`.nlp`, region mode ``"hard"``; normalised time ``tau = t / 
   ``weighted`` request. Measured on random goals against the minimum-energy plan, this gives a
   smaller joint-space deviation on about nine goals in ten and never more actuator reversals
   (the tenth: plans with fewer reversals, which the default rule ranks first);
-* under the default objective the rates' signs: :func:`~.nlp.rungs` and
-  :func:`~.nlp.solve_rungs` (no actuator reversing first; a plan in which ``th_1`` reverses is
+* under the default objective the rates' signs: :func:`~.rungs.rungs` and
+  :func:`~.rungs.solve_rungs` (no actuator reversing first; a plan in which ``th_1`` reverses is
   compared with the one in which ``th_1`` may not and ``phi`` may).
 
 Correction onto the exact goal
@@ -54,7 +54,7 @@ Solvers
 fatrop (an interior-point solver for this stage structure, bundled with CasADi) first: about
 half IPOPT's time per iteration here. From ``phi`` travelling +0.6 rad, then -0.6 rad
 (:data:`ATTEMPTS`); IPOPT from the same guess when fatrop does not converge (from
-:data:`~.nlp.IPOPT_FIRST_JOINTS` joints on, IPOPT alone on the free rungs). Both solve the
+:data:`~.rungs.IPOPT_FIRST_JOINTS` joints on, IPOPT alone on the free rungs). Both solve the
 same NLP (a test checks that they find the same solution). With compiled functions configured
 (:mod:`optimizer.native`: the service does it), fatrop evaluates the first rung's functions as
 compiled C once their library is built (:meth:`~.nlp.MultipleShootingNLP.load_native`): the
@@ -67,7 +67,7 @@ The NLP and its solvers are built once per robot (gains, exponents) and process 
 (:func:`~.nlp.multiple_shooting_nlp`); start, goal, weights and bounds are parameters. CasADi
 objects are not thread-safe: one thread per process (the service runs each solve in a worker
 process). No attempt starts after the deadline; IPOPT is stopped by the NLP layer's deadline
-callback, fatrop by its iteration cap (:data:`~.nlp.FATROP_MAX_ITER`, tens of milliseconds).
+callback, fatrop by its iteration cap (:data:`~.solvers.FATROP_MAX_ITER`, tens of milliseconds).
 """
 
 from __future__ import annotations
@@ -83,11 +83,12 @@ from ..errors import InfeasibleError, InvalidRequestError, SolverTimeoutError
 from ..problem import PlanRequest
 from ..results import Plan
 from . import nlp as nlp_layer
-from .nlp import (CORRECTION_TARGET, D_A_WEIGHT, DEVIATION_WEIGHT, IPOPT_FIRST_JOINTS, LADDER,
-                  LADDER_3_JOINTS, ladder,
-                  MARGIN,
-                  MultipleShootingNLP, Transcription, correct_rates, multiple_shooting_nlp, nlp_for,
-                  node_bounds, objective_weights, run_solver)
+from .correction import CORRECTION_TARGET, correct_rates, finish_solution
+from .nlp import (D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, LADDER_3_JOINTS, MARGIN,
+                  MultipleShootingNLP, Transcription, ladder, multiple_shooting_nlp, nlp_for,
+                  node_bounds, objective_weights)
+from .rungs import IPOPT_FIRST_JOINTS, solve_rungs
+from .solvers import run_solver
 from .base import Capabilities, Method
 from .context import PlanContext
 from .rules import joint_limits
@@ -205,11 +206,11 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     t0 = time.perf_counter()
     # the rungs (nlp.rungs): under the default objective rates of fixed signs first (a plan
     # in which no actuator reverses wins whatever its deviation), then free
-    sol, tr, mono, tried = nlp_layer.solve_rungs(
+    sol, tr, mono, tried = solve_rungs(
         req, lambda tr, signs, start=None: solve_shooting(req, deadline, tr, signs, start))
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
-    return nlp_layer.finish_solution(req, "shooting", nlp_for(req, tr), sol, tr, mono, tried,
+    return finish_solution(req, "shooting", nlp_for(req, tr), sol, tr, mono, tried,
                                      timing, {})
 
 

@@ -1,0 +1,134 @@
+"""From an NLP's answer to a plan: Newton steps that move the rates onto the exact model's
+goal (:func:`correct_rates`), then the finishing path every actuator plan takes
+(:func:`finish_solution`). Used by ``shooting`` and ``penalty``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from ..problem import PlanRequest
+from ..results import Plan
+from .finish import finish_actuator_plan
+from .nlp import MultipleShootingNLP, Transcription
+from .rungs import signs_list
+
+
+#: The Newton correction stops once the model ends this close to the goal (rad)...
+CORRECTION_TARGET = 1e-9
+
+
+#: ... or after this many steps.
+MAX_CORRECTIONS = 4
+
+
+def finish_solution(req: PlanRequest, method: str, nlp: MultipleShootingNLP, sol: Any,
+                    tr: Transcription, signs: Any, tried: list[dict[str, Any]],
+                    timing: dict[str, float], details: dict[str, Any]) -> Plan:
+    """The plan of an NLP answer of ``shooting`` or ``penalty``: :func:`correct_rates` onto
+    the goal, then :func:`~.finish.finish_actuator_plan` (with the defect correction as its
+    ``refine``); ``diagnostics[method]`` holds the transcription, the rungs' record and the
+    solver's, updated with the method's own ``details``."""
+    t0 = time.perf_counter()
+    phi_end = float(sol.nodes[-1, 0])
+    rates, errors = correct_rates(req, nlp, sol.rates, phi_end)
+    timing["correction"] = time.perf_counter() - t0
+    record = {"intervals": rates.shape[0], "rk4_substeps": tr.substeps,
+              "rate_bound": tr.rate_bound, "monotone": signs_list(signs),
+              "status": sol.status, "iterations": sol.iterations, "start": sol.start,
+              "tried": tried + list(sol.tried),
+              # the answering solver evaluated compiled C (optimizer.native)
+              "compiled": nlp.compiled and sol.status.startswith("fatrop"),
+              "terminal_error_per_correction": errors, **details}
+
+    def refine(exact_end: np.ndarray) -> np.ndarray:
+        # the quadrature's end missed the goal: correct for the fine map's error there
+        again, more = correct_rates(req, nlp, rates, phi_end, exact_end)
+        errors.extend(more)
+        return again
+
+    diagnostics = {"objective": req.objective, "singularity": "full", method: record}
+    return finish_actuator_plan(req, rates, method, sol.nodes, timing, diagnostics, refine)
+
+
+#: Relative residual ``|J x - r| / |r|`` below which the normal equations' step is kept.
+STEP_RESIDUAL = 1e-9
+
+
+def minimum_norm_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The least-norm ``x`` with ``J x = r`` (``J``: few rows, full row rank), as
+    ``np.linalg.lstsq`` gives it.
+
+    ``x = J^T y`` with ``(J J^T) y = r`` lies in the row space of ``J``; when it also solves
+    ``J x = r`` (relative residual below :data:`STEP_RESIDUAL`) it is the least-norm solution.
+    ``J J^T`` can be singular in double precision (nearly parallel rows) while ``J`` itself is
+    fine: then the residual shows it and the SVD-based least squares answers instead. The
+    normal equations are a small solve, where the SVD's setup dominates a Newton step here.
+    """
+    try:
+        x = J.T @ np.linalg.solve(J @ J.T, r)
+    except np.linalg.LinAlgError:
+        x = None
+    if x is not None:
+        res = J @ x - r
+        scale = float(r @ r)
+        if math.isfinite(float(x @ x)) and float(res @ res) <= STEP_RESIDUAL ** 2 * scale:
+            return x
+    return np.linalg.lstsq(J, r, rcond=None)[0]
+
+
+def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
+                  phi_end: float, exact_end: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, list[float]]:
+    """Newton steps that move the NLP's rates onto the goal of the original model.
+
+    The NLP's RK4 (one step per interval) ends 1e-8 to 1e-5 rad from the goal of the original
+    model under its rates. Each step measures the end error with the fine end map
+    (:attr:`MultipleShootingNLP.fine_path`: the same RK4 with :data:`FINE_SUBSTEPS` times the
+    steps, within ~1e-12 rad of the exact model) and applies the minimum-norm change of the
+    rates that cancels it to first order, with the Jacobian of the NLP's RK4 model (close to
+    the exact one: the error falls by orders of magnitude per step). ``phi``'s end is held at
+    the NLP's value (its row is exact). The proof is not here: the caller re-integrates the
+    corrected rates by quadrature (:func:`optimizer.planner.finish.finish_actuator_plan`).
+
+    Parameters
+    ----------
+    exact_end : ndarray (n+1,), optional
+        The exact model's end state under ``rates`` (that quadrature), when it missed the
+        goal: the fine map's error there (``exact_end`` minus its own end) is subtracted from
+        the goal, so the steps aim the fine map at where it must end for the exact model to
+        reach the goal (a defect correction; the error changes little with the rates).
+
+    Returns
+    -------
+    rates : ndarray (N, 2)
+        The best rates met (a step that made things worse is not kept).
+    errors : list of float
+        ``max |th(1) - goal|`` of the fine end map before each step and after the last.
+    """
+    N = rates.shape[0]
+    q0 = req.q_start()
+    target = np.concatenate([[phi_end], req.goal])
+    U = np.array(rates, float)
+    if exact_end is not None:
+        target = target - (np.asarray(exact_end, float) - nlp.fine_end(q0, U))
+    errors: list[float] = []
+    best: tuple[float, np.ndarray] | None = None
+    for k in range(MAX_CORRECTIONS + 1):
+        end = nlp.fine_end(q0, U)
+        r = end - target
+        err = float(np.max(np.abs(r[1:])))
+        errors.append(err)
+        if not math.isfinite(err):
+            break
+        if best is None or err < best[0]:
+            best = (err, U)
+        if err <= 1e-3 * CORRECTION_TARGET or k == MAX_CORRECTIONS:
+            break
+        J = nlp.rk4_end_jacobian(q0, U)
+        U = U - minimum_norm_step(J, r).reshape(N, 2)
+    return (U if best is None else best[1]), errors

@@ -1,0 +1,217 @@
+"""The ladder a method climbs under the default objective: which transcriptions and rate
+signs it tries in turn (:func:`rungs`), and :func:`solve_rungs`, which keeps the answer with
+the fewest reversals, then the smallest deviation, over those rungs and the two improvements
+that follow (``th_1`` held monotone instead, wiggles removed). Used by ``shooting`` and
+``penalty``; above the NLP layer (:mod:`.nlp`, :mod:`.solvers`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Protocol, TypeVar
+
+import numpy as np
+
+from ..errors import InfeasibleError
+from ..indicators import ACTUATOR_DEAD_BAND, count_reversals, segment_distance
+from ..problem import PlanRequest
+from .nlp import Transcription, ladder, node_bounds
+from .rules import (direction_conflict, joint_limits, monotone_reach_ok, monotone_signs,
+                    th1_monotone_reach_ok)
+
+
+class NodeSolution(Protocol):
+    """What :func:`solve_rungs` reads of a method's NLP answer: its node states and rates."""
+
+    @property
+    def nodes(self) -> np.ndarray: ...
+
+    @property
+    def rates(self) -> np.ndarray: ...
+
+
+SolutionT = TypeVar("SolutionT", bound=NodeSolution)
+
+
+#: A run of an actuator's rate of one sign travelling less than this share of the actuator's
+#: whole travel is a wiggle (:func:`wiggle_free_signs`).
+WIGGLE_SHARE = 0.05
+
+
+#: From this many joints on, free rungs go to IPOPT without fatrop: on the 15 five-joint goals
+#: of the benchmark fatrop reached its cap on 11 of 12 free rungs (0.3 ms per iteration: about
+#: 20 ms lost each), where IPOPT converged from the same guess on all 15 in 22-69 iterations.
+IPOPT_FIRST_JOINTS = 5
+
+
+def rungs(req: PlanRequest) -> list[tuple[Transcription, tuple[float, float] | None]]:
+    """The transcriptions a method tries in turn, each with the signs its rates are held to.
+
+    Under the default objective (fewest actuator reversals first) a plan in which no actuator
+    reverses wins whatever its deviation: the first rung with rates of fixed signs
+    (:func:`~.rules.monotone_signs`), then with phi's sign alone fixed, then :func:`ladder`
+    free.
+    """
+    steps = ladder(req.n)
+    out: list[tuple[Transcription, tuple[float, float] | None]] = [(t, None) for t in steps]
+    signs = monotone_signs(req) if req.objective == "reversals_then_deviation" else None
+    if signs is not None:
+        # only the rungs the goal's reach does not rule out (monotone_reach_ok)
+        out[:0] = (([(steps[0], signs)] if signs[1] != 0.0 and monotone_reach_ok(req, True)
+                    else [])
+                   + ([(steps[0], (signs[0], 0.0))] if monotone_reach_ok(req, False) else []))
+    return out
+
+
+def _reversals_and_deviation(req: PlanRequest, nodes: np.ndarray) -> tuple[int, float]:
+    """The default rule's key of an NLP's answer, read from its nodes: reversals of ``phi`` and
+    ``th_1`` together, then the largest distance of the nodes from the segment start -> goal
+    (the plan's own indicators come later, from its re-integrated path)."""
+    nodes = np.asarray(nodes, float)
+    rev = count_reversals(nodes[:, 0]) + count_reversals(nodes[:, 1])
+    return rev, segment_distance(nodes[:, 1:], np.array(req.start), np.array(req.goal))
+
+
+def wiggle_free_signs(rates: np.ndarray) -> np.ndarray | None:
+    """Per-interval signs ``(N, 2)`` of ``rates`` (per unit of normalised time on ``N`` equal
+    intervals) with their wiggles merged into the neighbouring runs, or None without wiggles.
+
+    A wiggle is a run of one sign of an actuator's rate whose travel is above the reversal
+    dead band (it counts as two reversals, one at an end of the path) but below
+    :data:`WIGGLE_SHARE` of the actuator's whole travel. The smallest is merged first (it takes
+    its neighbours' sign), until none is left.
+    """
+    N = rates.shape[0]
+    h = 1.0 / N
+    out = np.zeros((N, 2))
+    found = False
+    index = np.arange(N)
+    for c in (0, 1):
+        col = np.asarray(rates[:, c], float)
+        sign = np.sign(col)
+        nz = np.flatnonzero(sign)
+        if nz.size == 0:
+            sign[:] = 1.0
+        else:  # a zero rate belongs to the run before it (the first run, at the start)
+            last = np.maximum.accumulate(np.where(sign != 0.0, index, nz[0]))
+            sign = sign[last]
+        size = np.abs(col) * h
+        total = float(np.sum(size))
+        while True:
+            edges = np.flatnonzero(np.diff(sign)) + 1
+            if edges.size == 0:
+                break
+            starts, ends = np.r_[0, edges], np.r_[edges, N]
+            travel = np.add.reduceat(size, starts)
+            small = np.flatnonzero((travel > ACTUATOR_DEAD_BAND) & (travel < WIGGLE_SHARE * total))
+            if small.size == 0:
+                break
+            r = int(small[np.argmin(travel[small])])
+            sign[starts[r]:ends[r]] = sign[starts[r] - 1] if r > 0 else sign[ends[r]]
+            found = True
+        out[:, c] = sign
+    return out if found else None
+
+
+def signs_list(signs: Any) -> Any:
+    """Rate signs (a pair, or one pair per interval) as JSON-ready lists (None: free)."""
+    return None if signs is None else np.asarray(signs, float).tolist()
+
+
+def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT]
+                ) -> tuple[SolutionT, Transcription, Any, list[dict[str, Any]]]:
+    """The first solution of ``solve(transcription, signs[, start_nodes])`` over :func:`rungs`:
+    ``(solution, transcription, signs, attempts of the rungs that failed)``;
+    :class:`InfeasibleError` naming every rung when none converged (a finer or free rung may
+    converge where one failed).
+
+    Under the default objective (fewest reversals, then deviation) and below
+    :data:`IPOPT_FIRST_JOINTS` joints, two more NLPs may follow, each kept only when better by
+    (reversals, deviation) at the nodes:
+
+    * a solution in which ``th_1`` reverses (``phi``'s sign fixed, or both free) is compared
+      with the same transcription with ``th_1``'s sign fixed and ``phi`` free, which may
+      reverse ``phi`` once where the first reversed ``th_1`` once, on a straighter path
+      (skipped when :func:`~.rules.th1_monotone_reach_ok` rules it out). Where ``phi`` must
+      reverse (:func:`~.rules.direction_conflict`: no path has fewer than one reversal) that
+      NLP runs first, and when its path reverses once (``phi``) it is among the fewest and
+      the free NLP is not run;
+    * a solution with wiggles (:func:`wiggle_free_signs`: short runs of an actuator's rate
+      against its neighbours, each two reversals for little travel, which the deviation term
+      can favour on long moves) is solved again from its own nodes with every interval's
+      rates held to the signs without them.
+    """
+    failures: list[str] = []
+    tried: list[dict[str, Any]] = []
+    improve = req.objective == "reversals_then_deviation" and req.n < IPOPT_FIRST_JOINTS
+    th1_sign = float(np.sign(req.goal[0] - req.start[0]))
+    th1_held = (0.0, th1_sign)
+    # where phi must reverse (the joints move both ways: no path has fewer than one reversal),
+    # a path with th1 held to its sign and one reversal of phi is one of the fewest: that
+    # NLP goes first, and the free one runs only when it does not give such a path
+    ahead_first = (improve and th1_sign != 0.0 and direction_conflict(req) is not None
+                   and th1_reach_ok(req))
+    for tr, signs in rungs(req):
+        ahead: Any = None
+        if ahead_first and signs is None:
+            try:
+                ahead = solve(tr, th1_held)
+            except InfeasibleError as exc:
+                tried.extend(exc.diagnostics.get("tried", []))
+        if ahead is not None and _reversals_and_deviation(req, ahead.nodes)[0] <= 1:
+            sol, signs, ahead = ahead, th1_held, None
+        else:
+            try:
+                sol = solve(tr, signs)
+            except InfeasibleError as exc:
+                tried.extend(exc.diagnostics.get("tried", []))
+                if ahead is None:
+                    failures.append(f"{tr.intervals} intervals" + (" (monotone)" if signs else "")
+                                    + f": {exc.message}")
+                    continue
+                sol, signs, ahead = ahead, th1_held, None
+        if not improve:
+            # (the improvements below are fatrop's, which from 5 joints failed on 6 of the
+            # benchmark's 7 tries, about 20 ms each: see IPOPT_FIRST_JOINTS)
+            return sol, tr, signs, tried
+        best: tuple[Any, Any] = (sol, signs)
+        key: tuple[int, float] | None = None   # the best's, computed once there is a rival
+
+        def compare(alt: Any, alt_signs: Any) -> None:
+            nonlocal best, key
+            if key is None:
+                key = _reversals_and_deviation(req, best[0].nodes)
+            alt_key = _reversals_and_deviation(req, alt.nodes)
+            if alt_key < key:
+                # the superseded solution's attempts stay in the record, before the winner's
+                tried.extend(getattr(best[0], "tried", ()))
+                best, key = (alt, alt_signs), alt_key
+            else:
+                tried.extend(getattr(alt, "tried", ()))
+
+        def consider(alt_signs: Any, start: np.ndarray | None = None) -> None:
+            try:
+                alt = solve(tr, alt_signs) if start is None else solve(tr, alt_signs, start)
+            except InfeasibleError as exc:
+                tried.extend(exc.diagnostics.get("tried", []))
+                return
+            compare(alt, alt_signs)
+
+        if ahead is not None:  # solved first, without the fewest reversals: compared
+            compare(ahead, th1_held)
+        elif (th1_sign != 0.0 and (signs is None or signs[1] == 0.0)
+                and count_reversals(sol.nodes[:, 1]) > 0 and th1_reach_ok(req)):
+            consider(th1_held)
+        # rates held to one sign per actuator (the first rung) have no runs to merge
+        held = best[1] is not None and np.ndim(best[1]) == 1 and all(best[1])
+        pattern = None if held else wiggle_free_signs(best[0].rates)
+        if pattern is not None:
+            consider(pattern, best[0].nodes)
+        return best[0], tr, best[1], tried
+    raise InfeasibleError("; ".join(failures),
+                          diagnostics={"blocking": "nlp_failed", "tried": tried})
+
+
+def th1_reach_ok(req: PlanRequest) -> bool:
+    """:func:`~.rules.th1_monotone_reach_ok` with ``th_2`` within its node bounds."""
+    lo, hi = node_bounds(req, joint_limits(req))
+    return th1_monotone_reach_ok(req, float(lo[1]), float(hi[1]))

@@ -1,0 +1,269 @@
+"""The NLP solvers and one call of them: fatrop and IPOPT presets, the deadline, the classes
+of their return statuses, and calls through CasADi's buffers on fresh memories (the bottom of
+the NLP layer: it knows no transcription).
+
+fatrop (an interior-point solver for stage-structured problems, bundled with CasADi) and IPOPT
+take the options of :func:`fatrop_options` and :func:`ipopt_options`. IPOPT is stopped at the
+deadline by :class:`DeadlineCallback`; fatrop by its iteration cap :data:`FATROP_MAX_ITER` (tens
+of milliseconds). :func:`run_solver` runs one of them and classifies its return status
+(:data:`SUCCESS`, :data:`TIMEOUT`, :data:`INFEASIBLE`); :func:`error_for` turns a class into the
+library's typed error.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol, Sequence
+
+import casadi as ca
+import numpy as np
+
+from ..errors import (InfeasibleError, NumericalError, PlannerError, SolverTimeoutError)
+from ..problem import MAX_TIME_LIMIT
+
+
+class SolvableNLP(Protocol):
+    """What :func:`run_solver` needs of an NLP: a fresh call of a solver, the deadline
+    callback and the constraints' bounds."""
+
+    callback: "DeadlineCallback"
+    lbg: np.ndarray
+    ubg: np.ndarray
+
+    def solver_call(self, name: str) -> "BufferedCall": ...
+
+
+#: Iteration cap of fatrop (it converged in 15-38 iterations on the bench's goals; a failing run
+#: ends early and the next attempt starts).
+FATROP_MAX_ITER = 60
+
+
+#: fatrop's convergence tolerance: the optimum to 1e-6 is plenty, the goal's precision comes
+#: from the correction on the exact model (1e-8 took one or two more iterations, same plans).
+FATROP_TOL = 1e-6
+
+
+#: fatrop's initial barrier parameter. Its default, 0.1, failed from the straight-line guess on
+#: some goals; 1.0 converged at the first attempt on 30 of 40 random 3- and 4-joint goals
+#: (0.1: 23 of 40) and halved the median time.
+FATROP_MU_INIT = 1.0
+
+
+#: IPOPT options of every NLP here (``max_wall_time``: the library's largest time limit, a
+#: backstop; the deadline itself is the callback's).
+IPOPT_OPTIONS: dict[str, Any] = {"print_level": 0, "sb": "yes", "tol": 1e-8,
+                                 "acceptable_tol": 1e-6, "max_iter": 300,
+                                 "max_wall_time": float(MAX_TIME_LIMIT)}
+
+
+#: Return statuses that are converged solutions (IPOPT's names; fatrop reports ``success``).
+SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+
+
+#: Return statuses that mean "ran out of time".
+TIMEOUT = ("User_Requested_Stop", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_Exceeded")
+
+
+#: Return statuses that mean "no point satisfies the constraints" (IPOPT's local certificate).
+INFEASIBLE = ("Infeasible_Problem_Detected",)
+
+
+class DeadlineCallback(ca.Callback):
+    """IPOPT iteration callback: asks IPOPT to stop once ``stop_at`` (perf_counter) has passed.
+
+    IPOPT options are frozen when an ``nlpsol`` is created, so a cached solver cannot take
+    ``max_wall_time = deadline.remaining`` per call; this stops it at the granularity of one
+    iteration instead. ``stop_at`` is mutable state of a cached object: one thread per process.
+    """
+
+    def __init__(self, nx: int, ng: int, npar: int) -> None:
+        ca.Callback.__init__(self)
+        self._dims = {"x": nx, "lam_x": nx, "g": ng, "lam_g": ng, "p": npar, "lam_p": npar}
+        self.stop_at = math.inf
+        self.construct("nlp_deadline", {})
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i: int) -> str:
+        return "ret"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        name = ca.nlpsol_out(i)
+        return ca.Sparsity.scalar() if name == "f" else ca.Sparsity.dense(self._dims[name], 1)
+
+    def eval(self, arg: Sequence[Any]) -> list:  # type: ignore[override]
+        # a nonzero return makes IPOPT stop with User_Requested_Stop
+        return [1 if time.perf_counter() > self.stop_at else 0]
+
+
+def ipopt_options(callback: DeadlineCallback | None = None, **ipopt: Any) -> dict[str, Any]:
+    """``nlpsol`` options of IPOPT: :data:`IPOPT_OPTIONS` updated by ``ipopt``, the deadline
+    ``callback``, no printing, no exception on failure (the status is classified instead)."""
+    opts: dict[str, Any] = {"ipopt": {**IPOPT_OPTIONS, **ipopt}, "print_time": False,
+                            "error_on_fail": False}
+    if callback is not None:
+        opts["iteration_callback"] = callback
+    return opts
+
+
+def fatrop_options(nx: Sequence[int], nu: Sequence[int], ng: Sequence[int],
+                   equality: Sequence[bool], *, expand: bool = True) -> dict[str, Any]:
+    """``nlpsol`` options of fatrop for a stage-wise NLP of ``len(nu) - 1`` intervals
+    (``nx``, ``nu``, ``ng``: per stage; ``equality``: per constraint row)."""
+    opts: dict[str, Any] = {
+        "structure_detection": "manual", "nx": list(nx), "nu": list(nu), "ng": list(ng),
+        "N": len(nu) - 1, "equality": list(equality), "print_time": False,
+        "error_on_fail": False,
+        "fatrop": {"print_level": 0, "tol": FATROP_TOL, "max_iter": FATROP_MAX_ITER,
+                   "mu_init": FATROP_MU_INIT}}
+    if expand:
+        opts["expand"] = True
+    return opts
+
+
+def classify(status: str, success: bool) -> str:
+    """The class of a solver's return: ``"success"``, ``"timeout"``, ``"infeasible"`` or
+    ``"failure"``."""
+    if success:
+        return "success"
+    if status in TIMEOUT:
+        return "timeout"
+    if status in INFEASIBLE:
+        return "infeasible"
+    return "failure"
+
+
+def error_for(kind: str, message: str, *, diagnostics: dict[str, Any] | None = None,
+              field: str | None = None) -> PlannerError:
+    """The library's typed error of a class of :func:`classify` (``failure``: numerical)."""
+    cls: type[PlannerError] = {"timeout": SolverTimeoutError,
+                               "infeasible": InfeasibleError}.get(kind, NumericalError)
+    return cls(message, field=field, diagnostics=diagnostics)
+
+
+class BufferedCall:
+    """A CasADi Function called through its buffer (``casadi.Function.buffer``).
+
+    An ordinary call converts every numpy argument to a ``DM`` element by element and every
+    result back: about 30 us per argument, more than the compiled 3-joint NLP's functions take
+    to evaluate, and about 0.3 ms per fatrop solve. Through the buffer the Function reads the
+    arguments' memory in place and writes the results into fresh numpy arrays.
+
+    Parameters
+    ----------
+    function : casadi.Function
+    n_args : int
+        Arguments every call gives (the first ``n_args`` inputs, dense; the others stay
+        unset, which CasADi reads as their defaults).
+    outputs : sequence of int
+        The outputs computed (the others are not asked for).
+
+    Notes
+    -----
+    Matrices are column-major: an ``(r, c)`` input is the C-contiguous ``(c, r)`` array, an
+    ``(r, c)`` result comes back as the flat column-major vector (``.reshape(c, r).T``).
+    Not thread-safe, like the Function.
+    """
+
+    def __init__(self, function: Any, n_args: int, outputs: Sequence[int] = (0,)) -> None:
+        self.function = function
+        self._buffer, self._eval = function.buffer()
+        self._sizes = [int(function.nnz_in(i)) for i in range(n_args)]
+        self._outputs = [(int(j), int(function.nnz_out(j))) for j in outputs]
+
+    def __call__(self, *args: Any) -> list[np.ndarray]:
+        """Evaluate on ``args`` (arrays of the inputs' sizes); the results of ``outputs``.
+
+        Raises
+        ------
+        ValueError
+            An argument of another size.
+        RuntimeError
+            The evaluation failed (CasADi's exception).
+        """
+        if len(args) != len(self._sizes):
+            raise ValueError(f"{self.function.name()} takes {len(self._sizes)} arguments")
+        held = []  # the buffer holds pointers into these until the evaluation is over
+        for i, (arg, size) in enumerate(zip(args, self._sizes)):
+            a = np.ascontiguousarray(arg, dtype=float).reshape(-1)
+            if a.size != size:
+                raise ValueError(f"argument {i} of {self.function.name()} has {a.size} "
+                                 f"values, not {size}")
+            held.append(a)
+            self._buffer.set_arg(i, a.data)
+        results = []
+        for j, size in self._outputs:
+            out = np.empty(size)
+            results.append(out)
+            self._buffer.set_res(j, out.data)
+        self._eval()
+        return results
+
+    def stats(self) -> dict[str, Any]:
+        """The Function's statistics of the last evaluation (a solver's status, iterations)."""
+        return dict(self._buffer.stats())
+
+
+@dataclass(frozen=True)
+class SolveOutcome:
+    """One solver run: its class (:func:`classify`), status, iterations, time and answer."""
+
+    solver: str
+    kind: str
+    status: str
+    iterations: int
+    seconds: float
+    x: np.ndarray | None
+
+    @property
+    def success(self) -> bool:
+        return self.kind == "success"
+
+
+#: Memory held by the spent solver memories of one solver before it is built anew (bytes;
+#: 59 KB a memory for 3 joints and 12 intervals, 320 KB for 8 joints and 50).
+SPENT_MEMORY_BYTES = 48 * 2**20
+
+
+def memory_bytes(solver: Any) -> int:
+    """The work vectors of one memory of ``solver`` (bytes; measured RSS per memory is within
+    0.65-1.1 times this)."""
+    return 8 * (int(solver.sz_w()) + int(solver.sz_iw()))
+
+
+def run_solver(nlp: "SolvableNLP", name: str, x0: np.ndarray, p: np.ndarray,
+               lbx: np.ndarray, ubx: np.ndarray, seconds: float) -> SolveOutcome:
+    """Run solver ``name`` of ``nlp`` from ``x0`` for at most about ``seconds`` (IPOPT: the
+    deadline callback; fatrop: its iteration cap).
+
+    Raises
+    ------
+    NumericalError
+        The solver raised (CasADi's exceptions are not the library's).
+    """
+    solver = nlp.solver_call(name)
+    t0 = time.perf_counter()
+    nlp.callback.stop_at = t0 + seconds
+    try:
+        x = solver(x0, p, lbx, ubx, nlp.lbg, nlp.ubg)[0]
+        stats = solver.stats()
+    except Exception as exc:  # noqa: BLE001 - CasADi raises RuntimeError on evaluation errors
+        raise NumericalError(f"the {name} solver raised: {exc}",
+                             diagnostics={"solver": name}) from exc
+    finally:
+        nlp.callback.stop_at = math.inf
+    status = str(stats.get("return_status", "unknown"))
+    kind = classify(status, bool(stats.get("success")))
+    return SolveOutcome(solver=name, kind=kind, status=status,
+                        iterations=int(stats.get("iter_count", -1)),
+                        seconds=time.perf_counter() - t0,
+                        x=x if np.all(np.isfinite(x)) else None)
