@@ -40,6 +40,7 @@ import json
 import math
 import os
 import platform
+import shlex
 import sys
 import time
 import warnings
@@ -552,7 +553,7 @@ def run(args: argparse.Namespace, log: Callable[[str], None] = print) -> dict[st
     now = _dt.datetime.now(_dt.timezone.utc)
     meta: dict[str, Any] = {
         "timestamp": now.strftime("%Y-%m-%dT%H:%M:%SZ"), "commit": _git_commit(),
-        "command": " ".join(["python -m bench.goals_run", *args.argv]),
+        "command": "python -m bench.goals_run " + shlex.join(args.argv),
         "cpus": os.cpu_count(), "platform": platform.platform(), "versions": _versions(),
         "loadavg_start": [round(x, 2) for x in os.getloadavg()], "note": args.note}
     meta["native"] = configure_native(bool(args.no_native))
