@@ -7,9 +7,10 @@ Usage::
     .venv/bin/python -m bench --quick         # short run (fewer repeats, 3 s HTTP levels)
     .venv/bin/python -m bench --quick --cases 1 --no-http --joints 3   # smoke test
     .venv/bin/python -m bench --out bench/results/mine.json
-    .venv/bin/python -m bench --goals [options]   # issue 15: generated goals, the default
-                                                  # request, every method and the baseline
-                                                  # (= python -m bench.goals_run; its --help)
+    .venv/bin/python -m bench --goals [options]   # issues 15, 24: generated goals on
+                                                  # n = 3..8, the default request, every
+                                                  # method and the n-joint baseline, with
+                                                  # the targets (= python -m bench.goals_run)
 
 See ``docs/benchmarks.md`` for what is measured.
 """
@@ -45,8 +46,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--goals", action="store_true",
-                   help="run the benchmark on generated goals instead (issue 15): every other "
-                        "option is bench.goals_run's (--goals-counts, --repeats, --methods, ...)")
+                   help="run the benchmark on generated goals (n = 3..8) instead (issues 15, 24): "
+                        "every other option is bench.goals_run's (--goals-counts, --repeats, "
+                        "--methods, --note, ...)")
     p.add_argument("--quick", action="store_true",
                    help="short run: at most 3 repeats, 3 s per HTTP level, one cold start")
     p.add_argument("--out", type=Path, default=None,

@@ -46,7 +46,7 @@ RATE_SCALE = 0.8
 #: The kinds, in the order they are cycled through.
 KINDS = ("same", "opposite", "reversing")
 #: Goals per number of joints in the benchmark.
-COUNTS = {3: 60, 4: 25, 5: 15}
+COUNTS = {3: 60, 4: 25, 5: 15, 6: 8, 7: 5, 8: 5}
 BASE_SEED = 20261124
 
 

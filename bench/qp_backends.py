@@ -6,11 +6,11 @@ different ``dphi`` by three backends, each set up ONCE and then re-solved:
 
 ``clarabel-fresh``
     Clarabel's own Python API, a fresh ``clarabel.DefaultSolver`` per solve from
-    scipy.sparse CSC data (:func:`optimizer.planner.convex.solve_qp` with
+    scipy.sparse CSC data (:func:`optimizer.planner.legendre_qp.solve_qp` with
     ``persistent=False``).
 ``clarabel-persistent``
     The same, but one solver per problem shape, built once and then updated in place
-    (``solver.update(A=..., b=...)``, presolve off, structural zeros kept): what convex.py uses
+    (``solver.update(A=..., b=...)``, presolve off, structural zeros kept): what legendre_qp.py uses
     (``persistent=True``).
 ``cvxpy-dpp``
     One ``cvxpy.Problem`` built once with ``Parameter`` G and h (DPP-compliant, so re-solves
@@ -43,8 +43,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from optimizer.planner import convex  # noqa: E402
-from optimizer.planner.convex import ConstraintPointQP  # noqa: E402
+from optimizer.planner import legendre_qp  # noqa: E402
+from optimizer.planner.constraint_qp import ConstraintPointQP  # noqa: E402
 from optimizer.problem import PlanRequest  # noqa: E402
 
 
@@ -73,9 +73,9 @@ class CvxpyDPP:
 
 
 def clarabel_via_convex(persistent: bool):
-    """convex.py's own solve path, with or without solver reuse."""
+    """legendre_qp.solve_qp, the method's own solve path, with or without solver reuse."""
     def solve(G: np.ndarray, h: np.ndarray) -> np.ndarray:
-        status, y, _ = convex.solve_qp(G, h, persistent=persistent)
+        status, y, _ = legendre_qp.solve_qp(G, h, persistent=persistent)
         assert y is not None, status
         return y
     return solve

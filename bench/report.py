@@ -10,6 +10,8 @@ from typing import Any, Iterable
 PAPER_SPEEDUP = 20.0
 BEYOND_SPEEDUP = 2.0
 HTTP_THROUGHPUT = 500.0
+#: Issue 24: the default request (method ``auto``) at least 800 plans/s.
+HTTP_THROUGHPUT_BY_METHOD = {"auto": 800.0}
 HTTP_P99_MS = 25.0
 HTTP_P99_CLIENTS = 8
 WORKER_RSS_MB = 250.0
@@ -78,12 +80,16 @@ def http_table(http: dict[str, Any]) -> str:
     rows = []
     for method, levels in http.get("load", {}).items():
         for r in levels:
+            cpu = r.get("cpu") or {}
             rows.append([method, str(r["clients"]), _f(r["throughput"], ".1f"),
                          _f(r["p50_ms"], ".0f"), _f(r["p99_ms"], ".0f"), str(r["answered"]),
                          str(r["unfinished"]),
+                         " / ".join(_f(cpu.get(f"{k}_ms_per_request"), ".2f")
+                                    for k in ("client", "server", "workers")),
                          ", ".join(f"{k}: {v}" for k, v in sorted(r["statuses"].items()))])
     out = _table(["method", "clients", "plans/s", "p50 ms", "p99 ms", "answered",
-                  "unfinished", "statuses"], rows)
+                  "unfinished", "CPU ms per request: client / event loop / workers",
+                  "statuses"], rows)
     cs = http.get("cold_start", {})
     out += (f"\n\nCold start ({len(cs.get('runs', []))} runs, {cs.get('workers')} workers): ready "
             f"{_f(cs.get('ready_s', {}).get('median'), '.2f')} s (max "
@@ -191,11 +197,12 @@ def evaluate_targets(results: dict[str, Any]) -> list[dict[str, Any]]:
         for method, r in best.items():
             if r is None:
                 continue
-            out.append({"target": f">= {HTTP_THROUGHPUT:g} plans/s (paper-type goal)",
+            bound = HTTP_THROUGHPUT_BY_METHOD.get(method, HTTP_THROUGHPUT)
+            out.append({"target": f">= {bound:g} plans/s (paper-type goal)",
                         "scope": f"HTTP / {method}",
                         "measured": f"{r['throughput']:.1f} plans/s (best, at {r['clients']} "
                                     "clients)",
-                        "met": r["throughput"] >= HTTP_THROUGHPUT})
+                        "met": r["throughput"] >= bound})
         for method, levels in http.get("load", {}).items():
             for r in levels:
                 if r["clients"] == HTTP_P99_CLIENTS:
@@ -297,6 +304,18 @@ every sample goes to `bench/results/`, which is not versioned). It holds the lat
   for every request; throughput, p50/p99 latency, memory of every process.
 * **Cost growth** (`bench/scaling.py`): plan time against `samples`, and the chained-form maps,
   the region scan and a plan for n = 3..8.
+
+## HTTP: what a plan costs around the planner
+
+On two cores, N plans/s leave 2000 / N ms of CPU per plan for the load generator, the event
+loop and the worker together (2.5 ms at 800 plans/s). The HTTP table gives that split per
+request (psutil, during the window): *client* is `bench/http_load.py`'s minimal asyncio client,
+*event loop* the server's process (uvicorn on httptools and uvloop, the request middleware, the
+fast plan route of `service/fastpath.py`, the library's check of the request, the pipe to the
+worker), *workers* the plan itself plus what surrounds it there (`PlanRequest.from_dict`,
+`Plan.to_dict`, the answer's JSON, encoded once by the worker with orjson and forwarded as
+bytes by the event loop). To see where a share goes, profile the server's processes while a
+load runs: `py-spy record -p <pid>` on the event loop and on a worker.
 
 The machine is shared: compare ratios within one run rather than absolute times.
 

@@ -17,6 +17,10 @@ METHOD_MODULES = {"optimizer.planner.polynomial", "optimizer.planner.retimed",
                   "optimizer.planner.shooting"}
 ABOVE_METHODS = {"optimizer.planner.registry", "optimizer.planner.auto",
                  "optimizer.planner.plan"}
+#: Modules that hold one part of one method (split from it by concept): they serve their method
+#: only, so they import no method module and nothing above the methods either.
+METHOD_PARTS = {"optimizer.planner.constraint_qp", "optimizer.planner.dphi_scan",
+                "optimizer.planner.legendre_qp", "optimizer.planner.level_cuts"}
 
 
 def _module_name(path: Path) -> str:
@@ -84,6 +88,14 @@ def test_methods_import_no_method_nor_orchestrator() -> None:
         if m not in METHOD_MODULES:
             continue
         bad = sorted({t for t, _ in imps if t in (METHOD_MODULES | ABOVE_METHODS) - {m}})
+        assert not bad, f"{m} imports {bad}"
+
+
+def test_method_parts_import_no_method_nor_orchestrator() -> None:
+    graph = _graph()
+    assert METHOD_PARTS <= set(graph), sorted(METHOD_PARTS - set(graph))
+    for m in METHOD_PARTS:
+        bad = sorted({t for t, _ in graph[m] if t in METHOD_MODULES | ABOVE_METHODS})
         assert not bad, f"{m} imports {bad}"
 
 

@@ -23,8 +23,10 @@ from scipy.integrate import solve_ivp
 from optimizer.chained_form import chained_form
 from optimizer.errors import InfeasibleError, SolverTimeoutError
 from optimizer.model import Robot
-from optimizer.planner.convex import (ConstraintPointQP, gram_monomials, legendre_to_monomial,
-                                      necessary_dphi_range, plan_constraint_points)
+from optimizer.planner.constraint_qp import ConstraintPointQP
+from optimizer.planner.convex import plan_constraint_points
+from optimizer.planner.dphi_scan import necessary_dphi_range
+from optimizer.planner.legendre_qp import gram_monomials, legendre_to_monomial
 from optimizer.planner.context import Deadline
 from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest

@@ -17,7 +17,9 @@ from numpy.polynomial import polynomial as P
 from optimizer.chained_form import chained_form
 from optimizer.errors import SingularSystemError
 from optimizer.model import Robot
-from optimizer.region import Region, _compile_sx, _Levels, _real_roots
+from optimizer.inverse_levels import InverseLevels, compile_sx
+from optimizer.poly_roots import real_roots_rows
+from optimizer.region import Region
 from optimizer.steering import ChainedPath, InputSchedule, solve_polynomial
 
 D = np.deg2rad
@@ -182,7 +184,7 @@ def test_level_maps_match_casadi(n):
                   Robot(gains=tuple(np.linspace(0.5, 1.3, n - 1)),
                         exponents=tuple([1, 2, 3, 4, 2, 3, 1][:n - 1]))):
         cf = chained_form(robot)
-        lv = _Levels(robot, cf)
+        lv = InverseLevels(robot, cf)
         rng = np.random.default_rng(n)
         th = rng.uniform(0.05, 1.5, (n + 1, 40))
         th[0] = 0.0
@@ -200,7 +202,7 @@ def test_compiled_sx_matches_casadi():
     x = ca.SX.sym("x", 3)
     f = ca.Function("f", [x], [ca.vertcat(ca.sin(x[0]) * x[1] ** 2 - ca.sqrt(x[2]) / x[0],
                                            ca.acos(x[2] / 2) + 3.0, 2 * x[1] - ca.fabs(x[0]))])
-    g = _compile_sx(f)
+    g = compile_sx(f)
     assert g is not None
     rng = np.random.default_rng(0)
     X = rng.uniform(0.1, 1.9, (3, 100))
@@ -219,7 +221,7 @@ def test_real_roots_match_numpy():
         r = rng.uniform(0, 1)
         Pm[i] = 0.0
         Pm[i, :3] = P.polyfromroots([r, r])
-    got = _real_roots(Pm)
+    got = real_roots_rows(Pm)
     for i, c in enumerate(Pm):
         c = np.trim_zeros(c, "b")
         ref = P.polyroots(c) if c.size > 1 else np.zeros(0)
