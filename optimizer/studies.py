@@ -37,7 +37,7 @@ from .model import Robot
 from .planner.plan import plan
 from .problem import PlanRequest
 from .reachable import BASE_SEED, generate
-from .study_io import RowWriter, columns, read_rows
+from .study_io import BASE_COLUMNS, RowWriter, columns, read_rows
 
 #: Fewest plans in one task (chunk).
 MIN_CHUNK = 16
@@ -120,10 +120,9 @@ def make_tasks(mechanisms: Sequence[tuple[str, Robot]],
 
 def plan_row(task: StudyTask) -> dict[str, Any]:
     """Plan one task; its row, whatever happens (a failure is a row with its status)."""
-    row: dict[str, Any] = {
-        "id": task.id, "mechanism": task.mechanism, "goal": task.goal_name, "kind": task.kind,
-        "n": len(task.start), "status": "", "method": "", "detail": "",
-    }
+    row: dict[str, Any] = {k: "" if tp is str else None for k, tp in BASE_COLUMNS.items()}
+    row.update(id=task.id, mechanism=task.mechanism, goal=task.goal_name, kind=task.kind,
+               n=len(task.start))
     row.update({f"start_{i}": x for i, x in enumerate(task.start, 1)})
     row.update({f"goal_{i}": x for i, x in enumerate(task.goal, 1)})
     t0 = time.perf_counter()
