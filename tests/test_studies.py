@@ -245,3 +245,27 @@ def test_cli_bad_input_exits_2_naming_it(tmp_path: Path, args: list[str], needle
     assert done.returncode == 2, done.stderr
     assert needle in done.stderr and "Traceback" not in done.stderr
     assert math.isfinite(len(done.stderr))
+
+
+def test_study_figure_maps_success_and_deviation(tmp_path: Path) -> None:
+    from service import figures_study
+
+    goals = [("outside", (1.7, 0.5, 0.5), (0.3, 0.3, 0.3))] + [
+        (g.name, g.start, g.goal) for g in generate(3, 5)]
+    out = tmp_path / "rows.csv"
+    studies.run_study(studies.make_tasks([DEFAULT, OTHER], goals), out=out, workers=0)
+    _, rows = study_io.read_rows(out)
+    svg = figures_study.study_map(rows, "svg", x="goal_2", y="goal_3").decode()
+    for mech in ("default", "wide"):
+        mine = [r for r in rows if r["mechanism"] == mech]
+        ok = sum(r["status"] == "success" for r in mine)
+        assert f"{mech}: {ok} of {len(mine)} reached" in svg
+    assert "invalid_request" in svg and "deviation (\u00b0)" in svg
+    with pytest.raises(ValueError, match="column 'status'"):
+        figures_study.study_map(rows, "png", x="status")
+    with pytest.raises(ValueError, match="no rows"):
+        figures_study.study_map(rows, "png", mechanism="nope")
+    png = tmp_path / "map.png"
+    assert figures_study.main([str(out), "-o", str(png), "--mechanism", "wide"]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert figures_study.main([str(tmp_path / "missing.csv"), "-o", str(png)]) == 2
