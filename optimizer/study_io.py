@@ -105,8 +105,7 @@ def read_rows(path: str | os.PathLike[str]) -> tuple[list[str], list[dict[str, A
     if output_format(p) == "parquet":
         pa = _pyarrow()
         table = pa.parquet.read_table(p)
-        rows = table.to_pylist()
-        return list(table.column_names), [_clean(r) for r in rows]
+        return list(table.column_names), [_clean(r) for r in table.to_pylist()]
     text = p.read_text(encoding="utf-8")
     if not text.endswith("\n"):
         text = text[:text.rfind("\n") + 1]

@@ -269,3 +269,16 @@ def test_study_figure_maps_success_and_deviation(tmp_path: Path) -> None:
     assert figures_study.main([str(out), "-o", str(png), "--mechanism", "wide"]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert figures_study.main([str(tmp_path / "missing.csv"), "-o", str(png)]) == 2
+
+
+def test_study_scaling_benchmark_runs(tmp_path: Path) -> None:
+    """The benchmark's command on 20 goals: it runs and its runs agree (no speed asserted)."""
+    from bench import study_scaling
+
+    out = tmp_path / "scaling.json"
+    assert study_scaling.main(["--goals", "20", "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert data["rows_equal"] is True
+    assert set(data["runs"]) == {"1", "2", "2 cold"}
+    for run in data["runs"].values():
+        assert run["success"] == 20 and 0 < run["busy_share"] <= 1.0
