@@ -282,3 +282,36 @@ def test_study_scaling_benchmark_runs(tmp_path: Path) -> None:
     assert set(data["runs"]) == {"1", "2", "2 cold"}
     for run in data["runs"].values():
         assert run["success"] == 20 and 0 < run["busy_share"] <= 1.0
+
+
+def test_progress_bar_only_on_a_terminal() -> None:
+    import io
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+    tty, pipe = Tty(), io.StringIO()
+    tasks = studies.make_tasks([DEFAULT], [("a", (0.5, 0.5, 0.5), (0.6, 0.55, 0.5)),
+                                           ("b", (1.7, 0.5, 0.5), (0.3, 0.3, 0.3))])
+    studies.run_study(tasks, workers=0, size=1, progress=tty)
+    studies.run_study(tasks, workers=0, size=1, progress=pipe)
+    assert pipe.getvalue() == ""
+    text = tty.getvalue()
+    assert "2/2 (100 %) 1 failed" in text and text.endswith("\n")
+
+
+def test_layering_of_the_study_modules() -> None:
+    """studies.py is the library's top layer: only the CLI imports it; the study modules and
+    the goal generator import neither the web nor the benchmark."""
+    import ast
+
+    pkg = ROOT / "optimizer"
+    for path in pkg.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        names = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        names |= {(n.module or "") + ("." + a.name if n.level else "")
+                  for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) for a in n.names}
+        if path.name not in ("studies.py", "__main__.py"):
+            assert not any("studies" in x.split(".") for x in names), path
+        if path.name in ("studies.py", "study_io.py", "reachable.py"):
+            assert not any(x.split(".")[0] in ("bench", "service") for x in names), path
