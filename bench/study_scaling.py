@@ -12,6 +12,9 @@ What is measured
     * parallel efficiency ``E = T(1) / (2 T(2))`` (target >= 90 %);
     * the share of the workers' time spent planning, ``sum(row seconds) / (workers x wall)``:
       the rest is scheduling, transfer and the idle tail (target: scheduling < 5 %);
+    * the workers' CPU time during the timed run (psutil): equal for 1 and 2 workers when
+      splitting the work adds none; a ``T(2)`` above ``T(1) / 2`` with equal CPU time means
+      the workers waited for a core (other processes), not for the study;
     * the rows of every run are compared (all columns but ``seconds``): they must be equal.
 
 The machine is shared: the load average before and after is printed with the numbers. On a
@@ -51,21 +54,38 @@ def _warm(pool: Any, tasks: list[studies.StudyTask], workers: int) -> None:
         f.result()
 
 
+def _cpu_seconds(pool: Any) -> float | None:
+    """CPU time (user + system, s) of the pool's worker processes so far (psutil), or None."""
+    try:
+        import psutil
+    except ImportError:
+        return None
+    total = 0.0
+    for pid in list(getattr(pool, "_processes", {}) or {}):
+        t = psutil.Process(pid).cpu_times()
+        total += t.user + t.system
+    return total
+
+
 def timed_run(tasks: list[studies.StudyTask], workers: int, warm: bool) -> dict[str, Any]:
     """One study of ``tasks`` on a pool of ``workers``; wall time and its breakdown."""
+    cpu: float | None = None
     if warm:
         pool = studies.process_pool(workers)
         _warm(pool, tasks, workers)
+        cpu0 = _cpu_seconds(pool)
         t0 = time.perf_counter()
         result = studies.run_study(tasks, executor=pool, workers=workers)
         wall = time.perf_counter() - t0
+        cpu1 = _cpu_seconds(pool)
+        cpu = None if cpu0 is None or cpu1 is None else cpu1 - cpu0
         pool.shutdown()
     else:
         t0 = time.perf_counter()
         result = studies.run_study(tasks, workers=workers)
         wall = time.perf_counter() - t0
     planning = sum(float(r["seconds"]) for r in result.rows)
-    return {"workers": workers, "warm": warm, "wall_seconds": wall,
+    return {"workers": workers, "warm": warm, "wall_seconds": wall, "cpu_seconds": cpu,
             "plan_seconds": planning, "busy_share": planning / (workers * wall),
             "chunk": result.chunk_size, "chunks": -(-len(tasks) // result.chunk_size),
             "success": sum(r["status"] == "success" for r in result.rows),
@@ -99,12 +119,14 @@ def main(argv: list[str] | None = None) -> int:
     load1 = os.getloadavg()
     print(f"study scaling: {args.goals} goals, n = {args.n}, {os.cpu_count()} CPUs, "
           f"load average {load0[0]:.2f} before, {load1[0]:.2f} after")
-    print("| workers | pool | wall s | plans s | busy share | chunk | success |")
-    print("|---|---|---|---|---|---|---|")
+    print("| workers | pool | wall s | workers' CPU s | plans s | busy share | chunk | success |")
+    print("|---|---|---|---|---|---|---|---|")
     for key, r in runs.items():
+        cpu = "" if r["cpu_seconds"] is None else f"{r['cpu_seconds']:.2f}"
         print(f"| {r['workers']} | {'warm' if r['warm'] else 'cold (start timed)'} | "
-              f"{r['wall_seconds']:.2f} | {r['plan_seconds']:.2f} | {100 * r['busy_share']:.1f} % "
-              f"| {r['chunk']} x {r['chunks']} | {r['success']}/{args.goals} |")
+              f"{r['wall_seconds']:.2f} | {cpu} | {r['plan_seconds']:.2f} | "
+              f"{100 * r['busy_share']:.1f} % | {r['chunk']} x {r['chunks']} | "
+              f"{r['success']}/{args.goals} |")
     print(f"parallel efficiency T1 / (2 T2): {100 * eff:.1f} % (target >= "
           f"{100 * TARGET_EFFICIENCY:.0f} %: {'met' if eff >= TARGET_EFFICIENCY else 'NOT met'});"
           f" with the 2-worker pool's start timed: {100 * eff_cold:.1f} %")
