@@ -284,6 +284,7 @@ every sample goes to `bench/results/`, which is not versioned). It holds the lat
     .venv/bin/python -m bench --quick          # fewer repeats, 3 s per HTTP level (page untouched)
     .venv/bin/python -m bench --help           # choose cases, methods, repeats, --report PATH
     .venv/bin/python bench/profile_plan.py     # profile of the hot path (any --case, --method)
+    .venv/bin/python -m bench.study_scaling    # a 1,000-goal study on 1 and 2 workers (studies.md)
 
 ## What is measured
 
@@ -304,6 +305,9 @@ every sample goes to `bench/results/`, which is not versioned). It holds the lat
   for every request; throughput, p50/p99 latency, memory of every process.
 * **Cost growth** (`bench/scaling.py`): plan time against `samples`, and the chained-form maps,
   the region scan and a plan for n = 3..8.
+* **Study scaling** (`bench/study_scaling.py`, run on its own): 1,000 generated goals planned by
+  `optimizer.studies` on 1 and on 2 local workers; parallel efficiency and the workers' busy
+  share; its last run is in [studies.md](studies.md#scaling).
 
 ## HTTP: what a plan costs around the planner
 
