@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, ClassVar, Sequence
 
 import numpy as np
 
@@ -71,7 +71,8 @@ class Limits:
     accel: tuple[float | None, float | None] = (None, None)
     jerk: tuple[float | None, float | None] = (None, None)
 
-    NAMES = (("max_u1", "max_u2"), ("max_du1", "max_du2"), ("max_ddu1", "max_ddu2"))
+    NAMES: ClassVar[tuple[tuple[str, str], ...]] = (
+        ("max_u1", "max_u2"), ("max_du1", "max_du2"), ("max_ddu1", "max_ddu2"))
 
     @property
     def any(self) -> bool:
@@ -345,6 +346,8 @@ class TimeLaw:
         The shortest duration within the limits along this path (None without limits).
     binding : str or None
         The request field of the limit that set ``shortest``.
+    limits : Limits
+        The limits the law keeps.
     """
 
     path: GeometricPath
@@ -352,7 +355,7 @@ class TimeLaw:
     stops: np.ndarray
     shortest: float | None = None
     binding: str | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    limits: Limits = field(default_factory=Limits)
 
     @property
     def T(self) -> float:
@@ -404,6 +407,9 @@ class TimeLaw:
                        "a0": p.a0, "jerk": p.jerk},
             "shortest_duration": self.shortest,
             "binding_limit": self.binding,
+            "limits": {name: value for names, values in zip(
+                Limits.NAMES, (self.limits.rate, self.limits.accel, self.limits.jerk))
+                for name, value in zip(names, values) if value is not None},
         }
 
 
@@ -495,7 +501,7 @@ def time_law(path: GeometricPath, limits: Limits, duration: float | None, nomina
     if not limits.any or fixed_times:
         T = nominal if duration is None else float(duration)
         parts = [ramp_profile(L, T * h / hs.sum()) for L, h in zip(Ls, hs)]
-        law = _assemble(path, parts, None, None)
+        law = _assemble(path, parts, None, None, limits)
         if limits.any:
             _check_fixed(law, limits)
         return law
@@ -537,16 +543,16 @@ def time_law(path: GeometricPath, limits: Limits, duration: float | None, nomina
     f = T / shortest
     if f != 1.0:
         parts = [p.stretched(f) for p in parts]
-    return _assemble(path, parts, shortest, name)
+    return _assemble(path, parts, shortest, name, limits)
 
 
 def _assemble(path: GeometricPath, parts: Sequence[Phases], shortest: float | None,
-              binding: str | None) -> TimeLaw:
+              binding: str | None, limits: Limits) -> TimeLaw:
     # each segment starts exactly on its stop knot's lam (the rounding of an integrated
     # profile stays inside its segment)
     phases = Phases.concatenate(parts, path.lam[path.segments][:-1])
     stops = np.concatenate([[0.0], np.cumsum([p.duration for p in parts])])
-    return TimeLaw(path, phases, stops, shortest, binding)
+    return TimeLaw(path, phases, stops, shortest, binding, limits)
 
 
 def _check_fixed(law: TimeLaw, limits: Limits) -> None:
