@@ -214,10 +214,20 @@ def check_period(req: PlanRequest, T: float) -> None:
 
 def handed_out_times(req: PlanRequest, T: float, stops: np.ndarray, breaks: np.ndarray,
                      exact: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The linear form's times (:func:`linear_times` of the stops, and of the breaks when the
-    rates are linear between them: ``exact``), the dense grid the form is replayed on
-    (:func:`dense_times`) and the positions of the times in it."""
-    times = linear_times(T, req.samples, np.union1d(stops, breaks) if exact else stops)
+    """The linear form's times (:func:`linear_times` of the stops and the breaks: the rates'
+    kinks, where the time law's phases start, are samples, so the form follows the law's
+    ramps however short), the dense grid the form is replayed on (:func:`dense_times`) and
+    the positions of the times in it. ``exact``: the rates are linear between the breaks
+    (the form holds them exactly)."""
+    # a kink within a thousandth of the spacing of a stop or another kink adds a sliver
+    # interval, on which the cubic Hermite form's derivatives blow rounding up: not kept
+    tol = 1e-3 * T / (int(req.samples) - 1)
+    kinks = np.setdiff1d(np.asarray(breaks, float), stops)
+    keep = np.concatenate([[True], np.diff(kinks) > tol]) if kinks.size else kinks.astype(bool)
+    kinks = kinks[keep]
+    if kinks.size and stops.size:
+        kinks = kinks[np.min(np.abs(kinks[:, None] - stops[None, :]), axis=1) > tol]
+    times = linear_times(T, req.samples, np.union1d(stops, kinks))
     dense, at = dense_times(times)
     return times, dense, at
 
@@ -269,8 +279,8 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
         Times (s) where the rates are zero (``0``, the inner stops, ``T``; default ``[0,
         T]``): samples of the linear form, held at zero by the correction.
     exact : bool
-        The rates are linear between ``breaks``: the linear form takes them as samples too,
-        and holds the rates exactly (its first replay is the plan's path).
+        The rates are linear between ``breaks`` (which are samples of the linear form): the
+        form holds them exactly (its first replay is the plan's path).
     initial : Replay, optional
         With ``exact``: the original model under these rates, its last rows at the dense grid
         of :func:`handed_out_times` (the plan's own replay at the plan times the time law
@@ -330,7 +340,7 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
     path = SampledPath(t=times, q=q, z=cf.to_chained(q), u=u, v=v)
     ind = dataclasses.replace(compute_indicators(dense, qd, None), energy=_energy(form, u))
     check = dataclasses.replace(check, reversals=(ind.reversals_phi, ind.reversals_th1),
-                                deviation=ind.deviation)
+                                deviation=ind.deviation, d_a=ind.d_a)
     jt = jt_check = None
     if req.joint_trajectory:
         jt, jt_check, _ = joint_trajectory(robot, region, form, path, q0, target, req)
@@ -469,7 +479,7 @@ def joint_trajectory(robot: Robot, region: Region, form: Form, path: SampledPath
         peaks = hermite_peaks(hform, p)
     own = compute_indicators(dense, qd, None)
     check = dataclasses.replace(check, reversals=(own.reversals_phi, own.reversals_th1),
-                                deviation=own.deviation)
+                                deviation=own.deviation, d_a=own.d_a)
     for order, pair in enumerate(LIMIT_NAMES):
         for c, name in enumerate(pair):
             lim = getattr(req, name, None)

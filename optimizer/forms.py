@@ -206,6 +206,8 @@ class ExecutionCheck:
         three points inside every interval; :mod:`optimizer.indicators`' dead band).
     deviation : float or None
         Largest joint-space distance (rad) of that replay from the straight segment.
+    d_a : float or None
+        Largest distance (rad) of its ``th1(t)`` from the straight line in time.
     error_estimate : float or None
         The cascade quadrature's error estimate (rad).
     integrator : str
@@ -225,6 +227,7 @@ class ExecutionCheck:
     errors: tuple[float, ...] = ()
     reversals: tuple[int, int] | None = None
     deviation: float | None = None
+    d_a: float | None = None
 
     @property
     def ok(self) -> bool:
@@ -240,7 +243,7 @@ class ExecutionCheck:
                 "final": list(self.final),
                 "reversals": (None if self.reversals is None else
                               {"phi": self.reversals[0], "th1": self.reversals[1]}),
-                "deviation": self.deviation}
+                "deviation": self.deviation, "d_a": self.d_a}
 
 
 def replay_form(robot: Robot, form: Form, p: np.ndarray, q0: np.ndarray,

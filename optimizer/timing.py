@@ -21,11 +21,13 @@ The law on a segment
 ``lam(t)`` is a sequence of phases of constant jerk (a cubic in ``t`` on each), exact and
 cheap to evaluate (:class:`Phases`). On a segment of length ``L`` (in ``lam``):
 
-* without limits: constant acceleration for a quarter of the segment's duration ``D``,
-  cruise, constant braking for a quarter (:func:`ramp_profile`; speed ``4 L / (3 D)``); the
-  durations ``D`` share ``T`` in proportion to the plan's own times of the segments (the
-  plan's timing is kept at the stops: constraint-point times stay exact). For a constant
-  direction the rates are then piecewise linear: the linear form holds them exactly;
+* without limits: the plan's own timing (scaled to ``T``) at every knot, with linear ramps
+  of the speed over the first and last quarter of every knot piece (:func:`_plan_timed`):
+  from and to rest at the stops, through the smaller of the two pieces' speeds at a knot
+  where only the speed changes. A segment of one piece: constant acceleration for a
+  quarter of its duration ``D``, cruise, constant braking for a quarter
+  (:func:`ramp_profile`; speed ``4 L / (3 D)``). Constraint-point times stay exact. For a
+  constant direction the rates are piecewise linear: the linear form holds them exactly;
 * with limits on ``|u_i|``, ``|u_i'|`` (and ``|u_i''|``) and a constant direction ``g``
   (piecewise-constant plans): ``|u_i| = |g_i| lam'`` and so on, so the segment is the 1-D
   time-optimal rest-to-rest problem with ``V = min_i max_u_i / |g_i|``, ``A`` and ``J`` alike:
@@ -464,7 +466,12 @@ def topp_segment(path: GeometricPath, lam0: float, L: float,
 
     rate, accel, _ = bounds
     knots = path.lam[(path.lam > lam0) & (path.lam < lam0 + L)]
-    grid = np.union1d(np.linspace(lam0, lam0 + L, intervals + 1), knots)
+    even = np.linspace(lam0, lam0 + L, intervals + 1)
+    if knots.size:          # the knots (kinks of g) are grid points; no sliver next to one
+        near = np.min(np.abs(even[:, None] - knots[None, :]), axis=1) < 0.25 * L / intervals
+        near[[0, -1]] = False
+        even = even[~near]
+    grid = np.union1d(even, knots)
     d = np.diff(grid)
     g = path.g(grid)
     eps = 1e-3 * d
@@ -572,7 +579,8 @@ def time_law(path: GeometricPath, limits: Limits, duration: float | None, nomina
     bounds = limits.scaled(1.0 - margin).arrays()
     if not limits.any or fixed_times:
         T = nominal if duration is None else float(duration)
-        parts = [ramp_profile(L, T * h / hs.sum()) for L, h in zip(Ls, hs)]
+        scale = T / float(hs.sum())
+        parts = [_plan_timed(path, int(a), int(b), scale) for a, b in zip(seg[:-1], seg[1:])]
         law = _assemble(path, parts, None, None, limits)
         if limits.any:
             _check_fixed(law, limits)
@@ -624,6 +632,30 @@ def time_law(path: GeometricPath, limits: Limits, duration: float | None, nomina
     if f != 1.0:
         parts = [p.stretched(f) for p in parts]
     return _assemble(path, parts, shortest, name, limits)
+
+
+def _plan_timed(path: GeometricPath, first: int, last: int, scale: float,
+                ramp: float = RAMP) -> Phases:
+    """The law of the segment between the knots ``first`` and ``last`` that keeps the plan's
+    own timing (times ``scale``) at every knot: on knot piece ``k`` (length ``L_k`` in ``lam``,
+    duration ``D_k``, mean speed ``v_k = L_k / D_k``) the speed ramps linearly over ``ramp
+    D_k`` from its value at the piece's start to a cruise speed and over the last ``ramp D_k``
+    to its value at the piece's end: 0 at the segment's ends, ``min(v_{k-1}, v_k)`` at an
+    inner knot (the plan's speed steps there: the retimed method's pieces). The cruise speed
+    makes the piece cover ``L_k`` exactly, so the knots are reached at the plan's times; it is
+    at least ``v_k``. A segment of one piece gets :func:`ramp_profile`."""
+    L = np.diff(path.lam[first:last + 1])
+    D = np.diff(path.sigma[first:last + 1]) * scale
+    v = L / D
+    edge = np.concatenate([[0.0], np.minimum(v[:-1], v[1:]), [0.0]])
+    pieces: list[tuple[float, float, float]] = []
+    for k in range(L.size):
+        v_in, v_out = edge[k], edge[k + 1]
+        cruise = (v[k] - ramp * 0.5 * (v_in + v_out)) / (1.0 - ramp)
+        r = ramp * D[k]
+        pieces += [(r, (cruise - v_in) / r, 0.0), (D[k] - 2.0 * r, 0.0, 0.0),
+                   (r, (v_out - cruise) / r, 0.0)]
+    return phases_from(pieces)
 
 
 def _assemble(path: GeometricPath, parts: Sequence[Phases], shortest: float | None,

@@ -278,6 +278,9 @@ class ExecutedValidation(BaseModel):
     deviation: Optional[float] = Field(
         None, description="Largest joint-space distance (rad) of this form's execution from "
                           "the straight segment start -> goal.")
+    d_a: Optional[float] = Field(
+        None, description="Largest distance (rad) of this form's th1(t) from the straight "
+                          "line in time (indicators.d_a is the plan's, on its own schedule).")
 
 
 Validation.model_rebuild()
