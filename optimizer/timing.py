@@ -434,7 +434,8 @@ def _shape_need(path: GeometricPath, lam0: float, L: float,
         peak = np.max(np.abs(vals), axis=0)
         for i in range(2):
             if math.isfinite(lim[i]) and peak[i] > 0:
-                D = (peak[i] / lim[i]) ** (1.0 / (order + 1))
+                with np.errstate(over="ignore"):
+                    D = (peak[i] / lim[i]) ** (1.0 / (order + 1))
                 if D > best[0]:
                     best = (D, order, i)
     return best
@@ -515,6 +516,11 @@ def topp_segment(path: GeometricPath, lam0: float, L: float,
     return phases_from([(float(h), float(x), 0.0) for h, x in zip(dt, a)])
 
 
+#: A law that never ends (a limit too small for any finite duration).
+_NEVER = Phases(np.zeros(1), np.array([math.inf]), np.zeros(1), np.zeros(1), np.zeros(1),
+                np.zeros(1))
+
+
 def _constant_need(g: np.ndarray, L: float,
                    bounds: tuple[np.ndarray, np.ndarray, np.ndarray]
                    ) -> tuple[Phases | None, int, int]:
@@ -528,6 +534,9 @@ def _constant_need(g: np.ndarray, L: float,
         i = int(np.argmin(r))
         per.append((float(r[i]), order, i))
     V, A, J = (x[0] for x in per)
+    if min(V, A, J) * max(L, 1.0) < 1e-200 or not L / max(min(V, A, J), 1e-300) < 1e200:
+        # a limit so small that no duration is finite: the caller refuses it
+        return _NEVER, per[int(np.argmin([V, A, J]))][1], per[int(np.argmin([V, A, J]))][2]
     law = rest_to_rest(L, V, A, J)
     if law is None:
         return None, 0, 0
@@ -591,6 +600,8 @@ def time_law(path: GeometricPath, limits: Limits, duration: float | None, nomina
     parts_min: list[Phases | None] = []
     binding: list[tuple[float, int, int]] = []
     for j, L in enumerate(Ls):
+        if not all(p is None or math.isfinite(p.duration) for p in parts_min):
+            break                       # a limit too small already: refused below
         if path.constant:
             mid = 0.5 * (lam_ends[j] + lam_ends[j + 1])
             law_j, order, i = _constant_need(path.g(np.array([mid]))[0], float(L), bounds)
@@ -599,7 +610,9 @@ def time_law(path: GeometricPath, limits: Limits, duration: float | None, nomina
         else:
             D, order, i = _shape_need(path, float(lam_ends[j]), float(L), bounds, shape)
             fast = None
-            if shape is ramp_profile and D > 0:     # no jerk limit: the convex retiming
+            # the convex retiming needs an acceleration limit (without one its optimum jumps
+            # the speed over one grid interval) and no jerk limit (not convex)
+            if shape is ramp_profile and D > 0 and np.isfinite(bounds[1]).any():
                 fast = topp_segment(path, float(lam_ends[j]), float(L),
                                     limits.scaled(1.0 - TOPP_MARGIN).arrays())
             if fast is not None and fast.duration < D:
@@ -620,7 +633,8 @@ def time_law(path: GeometricPath, limits: Limits, duration: float | None, nomina
         raise InfeasibleError(
             f"the limits need a duration of {shortest:.6g} s along this path ({name} = "
             f"{limits.value(name):g} binds), above the largest allowed {max_duration:g} s",
-            field=name, diagnostics={"shortest_duration": shortest, "binding_limit": name})
+            field=name, diagnostics={"shortest_duration": shortest if math.isfinite(shortest)
+                                     else None, "binding_limit": name})
     T = shortest if duration is None else float(duration)
     if T < shortest * (1.0 - 1e-9):
         raise InfeasibleError(
