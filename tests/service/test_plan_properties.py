@@ -49,7 +49,7 @@ def test_a_plan_is_verified_or_a_typed_problem(client, body):
     event(f"{r.status_code} {doc.get('code', 'plan')}")
     if r.status_code == 200:
         q = doc["path"]["q"]
-        assert len(q) == body["samples"]
+        assert len(q) >= body["samples"]   # plus the time law's stops and kinks
         assert all(abs(a - b) < 1e-9 for a, b in zip(q[0][1:], body["start"]))
         assert all(abs(a - b) < 1e-6 for a, b in zip(q[-1][1:], body["goal"]))
         assert doc["validation"]["terminal_error"] < 1e-6

@@ -122,7 +122,7 @@ def test_batch_answers_in_order(client):
         {**WORKED, "samples": 11},
         {"start": [10 * DEG, 20 * DEG, 30 * DEG], "goal": [40 * DEG, 25 * DEG, 15 * DEG],
          "method": "polynomial"},
-        {**WORKED, "phi_change": 34.0 * DEG, "samples": 5},
+        {**WORKED, "phi_change": 34.0 * DEG, "samples": 21},
         {**WORKED, "joint_bounds": [[0.3, 1.0], None, None]},
     ]
     r = client.post("/v1/plans/batch", json={"requests": requests})
@@ -153,7 +153,8 @@ def test_actuator_limit_sets_the_shortest_duration(client):
     body = r.json()
     assert body["duration"] > 1.0
     u1 = [abs(row[0]) for row in body["path"]["u"]]
-    assert max(u1) == pytest.approx(0.3, rel=1e-6)  # v1 = u1 is constant: the limit binds
+    # the time law cruises at the limit (planned 0.1 % inside it) and starts at rest
+    assert max(u1) <= 0.3 and max(u1) == pytest.approx(0.3, rel=2e-3) and u1[0] == 0.0
     assert body["path"]["t"][-1] == pytest.approx(body["duration"])
 
 

@@ -229,6 +229,14 @@
       req.robot = {};  // the default robot of n joints: the service wants it said for n != 3
     }
     if ($("duration").value.trim() !== "") req.duration = readNumber("duration", "Duration T");
+    // optional limits of both actuators' rates and their derivatives (the figures draw the
+    // rates against them; a duration too short for them is answered with the shortest one)
+    if ($("max-u").value.trim() !== "") {
+      req.max_u1 = req.max_u2 = readNumber("max-u", "Rate limit");
+    }
+    if ($("max-du").value.trim() !== "") {
+      req.max_du1 = req.max_du2 = readNumber("max-du", "Rate change limit");
+    }
     if (req.objective === "weighted") {
       req.weights = {};
       for (const k of ["d_a", "sensitivity", "energy", "t_p"]) {
