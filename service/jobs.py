@@ -26,6 +26,7 @@ from optimizer.errors import InvalidRequestError, PlannerError
 from optimizer.model import Robot
 from optimizer.planner.context import Deadline
 from optimizer.planner.plan import plan
+from optimizer.planner.replan import replan
 from optimizer.planner.shooting import prepare
 from optimizer.problem import PlanRequest
 from optimizer.results import json_safe
@@ -115,8 +116,17 @@ def job_robustness(payload: Payload) -> dict[str, Any]:
     return out
 
 
+def job_replan(payload: Payload) -> dict[str, Any]:
+    """``POST /v1/replans``: ``plan`` (an answer or its compact form), ``time``, ``state``,
+    ``rates`` and ``duration`` (optional)."""
+    return replan(payload["plan"], payload["time"], payload["state"], payload.get("rates"),
+                  payload.get("duration"), plain=False,
+                  time_limit=float(payload.get("time_limit", 10.0)))
+
+
 JOBS: dict[str, Callable[[Payload], Any]] = {
     "plan": job_plan,
+    "replan": job_replan,
     "sweep": job_sweep,
     "transform": job_transform,
     "robustness": job_robustness,
