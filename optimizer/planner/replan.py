@@ -47,7 +47,7 @@ import functools
 import math
 import time
 from dataclasses import dataclass, replace
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import casadi as ca
 import numpy as np
@@ -55,7 +55,7 @@ import numpy as np
 from ..chained_form import chained_form
 from ..dynamics import rk4_step, vector_field
 from ..errors import InfeasibleError, InvalidRequestError, NumericalError, PlannerError
-from ..execution import HandedOutInputs, REPLAY_NODES
+from ..execution import EXECUTION_TOLERANCE, REPLAY_NODES, correct, linear_form
 from ..indicators import compute_indicators
 from ..model import Robot
 from ..problem import PlanRequest
@@ -63,7 +63,7 @@ from ..results import Plan, json_safe
 from ..verify import integrate_cascade
 from .plan import plan as full_plan
 from .nlp import BufferedCall, ladder, minimum_norm_step, multiple_shooting_nlp
-from .rules import TERMINAL_TOLERANCE, joint_limits
+from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
 
 #: Gauss-Newton steps stop once the fine end map is this close to the goal (rad)...
 CORRECTION_TARGET = 1e-11
@@ -353,6 +353,8 @@ class EndMap:
 
     def __init__(self, robot: Robot, N: int) -> None:
         self.N = N
+        self.end: Callable[[np.ndarray, np.ndarray], np.ndarray]
+        self.jacobian: Callable[[np.ndarray, np.ndarray], np.ndarray]
         rung = next((tr for tr in ladder(robot.n) if tr.intervals == N), None)
         if rung is not None:
             nlp = multiple_shooting_nlp(tuple(robot.gains), tuple(robot.exponents), False,
@@ -696,6 +698,8 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
                                       [T_end]]))
     times = times[times >= t]
     sig, ds, _ = law.evaluate(times)
+    # at the stops sigma' is 0 up to rounding of the cubics: the drive is told exactly 0
+    ds[np.abs(ds) <= 1e-12 * max(1.0, float(np.max(np.abs(ds))))] = 0.0
     sl = np.clip(sig - cont.breaks[0], 0.0, float(sb[-1]))
     ph = law.phases
     jump_t = ph[(ph[:, 3] > REST) & np.isin(ph[:, 2], cont.breaks[1:-1]) & (ph[:, 0] > t), 0]
@@ -717,7 +721,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     margins = np.minimum(qb - lo, hi - qb)
     margin = float(np.min(margins))
     if not margin > 0.0:
-        k, j = np.unravel_index(int(np.argmin(margins)), margins.shape)
+        j = int(np.unravel_index(int(np.argmin(margins)), margins.shape)[1])
         raise InfeasibleError(f"the continuation takes th{j + 1} outside its limits",
                               diagnostics={"margin": margin})
     if not miss <= TERMINAL_TOLERANCE:
@@ -736,17 +740,35 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     cf = chained_form(robot)
     al, be = cf.input_coefficients(q)
     v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
-    ind = compute_indicators(times, q, u)
     smooth_law = bool(np.any(ph[:, 4] != 0.0) or np.any(ph[:, 5] != 0.0))
+    exe_initial = None
+    corrections = 0
     if smooth_law:
-        # continuous rates: the linear form of the samples is not the exact rates, replay it
-        path_local = _SampledLocal(times - t, u)
-        exe = HandedOutInputs(path_local, "linear").replay(robot, q_m, np.array([T_end - t]))
-        exe_final = exe.final
-        exe_integrator = exe.integrator
+        # continuous rates: linear interpolation of their samples is not the exact rates; the
+        # samples are corrected until the original model under that rule reaches the goal
+        # (optimizer.execution.correct), the first (the commanded rates) and the last (rest)
+        # held
+        form = linear_form(times - t)
+        free = form.free.copy()
+        free[0] = free[-1] = False
+        form = replace(form, free=free)
+        target = np.concatenate([[rep.final[0]], goal])
+        u, q, check = correct(robot, form, u, q_m, target, limits_region(req), times - t)
+        exe_final = np.asarray(check.final)
+        exe_integrator = check.integrator
+        exe_initial, corrections = check.initial_terminal_error, check.corrections
+        if not check.terminal_error <= EXECUTION_TOLERANCE or check.singular or \
+                not check.margin > 0.0:
+            raise NumericalError(
+                f"the handed-out path of {times.size} samples misses the goal by "
+                f"{check.terminal_error:.3g} rad when executed (margin {check.margin:.3g} rad)",
+                diagnostics={"execution": check.as_dict()})
+        al, be = cf.input_coefficients(q)
+        v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
     else:
         exe_final, exe_integrator = rep.final, rep.integrator
     exe_err = float(np.max(np.abs(exe_final[1:] - goal)))
+    ind = compute_indicators(times, q, u)
     timing["sampling"] = time.perf_counter() - t0 - timing["verification"]
     out: dict[str, Any] = {
         "status": "success",
@@ -780,8 +802,9 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
             "error_estimate": rep.error_estimate, "rtol": None, "atol": None,
             "executed": {"rule": "linear", "terminal_error": exe_err, "phi_error":
                          float(abs(exe_final[0] - rep.final[0])), "margin": margin,
-                         "singular": False, "initial_terminal_error": exe_err,
-                         "corrections": 0, "integrator": f"{exe_integrator} on the original "
+                         "singular": False, "initial_terminal_error":
+                         exe_err if exe_initial is None else exe_initial,
+                         "corrections": corrections, "integrator": f"{exe_integrator} on the original "
                          "model", "final": exe_final.tolist()}},
         "timing": dict(timing),
         "diagnostics": {"replan": {
@@ -791,14 +814,6 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
             "start_state": q_m.tolist()}},
     }
     return out
-
-
-@dataclass(frozen=True)
-class _SampledLocal:
-    """A handed-out path's times and rates (what :class:`HandedOutInputs` reads)."""
-
-    t: np.ndarray
-    u: np.ndarray
 
 
 __all__ = ["PlanState", "TimeLaw", "braking", "read_plan", "replan", "rest_to_rest"]

@@ -1,0 +1,183 @@
+"""The replanner (optimizer.planner.replan): closed loop on a plant whose gains are off,
+integrated by scipy on the tests' own model; continuations start at the commanded rates;
+the same request gives the same answer; bad input is refused naming its field."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from optimizer.errors import InvalidRequestError
+from optimizer.planner.plan import plan
+from optimizer.planner.replan import read_plan, replan, stop_and_go
+from optimizer.problem import PlanRequest
+
+from reference import PROTOTYPE_K, PROTOTYPE_M, model_rhs
+
+START, GOAL = (0.3, 0.4, 0.5), (0.9, 1.0, 0.8)
+
+
+@pytest.fixture(scope="module")
+def answer() -> dict:
+    return plan(PlanRequest(start=START, goal=GOAL)).to_dict()
+
+
+@pytest.fixture(scope="module")
+def timed(answer: dict) -> dict:
+    """The same plan under the timing design's law (issue 25): every piece rest to rest."""
+    ps = read_plan(answer)
+    out = dict(answer)
+    out["time_law"] = stop_and_go(ps.breaks, ps.end_time).as_dict(ps.plan_duration)
+    return out
+
+
+def rates_of(ans: dict, t: float) -> np.ndarray:
+    """The rates an answer commands at ``t``, read from its documented representation:
+    ``u(sigma(t)) sigma'(t)``, ``sigma`` a cubic on each phase (identity without a law)."""
+    segs = ans["coefficients"]["segments"]
+    law = ans.get("time_law")
+    if law is None:
+        sig, ds = t, 1.0
+    else:
+        row = next((r for r in reversed(law["phases"]) if r[0] <= t), law["phases"][0])
+        t0, _, s0, v0, a0, j = row
+        s = t - t0
+        sig, ds = s0 + v0 * s + a0 * s * s / 2 + j * s ** 3 / 6, v0 + a0 * s + j * s * s / 2
+    seg = next((g for g in segs if g["t_start"] <= sig < g["t_end"]), segs[-1])
+    return np.array(seg["u"]) * ds
+
+
+def knots_of(ans: dict) -> list[float]:
+    law = ans.get("time_law")
+    if law is None:
+        return [g["t_start"] for g in ans["coefficients"]["segments"]]
+    return [r[0] for r in law["phases"]]
+
+
+def run_plant(ans: dict, q0: np.ndarray, t0: float, t1: float, K: tuple) -> np.ndarray:
+    """The plant (the tests' own model, gains ``K``) under the answer's rates, knot to knot."""
+    edges = sorted({t0, t1, *(k for k in knots_of(ans) if t0 < k < t1)})
+    q = np.asarray(q0, float)
+    for a, b in zip(edges[:-1], edges[1:]):
+        sol = solve_ivp(lambda t, x: model_rhs(x, rates_of(ans, t), K, PROTOTYPE_M), (a, b), q,
+                        method="DOP853", rtol=1e-12, atol=1e-13)
+        assert sol.success
+        q = sol.y[:, -1]
+    return q
+
+
+def closed_loop(ans: dict, q0: np.ndarray, K: tuple, period: float | None) -> np.ndarray:
+    T = ans["duration"]
+    t, q, current = 0.0, np.asarray(q0, float), ans
+    while t < T - 1e-12:
+        if period is not None:
+            current = replan(current, t, q, rates=rates_of(current, t))
+        t_next = T if period is None else min(t + period, T)
+        q = run_plant(current, q, t, t_next, K)
+        t = t_next
+    return q
+
+
+@pytest.mark.parametrize("law", ["none", "stop_and_go"])
+def test_closed_loop_reaches_the_goal_where_open_loop_misses(answer: dict, timed: dict,
+                                                              law: str) -> None:
+    ans = answer if law == "none" else timed
+    K = (PROTOTYPE_K[0] * 1.005, PROTOTYPE_K[1] * 0.995)     # the plant's gains 0.5 % off
+    q0 = np.array([0.0, *START]) + np.radians([0.0, 1.0, -1.0, 1.0])
+    open_miss = np.max(np.abs(closed_loop(ans, q0, K, None)[1:] - GOAL))
+    closed_miss = np.max(np.abs(closed_loop(ans, q0, K, 0.025)[1:] - GOAL))
+    assert open_miss > 1e-2
+    assert closed_miss < 1e-4, (open_miss, closed_miss)
+
+
+@pytest.mark.parametrize("law", ["none", "stop_and_go"])
+def test_a_replan_starts_at_the_given_rates(answer: dict, timed: dict, law: str) -> None:
+    ans = answer if law == "none" else timed
+    t = 0.37
+    given = rates_of(ans, t) * 1.02            # the drive's rates, a little off the plan's
+    q = np.array([0.0, *START]) + 0.3 * (np.array([0.6, *GOAL]) - [0.0, *START])
+    out = replan(ans, t, q, rates=given)
+    path_t, path_u = np.array(out["path"]["t"]), np.array(out["path"]["u"])
+    assert path_t[0] == t
+    assert np.array_equal(path_u[0], given)
+    # the exact rates of the continuation right after t are those rates (no jump)
+    assert rates_of(out, t + 1e-9) == pytest.approx(given, rel=1e-6, abs=1e-9)
+    # on the handed-out path: the next sample moves at most by the rates' slope
+    if law == "none":
+        assert np.array_equal(path_u[1], given)
+    else:
+        du = np.abs(path_u[1] - path_u[0]) / (path_t[1] - path_t[0])
+        assert np.all(du < 200.0)      # rad/s^2: a jump of 1e-2 rad/s would read 1e3 here
+        assert np.array_equal(path_u[-1], [0.0, 0.0])       # and it ends at rest
+    assert out["validation"]["terminal_error"] < 1e-6
+    assert out["validation"]["executed"]["terminal_error"] < 1e-6
+
+
+def test_the_continuation_reaches_the_goal_on_the_tests_model(answer: dict) -> None:
+    """The continuation's own rates, integrated on the tests' model from the measured state,
+    end at the goal (not only the library's verification says so)."""
+    t = 0.25
+    q = np.array([0.05, 0.47, 0.58, 0.57])
+    out = replan(answer, t, q)
+    end = run_plant(out, q, t, out["duration"], PROTOTYPE_K)
+    assert np.max(np.abs(end[1:] - GOAL)) < 1e-8
+
+
+def test_same_request_same_answer(answer: dict) -> None:
+    q = np.array([0.05, 0.47, 0.58, 0.57])
+    first = replan(answer, 0.25, q)
+    replan(answer, 0.6, np.array([0.3, 0.7, 0.8, 0.7]))      # another in between
+    again = replan(answer, 0.25, q)
+    assert first["coefficients"] == again["coefficients"]
+    assert first["path"] == again["path"]
+
+
+def test_fallback_near_the_end_and_with_a_new_duration(answer: dict) -> None:
+    q = np.array([0.9, 0.85, 0.95, 0.78])
+    out = replan(answer, 0.8, q, duration=1.5)
+    assert out["duration"] == 1.5 and out["path"]["t"][-1] == 1.5
+    assert out["validation"]["terminal_error"] < 1e-6
+    assert np.array_equal(out["path"]["u"][-1], [0.0, 0.0])
+
+
+def test_a_chained_plan_is_braked_then_replanned() -> None:
+    ans = plan(PlanRequest(start=START, goal=GOAL, method="polynomial")).to_dict()
+    t = 0.4
+    i = int(np.searchsorted(ans["path"]["t"], t))
+    q = np.array(ans["path"]["q"][i]) + [0.0, 0.002, -0.002, 0.002]
+    out = replan(ans, ans["path"]["t"][i], q)
+    assert out["diagnostics"]["replan"]["route"] == "full_planner"
+    assert np.allclose(out["path"]["u"][0], ans["path"]["u"][i], atol=1e-12)
+    assert out["validation"]["terminal_error"] < 1e-6
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"time_": 1.0}, "time"),
+    ({"time_": -0.1}, "time"),
+    ({"state": [0.0, 0.5, 1.6, 0.5]}, "state[2]"),
+    ({"state": [0.0, 0.5, 0.5]}, "state"),
+    ({"rates": [1.0]}, "rates"),
+    ({"duration": 0.2}, "duration"),
+])
+def test_bad_input_names_its_field(answer: dict, kwargs: dict, field: str) -> None:
+    args = {"time_": 0.5, "state": [0.0, 0.5, 0.5, 0.5], **kwargs}
+    with pytest.raises(InvalidRequestError) as err:
+        replan(answer, **args)
+    assert err.value.field == field
+
+
+def test_not_our_plan(answer: dict) -> None:
+    with pytest.raises(InvalidRequestError) as err:
+        replan({"robot": answer["robot"], "goal": list(GOAL)}, 0.5, [0.0, 0.5, 0.5, 0.5])
+    assert err.value.field == "plan.coefficients.segments"
+    bad = dict(answer, time_law={"phases": [[0.0, 1.0, 0.0, 1.0, 0.0, 0.0]],
+                                 "plan_duration": 2.0})
+    bad["coefficients"] = {"segments": [dict(s, t_end=s["t_end"] * 2, t_start=s["t_start"] * 2)
+                                        for s in answer["coefficients"]["segments"]]}
+    with pytest.raises(InvalidRequestError) as err:
+        replan(bad, 0.5, [0.0, 0.5, 0.5, 0.5])
+    assert err.value.field.startswith("plan.")
+    assert math.isfinite(answer["duration"])
