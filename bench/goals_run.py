@@ -111,12 +111,13 @@ def verified(m: dict[str, Any] | None) -> bool:
             and math.isfinite(margin) and err < TERMINAL_TOL and margin > 0.0)
 
 
-def _request(g: Goal, time_limit: float, method: str | None) -> Any:
+def _request(g: Goal, time_limit: float, method: str | None,
+             limits: dict[str, float] | None = None) -> Any:
     from optimizer.model import Robot
     from optimizer.problem import PlanRequest
     if method is None:  # the user's default request: nothing but start, goal, robot, limit
         return PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(g.n),
-                           time_limit=time_limit)
+                           time_limit=time_limit, **(limits or {}))
     return PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(g.n),
                        time_limit=time_limit, method=method)
 
@@ -163,10 +164,45 @@ def run_plan(g: Goal, method: str | None, cfg: GoalsConfig) -> dict[str, Any]:
     out["planner"] = {"deviation_deg": math.degrees(ind.deviation),
                       "reversals_phi": int(ind.reversals_phi),
                       "reversals_th1": int(ind.reversals_th1)}
+    out["handed_out"] = handed_out_checks(p)
     rm = reintegrate_plan(p, np.asarray(g.start), np.asarray(g.goal)).as_dict()
     out["reintegration"] = rm
     out["verified"] = verified(rm)
     return out
+
+
+#: The limits of the limited request of every goal (issue 25): max_u = 1 rad/s, max_du = 5
+#: rad/s^2 on both actuators, checked within :data:`LIMIT_SHARE` on the handed-out form.
+LIMITS = {"max_u1": 1.0, "max_u2": 1.0, "max_du1": 5.0, "max_du2": 5.0}
+LIMIT_SHARE = 1.01
+
+
+def handed_out_checks(p: Any, limits: dict[str, float] | None = None) -> dict[str, Any]:
+    """The handed-out linear form of a plan: rates 0 at both ends, no repeated time (no
+    jump), and with ``limits`` the largest rates and slopes (its derivative between samples)
+    against them."""
+    t, u = np.asarray(p.path.t), np.asarray(p.path.u)
+    out: dict[str, Any] = {"rest_at_ends": bool(np.all(u[0] == 0.0) and np.all(u[-1] == 0.0)),
+                           "continuous": bool(np.all(np.diff(t) > 0.0)),
+                           "duration": float(p.duration)}
+    if limits:
+        slope = np.abs(np.diff(u, axis=0) / np.diff(t)[:, None])
+        peak_u, peak_du = np.abs(u).max(axis=0), slope.max(axis=0)
+        ratio = max(max(peak_u[c] / limits[f"max_u{c + 1}"] for c in range(2)),
+                    max(peak_du[c] / limits[f"max_du{c + 1}"] for c in range(2)))
+        out.update(limit_ratio=float(ratio), within_limits=bool(ratio <= LIMIT_SHARE))
+    return out
+
+
+def run_limited(g: Goal, cfg: GoalsConfig) -> dict[str, Any]:
+    """The default request with :data:`LIMITS` (one untimed call): its handed-out checks."""
+    from optimizer.planner.plan import plan
+    try:
+        req = _request(g, cfg.time_limit, None, LIMITS)
+        p = plan(req)
+    except Exception as exc:  # noqa: BLE001 - recorded
+        return {"status": "error", "error": describe(exc)}
+    return {"status": "success", **handed_out_checks(p, LIMITS)}
 
 
 def run_baseline(g: Goal, baselines: Baselines, cfg: GoalsConfig) -> dict[str, Any]:
@@ -198,6 +234,7 @@ def run_goal(g: Goal, baselines: Baselines, cfg: GoalsConfig,
     """The default request, each method and (n = 3) the baseline on one goal."""
     t0 = time.perf_counter()
     default = run_plan(g, None, cfg)
+    default["limited"] = run_limited(g, cfg)
     methods = {m: run_plan(g, m, cfg) for m in cfg.methods}
     base = run_baseline(g, baselines, cfg) if g.n in BASELINE_JOINTS else None
     row: dict[str, Any] = {"name": g.name, "kind": g.kind, "n": g.n,
@@ -304,10 +341,19 @@ def summarise_goals(rows: list[dict[str, Any]], cfg: GoalsConfig) -> dict[str, A
                                        else "not verified"
                                        for x_name, x in zip((r["name"] for r in sub), runs)
                                        if not x["verified"]}}
+        ho = [r["default"].get("handed_out") or {} for r in sub]
+        lim = [r["default"].get("limited") or {} for r in sub]
         entry: dict[str, Any] = {
             "goals": len(sub), "verified": nver, "p50": _pct(times, 50), "p95": _pct(times, 95),
             "max": max(times) if times else math.nan, "near_limit": len(near),
-            "methods": methods}
+            "methods": methods,
+            # issue 25: what a motor is asked to do
+            "rest_at_ends": sum(bool(h.get("rest_at_ends")) for h in ho),
+            "continuous": sum(bool(h.get("continuous")) for h in ho),
+            "limited_planned": sum(x.get("status") == "success" for x in lim),
+            "limited_within": sum(bool(x.get("within_limits")) for x in lim),
+            "limited_worst_ratio": max([x["limit_ratio"] for x in lim if "limit_ratio" in x],
+                                       default=math.nan)}
         p95_bound = TARGET_P95_S.get(n, max(TARGET_P95_S.values()))
         targets += [
             {"n": n, "target": "every goal verified", "measured": f"{nver}/{len(sub)}",
@@ -413,6 +459,17 @@ def markdown(results: dict[str, Any]) -> str:
     for n, e in s["per_n"].items():
         lines.append(f"| {n} | {e['goals']} | {e['verified']} | {_ms(e['p50'])} | "
                      f"{_ms(e['p95'])} | {_ms(e['max'])} | {e['near_limit']} |")
+    lines += ["", "### Handed-out rates (issue 25)", "",
+              "Default request: rates 0 at both ends, no repeated time (continuous rates). "
+              f"Limited request (the default with {LIMITS}): planned, and its linear form's "
+              f"rates and slopes within {LIMIT_SHARE - 1:.0%} of the limits.", "",
+              "| n | goals | rest at ends | continuous | limited planned | within limits "
+              "| worst peak / limit |", "|---|---|---|---|---|---|---|"]
+    for n, e in s["per_n"].items():
+        lines.append(f"| {n} | {e['goals']} | {e.get('rest_at_ends', '-')} | "
+                     f"{e.get('continuous', '-')} | {e.get('limited_planned', '-')} | "
+                     f"{e.get('limited_within', '-')} | "
+                     f"{e.get('limited_worst_ratio', math.nan):.4f} |")
     lines += ["", "### Per method (success = planner answered; verified = re-integration)", "",
               "| n | method | success | verified | median ms (all goals) | baseline / method "
               "(median per goal) | method / shooting (median per goal) |",

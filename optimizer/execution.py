@@ -49,6 +49,7 @@ bounds there.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -60,6 +61,7 @@ import numpy as np
 from .chained_form import chained_form
 from .dynamics import joint_rate
 from .errors import InfeasibleError, InvalidRequestError, NumericalError
+from .indicators import Indicators, compute_indicators
 from .model import Robot
 from .problem import MAX_SAMPLES, PlanRequest
 from .region import Region
@@ -172,11 +174,15 @@ def _intervals_of(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return knots, nxt
 
 
-def linear_form(times: np.ndarray) -> Form:
-    """Linear interpolation of samples at ``times`` (repeated times: jumps)."""
+def linear_form(times: np.ndarray, held: np.ndarray | None = None) -> Form:
+    """Linear interpolation of samples at ``times`` (repeated times: jumps); the rows
+    ``held`` (indices) keep their values in the correction (the rests: zero rates)."""
     knots, left = _intervals_of(times)
     idx = np.column_stack([left, left + 1])
-    return Form("linear", knots, idx, np.ones(idx.shape), np.ones(times.size, bool))
+    free = np.ones(times.size, bool)
+    if held is not None:
+        free[np.asarray(held, np.intp)] = False
+    return Form("linear", knots, idx, np.ones(idx.shape), free)
 
 
 def zoh_form(times: np.ndarray) -> Form:
@@ -190,14 +196,14 @@ def zoh_form(times: np.ndarray) -> Form:
 def hermite_form(times: np.ndarray) -> Form:
     """Derivative of the cubic Hermite interpolant of positions and velocities at ``times``
     (strictly increasing); ``p = [positions (m rows); velocities (m rows)]``. The end
-    positions are held (start and goal)."""
+    positions (start and goal) and the end velocities (zero: rest to rest) are held."""
     m = times.size
     h = np.diff(times)
     k = np.arange(m - 1)
     idx = np.column_stack([k, k + 1, m + k, m + k + 1])
     scale = np.column_stack([1.0 / h, 1.0 / h, np.ones(m - 1), np.ones(m - 1)])
     free = np.ones(2 * m, bool)
-    free[[0, m - 1]] = False
+    free[[0, m - 1, m, 2 * m - 1]] = False
     return Form("cubic_hermite", times.copy(), idx, scale, free)
 
 
@@ -463,24 +469,16 @@ def _snap(times: np.ndarray, breaks: np.ndarray, tol: float) -> np.ndarray:
     return out
 
 
-def linear_times(T: float, samples: int, breaks: np.ndarray) -> np.ndarray:
+def linear_times(T: float, samples: int, stops: np.ndarray) -> np.ndarray:
     """Times of the linear form: ``samples`` evenly spaced, those within a quarter of the
-    spacing of an inner break moved onto it, and every inner break twice (the first copy
-    carries the value before the jump, the second the value after)."""
-    inner = np.asarray(breaks, float)[1:-1]
-    # a sample closer to a break than a quarter of the spacing moves onto it: no sliver
-    # intervals next to a break, and a break that falls on a sample (up to rounding) is exact
+    spacing of an inner stop moved onto it, and every inner stop once (the rates are
+    continuous: no time is repeated)."""
+    inner = np.asarray(stops, float)[1:-1]
+    # a sample closer to a stop than a quarter of the spacing moves onto it: no sliver
+    # intervals next to a stop, and a stop that falls on a sample (up to rounding) is exact
     t = _snap(np.linspace(0.0, T, int(samples)), inner, 0.25 * T / (int(samples) - 1))
     t[0], t[-1] = 0.0, T
-    merged = np.concatenate([t, inner])
-    merged.sort()
-    first = np.empty(merged.size, bool)            # the distinct values, in order
-    first[0] = True
-    np.not_equal(merged[1:], merged[:-1], out=first[1:])
-    t = merged[first]
-    copies = np.ones(t.size, np.intp)              # every inner break twice
-    copies[np.searchsorted(t, inner)] = 2
-    return np.repeat(t, copies)
+    return np.unique(np.concatenate([t, inner]))
 
 
 def period_times(T: float, period: float, breaks: np.ndarray) -> np.ndarray:
@@ -550,6 +548,11 @@ class Execution:
     joint_trajectory_check : ExecutionCheck or None
     seconds : float
         Time spent making and checking the forms.
+    indicators : Indicators or None
+        Measured on the handed-out path (its replay on ``dense_t``: every sample and three
+        points inside every interval), the energy of its rates exactly.
+    dense_t, dense_q : ndarray or None
+        That replay.
     """
 
     path: SampledPath
@@ -557,6 +560,9 @@ class Execution:
     joint_trajectory: dict[str, Any] | None = None
     joint_trajectory_check: ExecutionCheck | None = None
     seconds: float = 0.0
+    indicators: Indicators | None = None
+    dense_t: np.ndarray | None = None
+    dense_q: np.ndarray | None = None
 
     def validation(self) -> dict[str, Any]:
         """The ``validation.executed`` (and ``validation.joint_trajectory``) entries."""
@@ -601,48 +607,70 @@ def check_period(req: PlanRequest, T: float) -> None:
             f"T = {T:.6g} s, more than {MAX_SAMPLES}", field="controller_period")
 
 
-def piece_values(form: Form, u_exact: Uexact) -> np.ndarray:
-    """The linear form's samples of rates that are constant between the form's knots: each
-    row the value of the (positive-length) interval it bounds, read at the interval's middle.
-    A doubled sample at a break takes the value before it (first copy) and after it (second),
-    so the form holds such rates exactly."""
-    mid = 0.5 * (form.knots[:-1] + form.knots[1:])
-    vals = np.asarray(u_exact(mid), float)
-    p = np.zeros((int(form.idx.max()) + 1, 2))
-    p[form.idx[:, 1]] = vals
-    p[form.idx[:, 0]] = vals
-    return p
+def handed_out_times(req: PlanRequest, T: float, stops: np.ndarray, breaks: np.ndarray,
+                     exact: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The linear form's times (:func:`linear_times` of the stops, and of the breaks when the
+    rates are linear between them: ``exact``), the dense grid the form is replayed on
+    (:func:`dense_times`) and the positions of the times in it."""
+    times = linear_times(T, req.samples, np.union1d(stops, breaks) if exact else stops)
+    dense, at = dense_times(times)
+    return times, dense, at
+
+
+def dense_times(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The form's times and three points inside every interval (where the indicators and the
+    region are measured), and the positions of ``times`` in it."""
+    h = np.diff(times)
+    inner = (times[:-1, None] + h[:, None] * np.array([0.25, 0.5, 0.75])).ravel()
+    dense = np.concatenate([times[:-1, None],
+                            inner.reshape(-1, 3)], axis=1).ravel()
+    dense = np.append(dense, times[-1])
+    return dense, np.arange(times.size) * 4
+
+
+def _energy(form: Form, p: np.ndarray) -> float:
+    """``int u1^2 + u2^2 dt`` of a linear or held form, exactly."""
+    h = np.diff(form.knots)
+    a = p[form.idx[:, 0]]
+    if form.rule == "zoh":
+        return float(np.sum(h[:, None] * a * a))
+    b = p[form.idx[:, 1]]
+    return float(np.sum(h[:, None] * (a * a + a * b + b * b)) / 3.0)
 
 
 def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
             phi_end: float, region: Region | None = None, *,
-            constant: Replay | None = None,
-            linear: np.ndarray | None = None) -> Execution:
+            stops: np.ndarray | None = None, exact: bool = False,
+            initial: Replay | None = None) -> Execution:
     """The handed-out forms of a verified plan: sampled, corrected onto the goal, re-integrated.
 
     Parameters
     ----------
     req : PlanRequest
-        ``samples``, ``controller_period``, ``joint_trajectory``, robot, start, goal, bounds.
+        ``samples``, ``controller_period``, ``joint_trajectory``, robot, start, goal, bounds,
+        limits.
     u_exact : callable
-        The plan's exact rates: times (s), shape (M,) -> (M, 2).
+        The rates to hand out (the plan's path along its time law): times (s), shape (M,)
+        -> (M, 2), continuous.
     breaks : ndarray
-        Times (s) of the plan's input pieces, ``[0, ..., T]``: the inputs may jump there.
+        Times (s) ``[0, ..., T]`` where the rates may have kinks (the projection's pieces).
     T : float
         Duration (s).
     phi_end : float
         ``phi(T)`` of the plan (the forms end there too).
     region : Region, optional
         The region the executed forms must stay in (default: the request's full region).
-    constant : Replay, optional
-        Only for rates that are constant between ``breaks``: the original model under them,
-        its last rows at :func:`linear_times` ``(T, req.samples, breaks)``. The linear form
-        (each inner break a doubled sample) then holds the rates exactly: its samples are the
-        rates (no projection) and this replay is the form's own first replay (not integrated
-        twice). Ignored on a controller period.
-    linear : ndarray, optional
-        :func:`linear_times` ``(T, req.samples, breaks)`` when the caller has them already
-        (and checked the period: :func:`check_period`).
+    stops : ndarray, optional
+        Times (s) where the rates are zero (``0``, the inner stops, ``T``; default ``[0,
+        T]``): samples of the linear form, held at zero by the correction.
+    exact : bool
+        The rates are linear between ``breaks``: the linear form takes them as samples too,
+        and holds the rates exactly (its first replay is the plan's path).
+    initial : Replay, optional
+        With ``exact``: the original model under these rates, its last rows at the dense grid
+        of :func:`handed_out_times` (the plan's own replay at the plan times the time law
+        reaches there: the same path, so not integrated twice). Ignored on a controller
+        period.
 
     Raises
     ------
@@ -651,7 +679,7 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
     NumericalError
         A form does not reach the goal within :data:`EXECUTION_TOLERANCE` when executed.
     InfeasibleError
-        A form leaves the region when executed.
+        A form leaves the region when executed, or its corrected rates leave their limits.
     """
     t_start = time.perf_counter()
     robot = req.robot
@@ -661,62 +689,82 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
     q0 = req.q_start()
     target = np.concatenate([[phi_end], req.goal])
     breaks = np.asarray(breaks, float)
-    if linear is None:
-        check_period(req, T)
+    stops = np.array([0.0, T]) if stops is None else np.asarray(stops, float)
+    check_period(req, T)
     if req.controller_period is None:
-        times = linear_times(T, req.samples, breaks) if linear is None else linear
-        form = linear_form(times)
+        times = handed_out_times(req, T, stops, breaks, exact)[0]
+        held = np.searchsorted(times, stops)
+        form = linear_form(times, held)
+        # point samples of continuous rates: the linear interpolant's values and slopes are
+        # within the rates' and their derivative's peaks (no overshoot of a limit)
+        p0 = np.array(u_exact(times), float)
+        p0[held] = 0.0
     else:
-        times = period_times(T, float(req.controller_period), breaks)
+        times = period_times(T, float(req.controller_period), stops)
         form = zoh_form(times)
+        p0 = _projection(form, u_exact, times.size, np.union1d(breaks, stops))
     limits = (req.max_u1, req.max_u2)
-    initial = None
-    if (constant is not None and form.rule == "linear" and constant.t.size >= times.size
-            and np.array_equal(constant.t[constant.t.size - times.size:], times)):
-        p0, initial = piece_values(form, u_exact), constant
+    if form.rule == "linear":
+        dense, at = handed_out_times(req, T, stops, breaks, exact)[1:]
     else:
-        p0 = _projection(form, u_exact, times.size, breaks)
-    u, q, check = correct(robot, form, p0, q0, target, region, times, limits, initial)
-    for c, lim in enumerate(limits):
-        if lim is not None and float(np.max(np.abs(u[:, c]))) > lim * (1.0 + 1e-9):
-            raise InfeasibleError(
-                f"the handed-out rates exceed max_u{c + 1} = {lim:g} rad/s "
-                f"({float(np.max(np.abs(u[:, c]))):.6g} rad/s) after their correction: more "
-                "samples, or a longer duration", field=f"max_u{c + 1}",
-                diagnostics={"execution": check.as_dict()})
+        dense, at = dense_times(times)
+    u, qd, check = correct(robot, form, p0, q0, target, region, dense, limits,
+                           initial if form.rule == "linear" and exact else None)
+    q = qd[at]
     if req.controller_period is None:
         _require(check, f"path of {req.samples} samples", "samples",
                  ": too few samples to hold this plan, ask for more")
     else:
         _require(check, f"path on the controller period {req.controller_period:g} s",
                  "controller_period", ": the period is too long for this plan")
+    _require_limits(req, form, u, check)
     if form.rule == "zoh":
         u[-1] = u[-2]
     al, be = cf.input_coefficients(q)
     v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
     path = SampledPath(t=times, q=q, z=cf.to_chained(q), u=u, v=v)
+    ind = dataclasses.replace(compute_indicators(dense, qd, None), energy=_energy(form, u))
     jt = jt_check = None
     if req.joint_trajectory:
-        jt, jt_check, peak = joint_trajectory(robot, region, form, path, q0, target, limits)
+        jt, jt_check, _ = joint_trajectory(robot, region, form, path, q0, target, req)
         _require(jt_check, "JointTrajectory form", "joint_trajectory",
                  ": its points are too sparse for this plan (more samples, or a shorter "
                  "controller_period)")
-        for c, lim in enumerate(limits):
-            if lim is not None and peak[c] > lim * (1.0 + 1e-9):
-                raise InfeasibleError(
-                    f"the JointTrajectory form's rates, interpolated between its points as "
-                    f"joint_trajectory_controller does, reach {peak[c]:.6g} rad/s, above "
-                    f"max_u{c + 1} = {lim:g} rad/s: more samples, or a longer duration",
-                    field="joint_trajectory",
-                    diagnostics={"joint_trajectory": jt_check.as_dict(),
-                                 f"peak_u{c + 1}": float(peak[c])})
     return Execution(path=path, check=check, joint_trajectory=jt, joint_trajectory_check=jt_check,
-                     seconds=time.perf_counter() - t_start)
+                     seconds=time.perf_counter() - t_start, indicators=ind, dense_t=dense,
+                     dense_q=qd)
 
 
-def hermite_peak_rates(form: Form, p: np.ndarray) -> np.ndarray:
-    """``max |u_c(t)|`` over ``[0, T]`` of each input of a cubic Hermite form, exactly: on an
-    interval ``u`` is a quadratic in ``s``, whose extremes are at the ends or at its vertex."""
+#: The handed-out forms may exceed a limit by this fraction (the correction moves the rates
+#: by ~1e-9 of their size; the time law plans 1e-3 inside the limits).
+LIMIT_TOLERANCE = 1e-2
+
+
+def _require_limits(req: PlanRequest, form: Form, u: np.ndarray, check: ExecutionCheck) -> None:
+    """Refuse a corrected form whose rates (or, for the linear rule, slopes) leave a limit."""
+    peaks = [np.max(np.abs(u), axis=0)]
+    names = [("max_u1", "max_u2")]
+    if form.rule == "linear":
+        h = np.diff(form.knots)
+        slope = (u[form.idx[:, 1]] - u[form.idx[:, 0]]) / h[:, None]
+        peaks.append(np.max(np.abs(slope), axis=0))
+        names.append(("max_du1", "max_du2"))
+    for peak, pair in zip(peaks, names):
+        for c, name in enumerate(pair):
+            lim = getattr(req, name)
+            if lim is not None and peak[c] > lim * (1.0 + LIMIT_TOLERANCE):
+                raise InfeasibleError(
+                    f"the handed-out {form.rule} form reaches {peak[c]:.6g} after its "
+                    f"correction, above {name} = {lim:g}: more samples, or a longer duration",
+                    field=name, diagnostics={"execution": check.as_dict(),
+                                             "peak": float(peak[c])})
+
+
+def hermite_peaks(form: Form, p: np.ndarray) -> np.ndarray:
+    """``max |u_c|``, ``max |u_c'|`` and ``max |u_c''|`` over ``[0, T]`` of each input of a cubic
+    Hermite form, exactly, shape (3, 2): on an interval ``u`` is a quadratic in ``s``, whose
+    extremes are at the ends or at its vertex; ``u'`` is linear (extremes at the ends) and
+    ``u''`` constant."""
     K = form.knots.size - 1
     k = np.repeat(np.arange(K), 3)
     u = form.local(k, np.tile([0.0, 0.5, 1.0], K), p).reshape(K, 3, 2)
@@ -727,73 +775,104 @@ def hermite_peak_rates(form: Form, p: np.ndarray) -> np.ndarray:
         s = np.where(a != 0.0, -b / (2.0 * a), 0.0)
     inside = (s > 0.0) & (s < 1.0)
     vertex = np.where(inside, u0 + s * (b + a * s), 0.0)
-    return np.max(np.abs(np.concatenate([u0, u1, vertex])), axis=0)
+    h = np.diff(form.knots)[:, None]
+    rate = np.max(np.abs(np.concatenate([u0, u1, vertex])), axis=0)
+    accel = np.max(np.abs(np.concatenate([b / h, (2.0 * a + b) / h])), axis=0)
+    jerk = np.max(np.abs(2.0 * a / h ** 2), axis=0)
+    return np.stack([rate, accel, jerk])
+
+
+def hermite_peak_rates(form: Form, p: np.ndarray) -> np.ndarray:
+    """``max |u_c(t)|`` of a cubic Hermite form (:func:`hermite_peaks`' first row)."""
+    return hermite_peaks(form, p)[0]
 
 
 #: A JointTrajectory stretched for the actuator limits gets this much more time than their
 #: ratio asks (its rates come out of a new correction, which moves them by ~1e-9).
 STRETCH_MARGIN = 1e-6
+#: The request fields of the limits, by derivative order.
+LIMIT_NAMES = (("max_u1", "max_u2"), ("max_du1", "max_du2"), ("max_ddu1", "max_ddu2"))
+
+
+def _stretch_for(peaks: np.ndarray, req: PlanRequest) -> float:
+    """The smallest ``f >= 1`` that brings peaks of orders 0, 1, 2 within the request's limits
+    (a stretch by ``f`` divides them by ``f``, ``f^2``, ``f^3``)."""
+    f = 1.0
+    for order, pair in enumerate(LIMIT_NAMES):
+        for c, name in enumerate(pair):
+            lim = getattr(req, name, None)
+            if lim is not None and peaks[order, c] > lim:
+                f = max(f, (peaks[order, c] / lim) ** (1.0 / (order + 1)))
+    return f
 
 
 def joint_trajectory(robot: Robot, region: Region, form: Form, path: SampledPath,
-                     q0: np.ndarray, target: np.ndarray,
-                     limits: tuple[float | None, float | None] = (None, None)
+                     q0: np.ndarray, target: np.ndarray, req: PlanRequest
                      ) -> tuple[dict[str, Any], ExecutionCheck, np.ndarray]:
     """The ROS ``trajectory_msgs/JointTrajectory`` form of an executable path, corrected for
     cubic Hermite interpolation.
 
-    Points at the path's distinct times; positions ``(phi, th1)`` of the path, velocities the
-    rates there (at a jump, the mean of both sides: a trajectory point has one velocity). The
-    interior positions and all velocities are then corrected so that the original model driven
-    by the derivative of the cubic Hermite interpolant ends at the goal.
+    Points at the path's distinct times (whole nanoseconds); positions ``(phi, th1)`` of the
+    path, velocities the rates there (for a held path, the mean of the two rates held around
+    the point), zero at the first and last points. The interior positions and velocities are
+    then corrected so that the original model driven by the derivative of the cubic Hermite
+    interpolant ends at the goal (the end positions and velocities are held).
 
-    Between points the interpolant's derivative overshoots the velocities (the plan's rates
-    jump at its breaks), so with actuator ``limits`` it can exceed them although the plan does
-    not. Then the points' times are stretched by the largest ratio of peak to limit (times
-    ``1 +`` :data:`STRETCH_MARGIN`) and the velocities shrunk by it, and the form is corrected
-    again on those times: the model has no drift, so ``u(t / f) / f`` drives it along the same
-    path, at rates within the limits (``time_scale`` in the answer; 1 when not stretched).
+    With limits in ``req`` the interpolant's rates, their derivatives and second derivatives
+    (:func:`hermite_peaks`, exact between the points) are brought within them: the points'
+    times are stretched by the smallest factor that does it (times ``1 +``
+    :data:`STRETCH_MARGIN`; usually 1, the path's own rates are planned inside them), the
+    velocities shrunk by it, and the form is corrected again on those times: the model has no
+    drift, so ``u(t / f) / f`` drives it along the same path (``time_scale`` in the answer).
 
     Returns
     -------
     dict
-        ``joint_names``, ``points`` (``positions``, ``velocities``, ``time_from_start`` as
-        ``sec`` and ``nanosec``) and ``interpolation``.
+        ``joint_names``, ``points`` (``positions``, ``velocities``, empty ``accelerations``,
+        ``time_from_start`` as ``sec`` and ``nanosec``), ``interpolation`` and
+        ``time_scale``.
     ExecutionCheck
-    ndarray (2,)
-        The largest ``|u1|, |u2|`` of the interpolated rates (:func:`hermite_peak_rates`).
+    ndarray (3, 2)
+        :func:`hermite_peaks` of the form handed out.
     """
     t = path.t
-    keep = np.concatenate([np.diff(t) > 0.0, [True]])            # last copy of each time
-    first = np.concatenate([[True], np.diff(t) > 0.0])           # first copy
-    # the controller reads whole nanoseconds: the form is verified on those times
-    ns, uniq = np.unique(np.rint(t[keep] * 1e9).astype(np.int64), return_index=True)
-    keep = np.nonzero(keep)[0][uniq]
-    first = np.nonzero(first)[0][uniq]
+    ns, keep = np.unique(np.rint(t * 1e9).astype(np.int64), return_index=True)
     times = ns * 1e-9
     if form.rule == "zoh":
         held = path.u[:-1]
-        vel = np.vstack([held[:1], 0.5 * (held[:-1] + held[1:]), held[-1:]])[uniq]
+        vel = np.vstack([held[:1], 0.5 * (held[:-1] + held[1:]), held[-1:]])[keep]
     else:
-        vel = 0.5 * (path.u[keep] + path.u[first])
+        vel = path.u[keep].copy()
+    vel[[0, -1]] = 0.0
     pos = path.q[keep][:, :2]
     hform = hermite_form(times)
     p, q, check = correct(robot, hform, np.vstack([pos, vel]), q0, target, region, times)
-    peak = hermite_peak_rates(hform, p)
+    peaks = hermite_peaks(hform, p)
     m = times.size
-    ratios = [peak[c] / lim for c, lim in enumerate(limits) if lim is not None]
-    scale = 1.0
-    if ratios and max(ratios) > 1.0:
-        scale = max(ratios) * (1.0 + STRETCH_MARGIN)
+    scale = _stretch_for(peaks, req)
+    if scale > 1.0:
+        scale *= 1.0 + STRETCH_MARGIN
         ns = np.rint(ns * scale).astype(np.int64)
         times = ns * 1e-9
         hform = hermite_form(times)
         p, q, check = correct(robot, hform, np.vstack([p[:m], p[m:] / scale]), q0, target,
                               region, times)
-        peak = hermite_peak_rates(hform, p)
+        peaks = hermite_peaks(hform, p)
+    for order, pair in enumerate(LIMIT_NAMES):
+        for c, name in enumerate(pair):
+            lim = getattr(req, name, None)
+            if lim is not None and peaks[order, c] > lim * (1.0 + LIMIT_TOLERANCE):
+                raise InfeasibleError(
+                    f"the JointTrajectory form, interpolated between its points as "
+                    f"joint_trajectory_controller does, reaches {peaks[order, c]:.6g}, above "
+                    f"{name} = {lim:g}: more samples, or a longer duration",
+                    field="joint_trajectory",
+                    diagnostics={"joint_trajectory": check.as_dict(),
+                                 "peak": float(peaks[order, c]), "limit": name})
     pos, vel = p[:m], p[m:]
-    # no accelerations: with positions and velocities only, joint_trajectory_controller
-    # interpolates cubically, the rule verified here
+    # no accelerations: given positions and velocities only, joint_trajectory_controller
+    # interpolates cubically, the rule verified here (with accelerations it would take a
+    # quintic, another path)
     points = [{"positions": [float(a), float(b)], "velocities": [float(c), float(d)],
                "accelerations": [], "effort": [],
                "time_from_start": {"sec": int(x // 1_000_000_000),
@@ -803,7 +882,7 @@ def joint_trajectory(robot: Robot, region: Region, form: Form, path: SampledPath
            "interpolation": "cubic Hermite between consecutive points (positions and "
                             "velocities), as joint_trajectory_controller",
            "time_scale": scale}
-    return out, check, peak
+    return out, check, peaks
 
 
 class HandedOutInputs:

@@ -73,6 +73,12 @@ class PlanRequest:
         Seconds for the whole solve.
     max_u1, max_u2 : float or None
         Actuator rate limits (rad/s).
+    max_du1, max_du2 : float or None
+        Limits of the rates' derivatives, ``|u_i'|`` (rad/s^2).
+    max_ddu1, max_ddu2 : float or None
+        Limits of the rates' second derivatives, ``|u_i''|`` (rad/s^3). With any limit and no
+        ``duration`` the answer runs its path in the shortest time within them
+        (:mod:`optimizer.timing`).
     joint_bounds : tuple of (lo, hi) or None
     controller_period : float or None
         Period (s) of a controller that holds each rate for one period: the returned path is
@@ -99,6 +105,10 @@ class PlanRequest:
     time_limit: float = 10.0
     max_u1: float | None = None
     max_u2: float | None = None
+    max_du1: float | None = None
+    max_du2: float | None = None
+    max_ddu1: float | None = None
+    max_ddu2: float | None = None
     joint_bounds: tuple[tuple[float, float] | None, ...] | None = None
     controller_period: float | None = None
     joint_trajectory: bool = False
@@ -161,10 +171,13 @@ class PlanRequest:
         if not (math.isfinite(self.time_limit) and 0 < self.time_limit <= MAX_TIME_LIMIT):
             raise InvalidRequestError(f"time_limit = {self.time_limit} s must lie in (0, "
                                       f"{MAX_TIME_LIMIT}] s", field="time_limit")
-        for name in ("max_u1", "max_u2"):
+        for name, unit in (("max_u1", "rad/s"), ("max_u2", "rad/s"), ("max_du1", "rad/s^2"),
+                           ("max_du2", "rad/s^2"), ("max_ddu1", "rad/s^3"),
+                           ("max_ddu2", "rad/s^3")):
             x = getattr(self, name)
-            if x is not None and not (math.isfinite(x) and x > 0):
-                raise InvalidRequestError(f"{name} = {x} must be finite and > 0 (rad/s)",
+            if x is not None and not (isinstance(x, (int, float)) and not isinstance(x, bool)
+                                      and math.isfinite(x) and x > 0):
+                raise InvalidRequestError(f"{name} = {x} must be finite and > 0 ({unit})",
                                           field=name)
         if len(self.constraint_points) > MAX_CONSTRAINT_POINTS:
             raise InvalidRequestError(f"at most {MAX_CONSTRAINT_POINTS} constraint_points",
@@ -203,6 +216,11 @@ class PlanRequest:
     @property
     def duration_or_default(self) -> float:
         return 1.0 if self.duration is None else float(self.duration)
+
+    @property
+    def has_limits(self) -> bool:
+        """Whether any rate limit (or limit of its derivatives) is set."""
+        return any(getattr(self, f) is not None for f in LIMIT_FIELDS)
 
     def duration_for_rates(self, peaks: Sequence[float]) -> float:
         """``T`` for a path whose actuator rates per unit normalised time peak at ``peaks =
@@ -281,6 +299,10 @@ class PlanRequest:
             if k in d and d[k] is None:
                 d.pop(k)
         return cls(**d)
+
+
+#: The request's limits of the rates and their derivatives.
+LIMIT_FIELDS = ("max_u1", "max_u2", "max_du1", "max_du2", "max_ddu1", "max_ddu2")
 
 
 def _finite(x: float, name: str) -> None:

@@ -14,6 +14,7 @@ from .indicators import Indicators
 from .model import Robot
 from .paths import SampledPath
 from .steering import ChainedPath, InputSchedule
+from .timing import TimeLaw
 from .verify import Verification
 
 
@@ -30,16 +31,18 @@ class Plan:
     phi_change : float
         ``dphi`` (rad).
     duration : float
-        ``T`` (s).
+        ``T`` (s) of the handed-out path (the plan's path along ``time_law``).
     inputs : InputSchedule or ActuatorSchedule
         Chained inputs (the paper's methods and the penalty method) or piecewise-constant
-        actuator rates (``shooting``, planned on the original model): either is enough to
-        regenerate everything.
+        actuator rates (``shooting``, planned on the original model), on the plan's own time
+        ``sigma`` in ``[0, inputs.duration]``: with ``time_law`` enough to regenerate
+        everything.
     chained : ChainedPath or None
         The chained path of chained inputs (None for actuator-rate plans).
     feasible_phi_changes : list of (float, float)
         Singularity-free ``dphi`` intervals of the paper's family (empty when not computed).
     indicators : Indicators
+        Measured on the handed-out path (the default form's replay).
     margin : float
         Region margin of the continuous path (rad, full criterion).
     path : SampledPath
@@ -55,6 +58,9 @@ class Plan:
     execution : Execution or None
         The check of the handed-out forms (``validation.executed``) and the JointTrajectory
         form when asked for.
+    time_law : TimeLaw or None
+        How the handed-out path runs the plan's: ``u(t) = u_plan(sigma(t)) sigma'(t)``, rest
+        to rest (:mod:`optimizer.timing`).
     """
 
     robot: Robot
@@ -71,11 +77,20 @@ class Plan:
     timing: dict[str, float] = field(default_factory=dict)
     diagnostics: dict[str, Any] = field(default_factory=dict)
     execution: Execution | None = None
+    time_law: TimeLaw | None = None
 
     @property
     def b0(self) -> float | None:
-        """The paper's constant ``v1 = b0 = dphi / T`` (None when ``v1`` varies)."""
-        return self.phi_change / self.duration if self.inputs.constant_v1 else None
+        """The paper's constant ``v1 = b0 = dphi / T`` of the plan's own schedule (None when
+        ``v1`` varies)."""
+        return self.phi_change / self.inputs.duration if self.inputs.constant_v1 else None
+
+    def rates_at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The exact rates of the time law and their derivatives at times ``t`` (s), each
+        shape (M, 2) (the handed-out samples are these, corrected by ~1e-9 rad/s)."""
+        if self.time_law is None:
+            raise ValueError("this plan has no time law")
+        return self.time_law.rates_and_derivative(np.atleast_1d(np.asarray(t, float)))
 
     def to_dict(self, *, plain: bool = True) -> dict[str, Any]:
         """The JSON shape of a successful ``POST /v1/plans`` response (finite numbers only).
@@ -145,6 +160,8 @@ class Plan:
             out["validation"].update(exe.validation())
             if exe.joint_trajectory is not None:
                 out["joint_trajectory"] = exe.joint_trajectory
+        if self.time_law is not None:
+            out["time_law"] = self.time_law.as_dict()
         return json_safe(out) if plain else out
 
 

@@ -161,10 +161,19 @@ class _PlanData:
         self.d_a = ind.get("d_a")
         self.t_p = ind.get("t_p")
         self.breaks = self._breaks(plan)
+        u = path.get("u")
+        self.u = _array(u, "path.u", 2) if u is not None else None
+        if self.u is not None and self.u.shape != (self.t.size, 2):
+            raise ValueError(f"path.u has shape {self.u.shape}, expected ({self.t.size}, 2)")
+        self.limits = dict((plan.get("time_law") or {}).get("limits") or {})
 
     @staticmethod
     def _breaks(plan: Mapping[str, Any]) -> list[float]:
-        """Interior segment boundaries of a piecewise plan (s)."""
+        """Interior stops of the handed-out path's time law (s), or, for a plan without one,
+        its segment boundaries."""
+        law = plan.get("time_law") or {}
+        if law.get("stops"):
+            return [float(x) for x in law["stops"][1:-1]]
         segs = ((plan.get("coefficients") or {}).get("segments")) or []
         out = []
         for s in segs[1:]:
@@ -239,7 +248,10 @@ def joint_angles(plan: Mapping[str, Any], fmt: str = "png") -> bytes:
     p = _PlanData(plan)
 
     def build() -> Figure:
-        fig, (ax, axp) = _new_figure(6.4, 2, height_ratios=(2.6, 1.0))
+        rates = p.u is not None
+        fig, axes = _new_figure(8.0 if rates else 6.4, 3 if rates else 2,
+                                height_ratios=(2.6, 1.0, 1.2) if rates else (2.6, 1.0))
+        ax, axp = axes[0], axes[1]
         idx = _thin(p.t.size)
         t = p.t[idx]
         q = _deg(p.q[idx])
@@ -260,16 +272,41 @@ def joint_angles(plan: Mapping[str, Any], fmt: str = "png") -> bytes:
         axp.plot(t, q[:, 0], color=c)
         axp.plot([t0, t1], [q[0, 0], q[-1, 0]], color=c, ls="--", lw=1.0, alpha=0.6)
         axp.set_ylabel("phi [deg]")
-        axp.set_xlabel("time t [s]")
         _legend_right(axp, [Line2D([], [], color=c, label=f"{_GREEK['phi']} (phi, actuator)"),
                             Line2D([], [], color=c, ls="--", lw=1.0, alpha=0.6,
                                    label="straight reference")])
-        for a in (ax, axp):
+        if rates:
+            _rates_panel(axes[2], p)
+        axes[-1].set_xlabel("time t [s]")
+        for a in axes:
             _mark_breaks(a, p.breaks)
         axp.set_xlim(t0, t1)
         return fig
 
     return _draw(build, fmt)
+
+
+def _rates_panel(ax: Any, p: "_PlanData") -> None:
+    """The handed-out rates u1 = phi', u2 = th1' against time, by their rule, with the
+    limits of the rates (dotted) when the plan keeps some."""
+    assert p.u is not None
+    colors = ("0.15", "tab:red")
+    handles = []
+    step = p.rule == "zoh"
+    for c, (name, col) in enumerate(zip(("u1 = phi'", "u2 = th1'"), colors)):
+        if step:
+            ax.step(p.t, p.u[:, c], where="post", color=col)
+        else:
+            ax.plot(p.t, p.u[:, c], color=col)
+        handles.append(Line2D([], [], color=col, label=name))
+        lim = p.limits.get(f"max_u{c + 1}")
+        if lim is not None:
+            for sgn in (1.0, -1.0):
+                ax.axhline(sgn * float(lim), color=col, ls=":", lw=1.0)
+            handles.append(Line2D([], [], color=col, ls=":", lw=1.0,
+                                  label=f"max_u{c + 1} = {float(lim):.3g}"))
+    ax.set_ylabel("rates [rad/s]")
+    _legend_right(ax, handles)
 
 
 def _constraint_points(plan: Mapping[str, Any], given: Any) -> list[tuple[float, int, float]]:

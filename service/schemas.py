@@ -211,8 +211,8 @@ class PlanPath(BaseModel):
     """The executable path: one row per time sample (see docs/execution.md).
 
     ``rule`` says how a controller executes ``u``: ``linear`` (linear interpolation between
-    consecutive samples; every time where the inputs jump is in ``t`` twice, with the value
-    before and then after the jump) or ``zoh`` (with ``controller_period``: ``u[k]`` held on
+    consecutive samples; no time twice, the rates are continuous and zero at both ends) or
+    ``zoh`` (with ``controller_period``: ``u[k]`` held on
     ``[t_k, t_{k+1})``, the last row repeats the last interval's rate). Executed by that rule,
     ``u`` drives the original model to the goal (``validation.executed``); ``q`` and ``z`` are
     the states of that execution.
@@ -220,8 +220,7 @@ class PlanPath(BaseModel):
 
     rule: Optional[Literal["linear", "zoh"]] = Field(
         None, description="How u is executed between samples: linear or zoh.")
-    t: list[float] = Field(..., description="Times (s); nondecreasing, a jump's time twice "
-                                            "(rule linear).")
+    t: list[float] = Field(..., description="Times (s); increasing.")
     q: list[list[Optional[float]]] = Field(..., description="Rows [phi, th1..thn] (rad).")
     z: list[list[Optional[float]]] = Field(..., description="Chained state rows [z1..z_{n+1}].")
     u: list[list[Optional[float]]] = Field(..., description="Actuator rates [u1, u2] (rad/s).")
@@ -307,10 +306,11 @@ class JointTrajectory(BaseModel):
     interpolation: str
     time_scale: float = Field(
         1.0, ge=1.0,
-        description="How much longer than the plan these points take: with max_u1/max_u2 the "
-                    "cubic interpolant would overshoot the limits next to the plan's rate "
-                    "jumps, so its times are stretched by this factor and its velocities "
-                    "shrunk by it (the same path: the model has no drift); 1 otherwise.")
+        description="How much longer than the plan these points take: when the cubic "
+                    "interpolant would exceed a limit (max_u*, max_du*, max_ddu*) between its "
+                    "points, its times are stretched by the smallest factor that keeps them "
+                    "and its velocities shrunk by it (the same path: the model has no drift); "
+                    "1 otherwise.")
 
 
 class PlanResponse(BaseModel):
@@ -332,6 +332,13 @@ class PlanResponse(BaseModel):
     validation: Validation
     joint_trajectory: Optional[JointTrajectory] = Field(
         None, description="With joint_trajectory: true in the request.")
+    time_law: Optional[dict[str, Any]] = Field(
+        None, description="How the answer runs the plan's path (coefficients, on the plan's "
+                          "own time sigma in [0, plan_duration]) from rest to rest: "
+                          "u(t) = u_plan(sigma(t)) sigma'(t); phases of constant jerk of the "
+                          "parameter lam, knots mapping lam to sigma, the stops (times where "
+                          "both rates are 0), the shortest duration within the limits and "
+                          "the binding limit (docs/execution.md).")
     timing: dict[str, Optional[float]] = Field(..., description="Seconds per stage.")
     diagnostics: dict[str, Any] = Field(..., description="Extra facts about the solve.")
 
@@ -631,8 +638,10 @@ def build_schemas(limits: Limits) -> Schemas:
             None, min_length=2, max_length=2,
             description="[lo, hi] search range of dphi (rad); default [-pi, pi].")
         duration: Optional[num(MIN_DURATION, L.max_duration)] = Field(  # type: ignore[valid-type]
-            None, description="T (s); default 1 s, or the shortest T that respects max_u1/"
-                              "max_u2 when those are given.")
+            None, description="T (s); default 1 s, or the shortest T that respects the "
+                              "limits (max_u*, max_du*, max_ddu*) along the path when those "
+                              "are given. Too short for the limits: 422 naming the limit and "
+                              "the shortest duration.")
         method: MethodName = Field(  # type: ignore[valid-type]
             "auto", description="auto (the default): picks among the methods below and "
                                 "returns the best plan by the objective. " + METHOD_HELP)
@@ -660,6 +669,17 @@ def build_schemas(limits: Limits) -> Schemas:
             None, description="Limit of |u1| = |phi'| (rad/s).")
         max_u2: Optional[num(hi=1e6, gt=0.0)] = Field(  # type: ignore[valid-type]
             None, description="Limit of |u2| = |th1'| (rad/s).")
+        max_du1: Optional[num(hi=1e6, gt=0.0)] = Field(  # type: ignore[valid-type]
+            None, description="Limit of |u1'| = |phi''| (rad/s^2), on every handed-out form "
+                              "between its samples.")
+        max_du2: Optional[num(hi=1e6, gt=0.0)] = Field(  # type: ignore[valid-type]
+            None, description="Limit of |u2'| = |th1''| (rad/s^2).")
+        max_ddu1: Optional[num(hi=1e9, gt=0.0)] = Field(  # type: ignore[valid-type]
+            None, description="Limit of |u1''| (rad/s^3): S-curve time laws; checked on the "
+                              "JointTrajectory form (the linear form's second derivative is "
+                              "not a function).")
+        max_ddu2: Optional[num(hi=1e9, gt=0.0)] = Field(  # type: ignore[valid-type]
+            None, description="Limit of |u2''| (rad/s^3).")
         joint_bounds: Optional[list[Optional[Annotated[  # type: ignore[valid-type]
                 list[JointAngle], Field(min_length=2, max_length=2)]]]] = Field(
             None, max_length=L.max_joints,
@@ -682,7 +702,8 @@ def build_schemas(limits: Limits) -> Schemas:
             if period is None:
                 return period
             d = info.data
-            limited = d.get("max_u1") is not None or d.get("max_u2") is not None
+            limited = any(d.get(k) is not None for k in ("max_u1", "max_u2", "max_du1",
+                                                          "max_du2", "max_ddu1", "max_ddu2"))
             duration = d.get("duration") if d.get("duration") is not None else (
                 None if limited else 1.0)
             if duration is not None:

@@ -71,14 +71,19 @@ def test_plans_reach_the_goal_inside_the_region(start, goal, robot):
     # every joint, th_n included, stays inside (0, pi/2) by default
     th = q[:, 1:robot.n + 1]
     assert np.all((th > 0.0) & (th < np.pi / 2))
-    # the returned samples are the model's path (the library's own quadrature), and its
-    # margin is the smallest distance of th_1..th_n from (0, pi/2) (nodes: monotone pieces)
-    ref = np.array([np.interp(p.path.t, t, q[:, j]) for j in range(q.shape[1])]).T
+    # the returned samples are the model's path run along the answer's time law (the
+    # library's own quadrature; the path passes the plan's states at the plan's times
+    # time_law.plan_time(t)), and its margin is the smallest distance of th_1..th_n from
+    # (0, pi/2) (nodes: monotone pieces)
+    sigma = p.time_law.plan_time(p.path.t)
+    ref = np.array([np.interp(sigma, t, q[:, j]) for j in range(q.shape[1])]).T
     assert np.max(np.abs(p.path.q - ref)) < 1e-4  # linear interpolation of 41-point pieces
     assert p.margin == pytest.approx(float(np.min(np.minimum(th, np.pi / 2 - th))), abs=1e-6)
     assert p.verification.terminal_error < 1e-6
-    assert p.indicators.energy == pytest.approx(
-        float(np.sum(np.diff(p.inputs.breaks) * np.sum(p.inputs.rates ** 2, axis=1))), rel=1e-8)
+    # the energy of the handed-out rates (linear interpolation: exact per interval)
+    a, b, h = p.path.u[:-1], p.path.u[1:], np.diff(p.path.t)[:, None]
+    assert p.indicators.energy == pytest.approx(float(np.sum(h * (a * a + a * b + b * b)) / 3),
+                                                rel=1e-8)
 
 
 
@@ -101,12 +106,13 @@ def test_indicators_are_the_scipy_paths(fallback, monkeypatch):
     assert (p.verification.integrator == DOP853_NAME) == fallback
     t, q = scipy_path(p, req, per_interval=201)
     th = q[:, 1:]
-    ind = p.indicators
+    ind = p.indicators      # of the handed-out path: the plan's, run along its time law
     assert ind.deviation == pytest.approx(
-        segment_distance(th, np.array(OPP_B[0]), np.array(OPP_B[1])), abs=1e-6)
-    tau = t / t[-1]
-    line1 = OPP_B[0][0] + tau * (OPP_B[1][0] - OPP_B[0][0])
-    assert ind.d_a == pytest.approx(float(np.max(np.abs(th[:, 0] - line1))), abs=1e-6)
+        segment_distance(th, np.array(OPP_B[0]), np.array(OPP_B[1])), abs=1e-5)
+    th_out = np.linspace(0.0, p.duration, 20001)
+    th1 = np.interp(p.time_law.plan_time(th_out), t, th[:, 0])
+    line1 = OPP_B[0][0] + th_out / p.duration * (OPP_B[1][0] - OPP_B[0][0])
+    assert ind.d_a == pytest.approx(float(np.max(np.abs(th1 - line1))), abs=1e-4)
     assert ind.reversals_phi == count_reversals(q[:, 0], ACTUATOR_DEAD_BAND)
     assert ind.reversals_th1 == count_reversals(q[:, 1], ACTUATOR_DEAD_BAND)
 
@@ -176,9 +182,12 @@ def test_no_larger_deviation_and_no_more_reversals_than_the_user_baseline(goal, 
 def test_actuator_limits_set_the_duration():
     req = request(*OPP_A, max_u1=0.8, max_u2=0.6)
     p = plan(req)
-    peak = np.max(np.abs(p.inputs.rates), axis=0)
-    assert np.all(peak <= np.array([0.8, 0.6]) * (1 + 1e-12))
-    assert max(peak[0] / 0.8, peak[1] / 0.6) == pytest.approx(1.0, rel=1e-9)
+    # the handed-out rates: within the limits, and the time law cruises at them (planned at
+    # 0.999 of them) in the shortest duration
+    peak = np.max(np.abs(p.path.u), axis=0)
+    assert np.all(peak <= np.array([0.8, 0.6]) * (1 + 1e-9))
+    assert max(peak[0] / 0.8, peak[1] / 0.6) == pytest.approx(0.999, rel=1e-6)
+    assert p.duration == pytest.approx(p.time_law.shortest)
     with pytest.raises(InfeasibleError, match="too short"):
         plan(request(*OPP_A, max_u1=0.8, max_u2=0.6, duration=0.5 * p.duration))
 
@@ -337,13 +346,16 @@ def test_a_six_joint_goal_needs_the_finer_transcription():
 @pytest.mark.parametrize("kw", [{"duration": 4.0}, {"max_u1": 0.8, "max_u2": 0.6}],
                          ids=["duration", "actuator_limits"])
 def test_energy_is_the_physical_one_for_any_duration(kw):
-    """int |u|^2 dt of the returned rates (exact for piecewise-constant rates), whatever T:
-    the verification integrates in normalised time, where it is T times larger."""
+    """int |u|^2 dt of the plan's rates (exact for piecewise-constant rates), whatever T:
+    the verification integrates in normalised time, where it is T times larger; the
+    indicators' energy is that of the handed-out rates (linear between samples: exact)."""
     p = plan(request(*OPP_A, **kw))
     assert p.duration != pytest.approx(1.0)
     exact = float(np.sum(np.diff(p.inputs.breaks) * np.sum(p.inputs.rates ** 2, axis=1)))
-    assert p.indicators.energy == pytest.approx(exact, rel=1e-8)
     assert p.verification.energy == pytest.approx(exact, rel=1e-8)
+    a, b, h = p.path.u[:-1], p.path.u[1:], np.diff(p.path.t)[:, None]
+    assert p.indicators.energy == pytest.approx(float(np.sum(h * (a * a + a * b + b * b)) / 3),
+                                                rel=1e-8)
 
 
 def test_wiggle_free_signs_merges_short_runs_only():

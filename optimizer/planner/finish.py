@@ -29,12 +29,13 @@ import numpy as np
 from ..actuation import ActuatorSchedule
 from ..chained_form import chained_form
 from ..errors import InfeasibleError, NumericalError
-from ..execution import (CORRECTION_TARGET, REPLAY_NODES, check_period, execute,
-                         linear_times)
-from ..indicators import compute_indicators
-from ..problem import PlanRequest
+from ..execution import (CORRECTION_TARGET, REPLAY_NODES, Execution, execute,
+                         handed_out_times)
+from ..indicators import Indicators, compute_indicators
+from ..problem import MAX_DURATION, PlanRequest
 from ..results import Plan
 from ..steering import ChainedPath, InputSchedule
+from ..timing import Limits, RatesOf, TimeLaw, geometric_path, time_law
 from ..verify import (CASCADE_TOL, PlannedInputs, Replay, Verification, integrate,
                       integrate_cascade, verify_plan)
 from .family import SEARCH_SAMPLES
@@ -43,8 +44,6 @@ from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region, make_region
 #: Points of the dense grid the indicators are measured on (the searches' own density, so
 #: that t_p and d_a agree with what was optimised).
 INDICATOR_SAMPLES = SEARCH_SAMPLES
-#: Normalised-time samples used to find the peak actuator rates for duration scaling.
-RATE_SAMPLES = 2001
 
 
 def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
@@ -79,8 +78,9 @@ def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
             "the path leaves the singularity-free region"
             + (f" at t/T = {when:.6g}" if when is not None else ""),
             diagnostics={"margin": chk.margin, "first_crossing_tau": when})
-    # Duration: the geometric path depends on tau only; T rescales the rates.
-    T = _duration(req, cf, chained)
+    # the plan's own duration: the geometric path depends on tau only; the time law
+    # (retime_and_execute) decides how fast the answer runs it
+    T = _plan_duration(req)
     inputs = InputSchedule(inputs.breaks, inputs.v1, inputs.v2, T)
     chained = ChainedPath(chained.z0, inputs, chained.polys)
     planned = PlannedInputs(cf, chained)
@@ -123,35 +123,115 @@ def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
             f"(terminal error {ver.terminal_error:.3g} rad, singular={ver.singular})",
             diagnostics={"terminal_error": ver.terminal_error, "singular": ver.singular,
                          "method": method})
-    # the handed-out path is what a controller executes: corrected for its rule and verified
-    # by it (optimizer.execution)
-    exe = execute(req, planned.u, planned.breaks, T, req.phi_start + dphi,
-                  limits_region(req))
+    # the handed-out path is the plan's path along its time law, corrected for its rule and
+    # verified by it (optimizer.timing, optimizer.execution)
+    law, exe = retime_and_execute(req, planned.u, planned.breaks, False, req.phi_start + dphi,
+                                  ind, method)
     timing["execution"] = exe.seconds
-    return Plan(robot=robot, method=method, phi_change=float(dphi), duration=T, inputs=inputs,
-                chained=chained, feasible_phi_changes=feasible, indicators=ind,
-                margin=float(chk.margin), path=exe.path, verification=ver, timing=timing,
-                diagnostics=diagnostics, execution=exe)
+    return Plan(robot=robot, method=method, phi_change=float(dphi), duration=law.T,
+                inputs=inputs, chained=chained, feasible_phi_changes=feasible,
+                indicators=_handed_out(exe, ind), margin=float(chk.margin), path=exe.path,
+                verification=ver, timing=timing, diagnostics=diagnostics, execution=exe,
+                time_law=law)
 
 
-def _duration(req: PlanRequest, cf: Any, chained: ChainedPath) -> float:
-    limits = (req.max_u1, req.max_u2)
-    if all(x is None for x in limits):
-        return req.duration_or_default
-    tau = np.linspace(0.0, 1.0, RATE_SAMPLES)
-    q = cf.from_chained(chained.z(tau)).q
-    U = cf.u_from_v(q, chained.inputs.V(tau))  # rates per unit normalised time
-    if req.duration is None and req.constraint_points:
+def _plan_duration(req: PlanRequest) -> float:
+    """The duration of a method's own schedule (its time ``sigma``): the request's, or 1 s.
+    With limits and constraint points a duration is needed (their times are in seconds)."""
+    if req.has_limits and req.duration is None and req.constraint_points:
         raise InfeasibleError("constraint point times are in seconds: give a duration when "
-                              "actuator limits are set", diagnostics={})
-    return req.duration_for_rates(np.max(np.abs(U), axis=0))
+                              "actuator limits are set", field="duration", diagnostics={})
+    return req.duration_or_default
+
+
+def request_limits(req: PlanRequest) -> Limits:
+    """The request's limits of the rates and their derivatives."""
+    return Limits((req.max_u1, req.max_u2), (req.max_du1, req.max_du2),
+                  (req.max_ddu1, req.max_ddu2))
+
+
+#: The handed-out path may lie this much farther (rad) from the straight segment than the
+#: plan's exact path, plus :data:`DEVIATION_RELATIVE` of it (the correction moves it a little).
+DEVIATION_TOLERANCE = 1e-3
+DEVIATION_RELATIVE = 1e-2
+
+
+def plan_time_law(req: PlanRequest, rates: RatesOf, breaks: np.ndarray, constant: bool
+                  ) -> TimeLaw:
+    """The time law of a plan whose exact rates ``rates`` (on its own time) may jump at
+    ``breaks`` (``constant``: constant between them), for the request's duration and limits
+    (:func:`optimizer.timing.time_law`)."""
+    stops = [cp.time for cp in req.constraint_points]
+    path = geometric_path(rates, np.asarray(breaks, float), constant=constant, stops=stops)
+    return time_law(path, request_limits(req), req.duration, req.duration_or_default,
+                    fixed_times=bool(req.constraint_points), max_duration=MAX_DURATION)
+
+
+def retime_and_execute(req: PlanRequest, rates: RatesOf, breaks: np.ndarray, constant: bool,
+                       phi_end: float, exact: Indicators, method: str, *,
+                       law: TimeLaw | None = None, initial: Replay | None = None
+                       ) -> tuple[TimeLaw, Execution]:
+    """The plan's path along its time law (:func:`optimizer.timing.time_law`: rest to rest,
+    continuous rates, within the request's limits), handed out and verified
+    (:func:`optimizer.execution.execute`).
+
+    ``rates`` are the plan's exact rates on its own time, which may jump at ``breaks``
+    (``constant``: constant between them); ``exact`` its indicators; ``law`` the time law
+    when the caller made it (:func:`plan_time_law`), ``initial`` the replay of
+    :func:`optimizer.execution.execute`. The handed-out path's
+    reversals and deviation are compared with them: a correction that adds a reversal or
+    moves the path away from the straight segment (by more than :data:`DEVIATION_TOLERANCE`
+    plus :data:`DEVIATION_RELATIVE` of it) is refused, not handed out.
+
+    Raises
+    ------
+    InfeasibleError
+        The duration is too short for the limits, or the handed-out path is not the plan's.
+    """
+    if law is None:
+        law = plan_time_law(req, rates, breaks, constant)
+    exe = execute(req, law.rates, law_kinks(law), law.T, phi_end, limits_region(req),
+                  stops=law.stops, exact=law.piecewise_linear, initial=initial)
+    got = exe.indicators
+    assert got is not None
+    worse = []
+    if got.reversals_phi > exact.reversals_phi:
+        worse.append(f"phi reverses {got.reversals_phi} times (the plan {exact.reversals_phi})")
+    if got.reversals_th1 > exact.reversals_th1:
+        worse.append(f"th1 reverses {got.reversals_th1} times (the plan {exact.reversals_th1})")
+    if got.deviation > exact.deviation * (1.0 + DEVIATION_RELATIVE) + DEVIATION_TOLERANCE:
+        worse.append(f"its deviation is {math.degrees(got.deviation):.4g} deg (the plan "
+                     f"{math.degrees(exact.deviation):.4g} deg)")
+    if worse:
+        field = "samples" if req.controller_period is None else "controller_period"
+        raise InfeasibleError(
+            f"the handed-out path, corrected onto the goal, is not the {method} plan's: "
+            + "; ".join(worse) + f" (ask for more {field.replace('_', ' ')})", field=field,
+            diagnostics={"execution": exe.check.as_dict(),
+                         "handed_out": {"reversals": {"phi": got.reversals_phi,
+                                                      "th1": got.reversals_th1},
+                                        "deviation": got.deviation},
+                         "plan": {"reversals": {"phi": exact.reversals_phi,
+                                                "th1": exact.reversals_th1},
+                                  "deviation": exact.deviation}})
+    return law, exe
+
+
+def law_kinks(law: TimeLaw) -> np.ndarray:
+    """Times where the handed-out rates may have kinks: the phases' starts and the stops."""
+    return np.union1d(law.phases.start, law.stops)
+
+
+def _handed_out(exe: Execution, exact: Indicators) -> Indicators:
+    """The indicators of the handed-out path (the default form)."""
+    return exe.indicators if exe.indicators is not None else exact
 
 
 def actuator_schedule(req: PlanRequest, rates: np.ndarray) -> ActuatorSchedule:
-    """Rates ``U`` (N, 2) on equal intervals of normalised time, as a schedule in seconds: the
-    duration is the request's, or the shortest that keeps ``|u| = |U| / T`` within its
-    actuator limits (the model is driftless: ``T`` does not change the path)."""
-    T = req.duration_for_rates(np.max(np.abs(rates), axis=0))
+    """Rates ``U`` (N, 2) on equal intervals of normalised time, as a schedule in seconds on
+    the plan's own duration (:func:`_plan_duration`; the time law fits the answer's duration
+    and limits afterwards: the model is driftless, ``T`` does not change the path)."""
+    T = _plan_duration(req)
     return ActuatorSchedule(breaks=np.linspace(0.0, T, rates.shape[0] + 1), rates=rates / T)
 
 
@@ -188,25 +268,28 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
     goal = np.array(req.goal)
     t0 = time.perf_counter()
 
-    def replay(U: np.ndarray) -> tuple[ActuatorSchedule, np.ndarray, Replay]:
+    def replay(U: np.ndarray) -> tuple[ActuatorSchedule, TimeLaw, Replay]:
         sched = actuator_schedule(req, U)
-        T = sched.duration
-        check_period(req, T)
-        times = (linear_times(T, req.samples, sched.breaks) if req.controller_period is None
-                 else np.empty(0))
-        rep = integrate_cascade(robot, sched.u, q0, T, np.concatenate([sched.breaks, times]),
+        law = plan_time_law(req, sched.u, sched.breaks, True)
+        t_eval = sched.breaks
+        if law.piecewise_linear and req.controller_period is None:
+            # the handed-out linear form holds the law's rates exactly: its replay is this
+            # path at the plan times the law reaches on the form's dense grid
+            dense = handed_out_times(req, law.T, law.stops, law_kinks(law), True)[1]
+            t_eval = np.concatenate([sched.breaks, law.plan_time(dense)])
+        rep = integrate_cascade(robot, sched.u, q0, sched.duration, t_eval,
                                 sched.breaks, nodes=REPLAY_NODES, initial_panels=1,
                                 fallback=sched.u_scalar, constant_pieces=True)
-        return sched, times, rep
+        return sched, law, rep
 
     def miss(r: Replay) -> float:
         return float(np.max(np.abs(r.final[1:] - goal))) if r.success else math.inf
 
-    schedule, times, rep = replay(rates)
+    schedule, law, rep = replay(rates)
     if refine is not None and rep.success and miss(rep) > CORRECTION_TARGET:
         again = replay(refine(rep.final))
         if miss(again[2]) < miss(rep):
-            schedule, times, rep = again
+            schedule, law, rep = again
     T, breaks = schedule.duration, schedule.breaks
     if not rep.success:
         raise NumericalError(f"the re-integration failed: {rep.message}",
@@ -247,13 +330,12 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
                        rtol=CASCADE_TOL, atol=CASCADE_TOL, energy=energy,
                        integrator=rep.integrator, error_estimate=rep.error_estimate)
     timing["sampling"] = time.perf_counter() - t1
-    # the handed-out path is what a controller executes: corrected for its rule and verified
-    # by it (optimizer.execution), the breaks in seconds exact in its times
-    exe = execute(req, schedule.u, breaks, T, float(final[0]), limits_region(req),
-                  constant=rep if times.size else None,
-                  linear=times if times.size else None)
+    # the handed-out path is the plan's path along its time law (stop and go at every
+    # change of direction), corrected for its rule and verified by it
+    law, exe = retime_and_execute(req, schedule.u, breaks, True, float(final[0]), ind, method,
+                                  law=law, initial=rep)
     timing["execution"] = exe.seconds
-    return Plan(robot=robot, method=method, phi_change=dphi, duration=T, inputs=schedule,
-                chained=None, feasible_phi_changes=[], indicators=ind, margin=margin,
-                path=exe.path, verification=ver, timing=timing, diagnostics=diagnostics,
-                execution=exe)
+    return Plan(robot=robot, method=method, phi_change=dphi, duration=law.T, inputs=schedule,
+                chained=None, feasible_phi_changes=[], indicators=_handed_out(exe, ind),
+                margin=margin, path=exe.path, verification=ver, timing=timing,
+                diagnostics=diagnostics, execution=exe, time_law=law)
