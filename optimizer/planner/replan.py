@@ -60,6 +60,7 @@ from ..indicators import compute_indicators
 from ..model import Robot
 from ..problem import PlanRequest
 from ..results import Plan, json_safe
+from ..timing import ramp_profile
 from ..verify import integrate_cascade
 from .plan import plan as full_plan
 from .nlp import BufferedCall, ladder, minimum_norm_step, multiple_shooting_nlp
@@ -77,14 +78,19 @@ BRAKE_TIME = 0.05
 DEFAULT_SAMPLES = 101
 #: A rate below this (rad/s) is at rest.
 REST = 1e-12
+#: ``time_law.rule`` of a continuation (as :meth:`optimizer.timing.TimeLaw.as_dict` says it).
+LAW_RULE = ("u(t) = u_plan(sigma) * dsigma/dlam * lam'(t); on phase k, with r = t - start: "
+            "lam = lam0 + v0 r + a0 r^2/2 + jerk r^3/6; sigma = sigma_k + slope_k (lam - lam_k) "
+            "on the knots' piece k")
 
 
 # ------------------------------------------------------------------ time laws (issue 25's)
 @dataclass(frozen=True)
 class TimeLaw:
-    """``sigma(t)`` as phases of constant jerk: rows ``(t0, dt, sigma0, dsigma0, ddsigma0,
-    jerk)`` in time order, contiguous. The representation of ``time_law.phases`` in a plan's
-    answer (docs: the timing design); ``identity`` builds ``sigma = t``."""
+    """Plan time ``sigma(t)`` as phases of constant jerk: rows ``(t0, dt, sigma0, dsigma0,
+    ddsigma0, jerk)`` in time order, contiguous (an answer's ``time_law``, its ``lam`` mapped
+    to ``sigma``: :meth:`from_answer`); :meth:`identity` is ``sigma = t`` (a plan without a
+    time law: its rates jump at its breaks)."""
 
     phases: np.ndarray
 
@@ -141,26 +147,68 @@ class TimeLaw:
         s = P[:, 1]
         return P[:, 2] + P[:, 3] * s + 0.5 * P[:, 4] * s * s + P[:, 5] * s ** 3 / 6.0
 
-    def as_dict(self, plan_duration: float) -> dict[str, Any]:
-        """The answer's ``time_law``: ``stops`` are the phase starts at rest and the end."""
-        stops = self.phases[np.abs(self.phases[:, 3]) <= REST, 0].tolist() + [self.end]
-        return {"plan_duration": plan_duration, "stops": stops,
-                "phases": self.phases.tolist()}
+    def as_dict(self, plan_duration: float, breaks: np.ndarray) -> dict[str, Any]:
+        """The answer's ``time_law`` in the shape of :meth:`optimizer.timing.TimeLaw.as_dict`
+        (here ``lam = sigma``: knots of slope 1 at the pieces' ``breaks``); ``stops`` are the
+        phase starts at rest and the end."""
+        P = self.phases
+        stops = P[np.abs(P[:, 3]) <= REST, 0].tolist() + [self.end]
+        return {"rule": LAW_RULE, "plan_duration": plan_duration, "stops": stops,
+                "knots": {"lam": breaks, "sigma": breaks, "slope": np.ones(breaks.size - 1)},
+                "phases": {"start": P[:, 0], "length": P[:, 1], "lam0": P[:, 2],
+                           "v0": P[:, 3], "a0": P[:, 4], "jerk": P[:, 5]},
+                "shortest_duration": None, "binding_limit": None, "limits": {}}
+
+    @classmethod
+    def from_answer(cls, law: Mapping[str, Any]) -> "TimeLaw":
+        """The rows of an answer's ``time_law`` (:meth:`optimizer.timing.TimeLaw.as_dict`),
+        in plan time: on a knot piece ``sigma`` is linear in ``lam``, so each phase (inside
+        one piece: actuator plans stop at every break) is a cubic in ``sigma`` too.
+
+        Raises
+        ------
+        InvalidRequestError
+            Not such a law (``field`` under ``plan.time_law``).
+        """
+        try:
+            ph, kn = law["phases"], law["knots"]
+            cols = [_floats(ph[k], f"plan.time_law.phases.{k}")
+                    for k in ("start", "length", "lam0", "v0", "a0", "jerk")]
+            lam_k = _floats(kn["lam"], "plan.time_law.knots.lam")
+            sig_k = _floats(kn["sigma"], "plan.time_law.knots.sigma")
+            slope = _floats(kn["slope"], "plan.time_law.knots.slope")
+        except (KeyError, TypeError):
+            raise _bad("plan.time_law must hold knots (lam, sigma, slope) and phases (start, "
+                       "length, lam0, v0, a0, jerk)", "plan.time_law") from None
+        sizes = {c.shape for c in cols}
+        if (len(sizes) != 1 or cols[0].ndim != 1 or not cols[0].size
+                or lam_k.shape != sig_k.shape or slope.shape != (lam_k.size - 1,)
+                or np.any(cols[1] <= 0.0)):
+            raise _bad("plan.time_law's phases and knots have inconsistent sizes",
+                       "plan.time_law")
+        start, length, lam0, v0, a0, jerk = cols
+        if not np.allclose(start[1:], start[:-1] + length[:-1], rtol=0.0, atol=1e-9):
+            raise _bad("plan.time_law.phases must be contiguous", "plan.time_law.phases")
+        j = np.clip(np.searchsorted(lam_k, lam0 + 1e-12 * np.maximum(1.0, np.abs(lam0)),
+                                    side="right") - 1, 0, slope.size - 1)
+        c = slope[j]
+        rows = np.column_stack([start, length, sig_k[j] + c * (lam0 - lam_k[j]), c * v0,
+                                c * a0, c * jerk])
+        return cls(rows)
+
+    @property
+    def piecewise_linear(self) -> bool:
+        """No jerk phase: constant-direction rates are linear between the phase starts, and
+        the linear form with samples there holds them exactly."""
+        return not bool(np.any(self.phases[:, 5] != 0.0))
 
 
 def rest_to_rest(t0: float, D: float, sigma0: float, L: float) -> np.ndarray:
-    """The smooth rest-to-rest law of one piece: ``sigma`` from ``sigma0`` to ``sigma0 + L`` in
-    ``D`` s, jerk ``+J, -J, -J, +J`` for ``D/4`` each (``J = 32 L / D^3``: peak ``sigma' =
-    2 L / D``; ``sigma'`` and ``sigma''`` continuous, zero at both ends). Rows as
+    """The default rest-to-rest law of one piece (:func:`optimizer.timing.ramp_profile`):
+    ``sigma`` from ``sigma0`` to ``sigma0 + L`` in ``D`` s from ``t0``. Rows as
     :class:`TimeLaw`'s."""
-    J = 32.0 * L / D ** 3
-    h = D / 4.0
-    rows, s, v, a = [], sigma0, 0.0, 0.0
-    for k, j in enumerate((J, -J, -J, J)):
-        rows.append([t0 + k * h, h, s, v, a, j])
-        s, v, a = (s + v * h + 0.5 * a * h * h + j * h ** 3 / 6.0, v + a * h + 0.5 * j * h * h,
-                   a + j * h)
-    return np.array(rows)
+    p = ramp_profile(L, D)
+    return np.column_stack([t0 + p.start, p.length, sigma0 + p.x0, p.v0, p.a0, p.jerk])
 
 
 def stop_and_go(breaks: np.ndarray, T: float, t0: float = 0.0) -> TimeLaw:
@@ -172,12 +220,9 @@ def stop_and_go(breaks: np.ndarray, T: float, t0: float = 0.0) -> TimeLaw:
 
 
 def braking(t0: float, D: float, sigma0: float) -> np.ndarray:
-    """``sigma' `` from 1 to 0 in ``D`` s (jerk ``-J`` then ``+J``, ``J = 4 / D^2``; ``sigma''``
-    0 at both ends); ``sigma`` travels ``D / 2``."""
-    J = 4.0 / D ** 2
-    h = D / 2.0
-    return np.array([[t0, h, sigma0, 1.0, 0.0, -J],
-                     [t0 + h, h, sigma0 + h - J * h ** 3 / 6.0, 1.0 - 0.5 * J * h * h, -J * h, J]])
+    """``sigma'`` from 1 down to 0 at a constant rate in ``D`` s (``sigma`` travels ``D / 2``):
+    rates of a constant direction stay continuous and linear in ``t``. One row."""
+    return np.array([[t0, D, sigma0, 1.0, -1.0 / D, 0.0]])
 
 
 # ------------------------------------------------------------------ the plan, as read
@@ -231,7 +276,7 @@ class PlanState:
                 {"t_start": float(a), "t_end": float(b), "u": [float(x) for x in r]}
                 for a, b, r in zip(self.breaks[:-1], self.breaks[1:],
                                    self.rates if self.rates is not None else [])]},
-            "time_law": self.law.as_dict(self.plan_duration),
+            "time_law": self.law.as_dict(self.plan_duration, self.breaks),
         }
         if self.joint_bounds is not None:
             out["joint_bounds"] = [None if b is None else list(b) for b in self.joint_bounds]
@@ -306,22 +351,15 @@ def read_plan(plan: Plan | PlanState | Mapping[str, Any]) -> PlanState:
     law_d = plan.get("time_law")
     if law_d is None:
         law = TimeLaw.identity(breaks)
-    else:
-        try:
-            ph = _floats(law_d["phases"], "plan.time_law.phases")
-            T0 = float(law_d.get("plan_duration", T0))
-        except (KeyError, TypeError):
-            raise _bad("plan.time_law must hold phases", "plan.time_law") from None
-        if ph.ndim != 2 or ph.shape[1] != 6 or ph.shape[0] < 1 or np.any(ph[:, 1] <= 0.0):
-            raise _bad("plan.time_law.phases must be rows (t0, dt, sigma0, dsigma0, ddsigma0, "
-                       "jerk) with dt > 0", "plan.time_law.phases")
-        if not np.allclose(ph[1:, 0], ph[:-1, 0] + ph[:-1, 1], rtol=0, atol=1e-9):
-            raise _bad("plan.time_law.phases must be contiguous", "plan.time_law.phases")
-        law = TimeLaw(ph)
+    elif isinstance(law_d, Mapping):
+        law = TimeLaw.from_answer(law_d)
+        T0 = float(law_d.get("plan_duration", T0))
         sig_end = float(law._sigma_ends()[-1])
-        if abs(sig_end - breaks[-1]) > 1e-7 * max(1.0, T0):
+        if rates is not None and abs(sig_end - breaks[-1]) > 1e-7 * max(1.0, T0):
             raise _bad(f"plan.time_law ends at plan time {sig_end:.9g}, not at the segments' "
                        f"end {breaks[-1]:.9g}", "plan.time_law")
+    else:
+        raise _bad("plan.time_law must be an object (the answer's)", "plan.time_law")
     dur = plan.get("duration")
     if dur is not None and abs(float(dur) - law.end) > 1e-7 * max(1.0, law.end):
         raise _bad(f"plan.duration {float(dur):.9g} s is not the end of its time law "
@@ -740,7 +778,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     cf = chained_form(robot)
     al, be = cf.input_coefficients(q)
     v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
-    smooth_law = bool(np.any(ph[:, 4] != 0.0) or np.any(ph[:, 5] != 0.0))
+    smooth_law = not law.piecewise_linear
     exe_initial = None
     corrections = 0
     if smooth_law:
@@ -787,7 +825,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
             "segments": [{"t_start": float(a), "t_end": float(b), "v1": [float(r[0])],
                           "v2": [], "u": [float(r[0]), float(r[1])]}
                          for a, b, r in zip(cont.breaks[:-1], cont.breaks[1:], rates)]},
-        "time_law": law.as_dict(cont.plan_duration),
+        "time_law": law.as_dict(cont.plan_duration, cont.breaks),
         "indicators": {
             "d_a": ind.d_a, "d_a_per_joint": list(ind.d_a_per_joint),
             "d_a_joint_space": ind.d_a_joint_space, "t_p": ind.t_p,
