@@ -113,6 +113,12 @@ def job_robustness(payload: Payload) -> dict[str, Any]:
             run.pop("path_q", None)
     out["phi_change"] = nominal.phi_change
     out["method"] = nominal.method
+    loop = payload.get("closed_loop")
+    if loop is not None:
+        out["closed_loop"] = analysis.closed_loop_robustness(
+            nominal, np.asarray(starts, float), float(loop["gain_error"]),
+            float(loop["period"]), float(loop["noise"]), int(loop["seed"]),
+            paths=bool(payload.get("include_paths")), deadline=deadline)
     return out
 
 
@@ -196,6 +202,11 @@ def job_figure(payload: Payload) -> bytes:
             starts = analysis.perturbed_starts(req.start, int(rnd["count"]),
                                                float(rnd["spread"]), int(rnd["seed"]))
         runs = analysis.robustness(nominal, starts, inner["replay"], req.goal)
+        loop = inner.get("closed_loop")
+        if loop is not None:
+            runs["closed_loop"] = analysis.closed_loop_robustness(
+                nominal, np.asarray(starts, float), float(loop["gain_error"]),
+                float(loop["period"]), float(loop["noise"]), int(loop["seed"]), paths=True)
         data = {"plan": nominal.to_dict(), "robustness": json_safe(runs)}
     else:
         raise ValueError(f"unknown figure kind {kind!r}")

@@ -80,3 +80,29 @@ def test_segments_tampered_are_refused(client: TestClient, answer: dict) -> None
                                          "state": _state_at(answer, 0.5)})
     assert r.status_code == 422
     assert r.json()["field"] == "plan.coefficients.segments"
+
+
+def test_robustness_closed_loop_side_by_side(client: TestClient) -> None:
+    """The closed-loop mode: each start on a plant whose gains are off, open and closed loop;
+    the closed loop ends closer (the open loop misses by the start error and the gains)."""
+    body = {"plan": PLAN, "random": {"count": 2, "spread": math.radians(1.0), "seed": 3},
+            "closed_loop": {"gain_error": 0.01, "period": 0.05, "seed": 1}}
+    r = client.post("/v1/robustness", json=body)
+    assert r.status_code == 200, r.text
+    loop = r.json()["closed_loop"]
+    assert loop["summary"]["runs"] == 2
+    for run in loop["runs"]:
+        assert all(abs(e) <= 0.01 for e in run["gain_errors"])
+        assert run["closed"]["terminal_error"] < 0.1 * run["open"]["terminal_error"]
+        assert run["closed"]["replans"] >= 19 and run["closed"]["margin"] > 0.0
+    fig = client.post("/v1/figures/robustness", json={**body, "random": {
+        "count": 1, "spread": math.radians(1.0), "seed": 3}})
+    assert fig.status_code == 200 and fig.content[:4] == b"\x89PNG"
+
+
+def test_robustness_closed_loop_needs_actuator_rates(client: TestClient) -> None:
+    body = {"plan": {**PLAN, "method": "polynomial"}, "random": {"count": 1, "spread": 0.01},
+            "closed_loop": {"period": 0.1}}
+    r = client.post("/v1/robustness", json=body)
+    assert r.status_code == 422, r.text
+    assert r.json()["field"] == "closed_loop"
