@@ -268,10 +268,11 @@ def _drive(plant: Robot, ps: PlanState, q0: np.ndarray, t0: float, t1: float,
     return q, states
 
 
-def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float],
-                    gain_errors: Sequence[float], period: float | None,
+def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.ndarray,
+                    gain_errors: Sequence[float] | np.ndarray, period: float | None,
                     noise: float = 0.0, seed: int = 0,
-                    joint_limits: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
+                    joint_limits: tuple[np.ndarray, np.ndarray] | None = None,
+                    keep_reversals: bool = False) -> dict[str, Any]:
     """Run a plan on a plant whose gains are off, from ``start``; with ``period``, replan from
     the measured state every ``period`` s (:func:`~optimizer.planner.replan.replan`), else
     open loop.
@@ -292,6 +293,9 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float],
         Seed of the noise.
     joint_limits : (lo, hi), optional
         For the margin (default (0, pi/2) for every joint).
+    keep_reversals : bool
+        Passed to the replanner: a continuation that adds a reversal is refused, and the run
+        goes on with the current plan.
 
     Returns
     -------
@@ -324,7 +328,8 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float],
             measured = q + (rng.normal(0.0, noise, q.size) if noise > 0.0 else 0.0)
             try:
                 cont = replan(current, t, measured,
-                              rates=_commanded_rates(current, np.array([t]))[0], plain=False)
+                              rates=_commanded_rates(current, np.array([t]))[0], plain=False,
+                              keep_reversals=keep_reversals)
                 current = read_plan(cont)
                 replans += 1
             except PlannerError:

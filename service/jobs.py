@@ -127,7 +127,8 @@ def job_replan(payload: Payload) -> dict[str, Any]:
     ``rates`` and ``duration`` (optional)."""
     return replan(payload["plan"], payload["time"], payload["state"], payload.get("rates"),
                   payload.get("duration"), plain=False,
-                  time_limit=float(payload.get("time_limit", 10.0)))
+                  time_limit=float(payload.get("time_limit", 10.0)),
+                  keep_reversals=bool(payload.get("keep_reversals", False)))
 
 
 JOBS: dict[str, Callable[[Payload], Any]] = {

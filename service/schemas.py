@@ -490,6 +490,10 @@ class ReplanRequest(RequestModel):
         description="Rates [u1, u2] (rad/s) being commanded at time; default the plan's.")
     duration: Optional[num(gt=0.0)] = Field(  # type: ignore[valid-type]
         None, description="A new end time (s, on the plan's time axis); default the plan's.")
+    keep_reversals: bool = Field(
+        False, description="true: no continuation that reverses phi or th1 more often than the "
+                           "plan's rest (a 422 naming keep_reversals instead); false: the goal "
+                           "first (indicators.reversals say what the continuation does).")
     time_limit: num(hi=MAX_REPLAN_TIME_LIMIT, gt=0.0) = Field(  # type: ignore[valid-type]
         5.0, description="Seconds for the job (the full planner is the fast path's fallback).")
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from optimizer.errors import InvalidRequestError
+from optimizer.errors import InvalidRequestError, PlannerError
 from optimizer.planner.plan import plan
 from optimizer.planner.replan import replan
 from optimizer.problem import PlanRequest
@@ -78,7 +78,10 @@ def closed_loop(ans: dict, q0: np.ndarray, K: tuple, period: float | None) -> np
     t, q, current = 0.0, np.asarray(q0, float), ans
     while t < T - 1e-12:
         if period is not None:
-            current = replan(current, t, q, rates=rates_of(current, t))
+            try:
+                current = replan(current, t, q, rates=rates_of(current, t))
+            except PlannerError:     # none verified: the controller runs on what it has
+                pass
         t_next = T if period is None else min(t + period, T)
         q = run_plant(current, q, t, t_next, K)
         t = t_next
@@ -184,3 +187,22 @@ def test_not_our_plan(answer: dict) -> None:
         replan(bad, 0.5, [0.0, 0.5, 0.5, 0.5])
     assert err.value.field.startswith("plan.")
     assert math.isfinite(answer["duration"])
+
+
+def test_keep_reversals_keeps_the_rates_signs(answer: dict) -> None:
+    """With keep_reversals the continuation's rates keep the plan's signs (no added reversal
+    of phi or th1), or none is handed out (an error naming keep_reversals)."""
+    from optimizer.planner.replan import read_plan, sign_changes
+    ps = read_plan(answer)
+    rng = np.random.default_rng(5)
+    for _ in range(6):
+        t = float(rng.uniform(0.0, 0.8))
+        i = int(np.searchsorted(answer["path"]["t"], t))
+        q = np.array(answer["path"]["q"][i]) + [0.0, *rng.uniform(-0.01, 0.01, 3)]
+        try:
+            out = replan(answer, answer["path"]["t"][i], q, keep_reversals=True)
+        except PlannerError as exc:
+            assert exc.field == "keep_reversals"
+            continue
+        rates = np.array([s["u"] for s in out["coefficients"]["segments"]])
+        assert sign_changes(rates) <= sign_changes(ps.rates)

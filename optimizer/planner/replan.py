@@ -68,8 +68,12 @@ from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
 
 #: Gauss-Newton steps stop once the fine end map is this close to the goal (rad)...
 CORRECTION_TARGET = 1e-11
-#: ... or after this many steps.
-MAX_STEPS = 6
+#: ... or after this many steps...
+MAX_STEPS = 12
+#: ... each halved at most this many times until the miss shrinks.
+MAX_HALVINGS = 8
+#: Rounds of holding at 0 the rates that a correction would reverse.
+MAX_HOLDS = 3
 #: RK4 steps per piece of the end map built here when no NLP rung fits the pieces.
 OWN_SUBSTEPS = 8
 #: Seconds over which a chained plan's commanded rates are braked to rest (fallback).
@@ -132,16 +136,6 @@ class TimeLaw:
         rows = np.vstack([first, self.phases[k + 1:]])
         return TimeLaw(rows[rows[:, 1] > 0.0] if rows.shape[0] > 1 else rows)
 
-    def until_sigma(self, target: float) -> "TimeLaw":
-        """The law up to the time where ``sigma`` reaches ``target`` (a phase end, within
-        rounding: the laws of plans stop at their pieces' ends)."""
-        sig_end = self._sigma_ends()
-        k = int(np.argmin(np.abs(sig_end - target)))
-        if abs(sig_end[k] - target) > 1e-9 * max(1.0, abs(target)):
-            raise NumericalError("the time law does not reach the piece's end at a phase end",
-                                 field="plan.time_law")
-        return TimeLaw(self.phases[:k + 1].copy())
-
     def _sigma_ends(self) -> np.ndarray:
         P = self.phases
         s = P[:, 1]
@@ -160,10 +154,10 @@ class TimeLaw:
                 "shortest_duration": None, "binding_limit": None, "limits": {}}
 
     @classmethod
-    def from_answer(cls, law: Mapping[str, Any]) -> "TimeLaw":
-        """The rows of an answer's ``time_law`` (:meth:`optimizer.timing.TimeLaw.as_dict`),
-        in plan time: on a knot piece ``sigma`` is linear in ``lam``, so each phase (inside
-        one piece: actuator plans stop at every break) is a cubic in ``sigma`` too.
+    def from_answer(cls, law: Mapping[str, Any]) -> tuple["TimeLaw", np.ndarray, np.ndarray,
+                                                           np.ndarray]:
+        """An answer's ``time_law`` (:meth:`optimizer.timing.TimeLaw.as_dict`): the law of its
+        geometric parameter ``lam`` (rows), and its knots ``lam``, ``sigma``, ``slope``.
 
         Raises
         ------
@@ -181,20 +175,15 @@ class TimeLaw:
             raise _bad("plan.time_law must hold knots (lam, sigma, slope) and phases (start, "
                        "length, lam0, v0, a0, jerk)", "plan.time_law") from None
         sizes = {c.shape for c in cols}
-        if (len(sizes) != 1 or cols[0].ndim != 1 or not cols[0].size
-                or lam_k.shape != sig_k.shape or slope.shape != (lam_k.size - 1,)
-                or np.any(cols[1] <= 0.0)):
-            raise _bad("plan.time_law's phases and knots have inconsistent sizes",
+        if (len(sizes) != 1 or cols[0].ndim != 1 or not cols[0].size or lam_k.ndim != 1
+                or lam_k.size < 2 or lam_k.shape != sig_k.shape
+                or slope.shape != (lam_k.size - 1,) or np.any(cols[1] <= 0.0)
+                or not np.all(np.diff(lam_k) > 0.0) or not np.all(slope > 0.0)):
+            raise _bad("plan.time_law's phases and knots are not a law of this library",
                        "plan.time_law")
-        start, length, lam0, v0, a0, jerk = cols
-        if not np.allclose(start[1:], start[:-1] + length[:-1], rtol=0.0, atol=1e-9):
+        if not np.allclose(cols[0][1:], cols[0][:-1] + cols[1][:-1], rtol=0.0, atol=1e-9):
             raise _bad("plan.time_law.phases must be contiguous", "plan.time_law.phases")
-        j = np.clip(np.searchsorted(lam_k, lam0 + 1e-12 * np.maximum(1.0, np.abs(lam0)),
-                                    side="right") - 1, 0, slope.size - 1)
-        c = slope[j]
-        rows = np.column_stack([start, length, sig_k[j] + c * (lam0 - lam_k[j]), c * v0,
-                                c * a0, c * jerk])
-        return cls(rows)
+        return cls(np.column_stack(cols)), lam_k, sig_k, slope
 
     @property
     def piecewise_linear(self) -> bool:
@@ -236,9 +225,11 @@ class PlanState:
     robot : Robot
     goal : ndarray (n,)
     breaks : ndarray (N+1,)
-        Plan time ``sigma`` (s) of the geometric pieces.
+        The geometric pieces' ends on the path's parameter (the time law's ``lam``; plan
+        time ``sigma`` without a law).
     rates : ndarray (N, 2) or None
-        Geometric rates of each piece (rad per s of plan time); None for chained inputs.
+        Geometric rates of each piece (rad per unit of that parameter); None for chained
+        inputs.
     law : TimeLaw
     plan_duration : float
         ``T0``, the plan time's end.
@@ -246,6 +237,8 @@ class PlanState:
     samples : int
     path_t, path_u : ndarray or None
         The handed-out path (chained plans: their commanded rates are read from it).
+    jumps : bool
+        No time law: the rates jump at the breaks (``sigma = t``).
     """
 
     robot: Robot
@@ -258,6 +251,7 @@ class PlanState:
     samples: int = DEFAULT_SAMPLES
     path_t: np.ndarray | None = None
     path_u: np.ndarray | None = None
+    jumps: bool = False
 
     @property
     def start_time(self) -> float:
@@ -352,12 +346,19 @@ def read_plan(plan: Plan | PlanState | Mapping[str, Any]) -> PlanState:
     if law_d is None:
         law = TimeLaw.identity(breaks)
     elif isinstance(law_d, Mapping):
-        law = TimeLaw.from_answer(law_d)
-        T0 = float(law_d.get("plan_duration", T0))
-        sig_end = float(law._sigma_ends()[-1])
-        if rates is not None and abs(sig_end - breaks[-1]) > 1e-7 * max(1.0, T0):
-            raise _bad(f"plan.time_law ends at plan time {sig_end:.9g}, not at the segments' "
-                       f"end {breaks[-1]:.9g}", "plan.time_law")
+        law, lam_k, sig_k, slope = TimeLaw.from_answer(law_d)
+        if abs(float(law._sigma_ends()[-1]) - lam_k[-1]) > 1e-7 * max(1.0, lam_k[-1]):
+            raise _bad("plan.time_law's phases do not end at its last knot", "plan.time_law")
+        if rates is not None:
+            # the path on lam: each knot piece at the rate of its segment times its slope
+            if abs(sig_k[-1] - breaks[-1]) > 1e-9 * max(1.0, breaks[-1]) or sig_k[0] != breaks[0]:
+                raise _bad("plan.time_law.knots.sigma must span the segments",
+                           "plan.time_law.knots")
+            seg = np.clip(np.searchsorted(breaks, 0.5 * (sig_k[:-1] + sig_k[1:]),
+                                          side="right") - 1, 0, rates.shape[0] - 1)
+            rates = rates[seg] * slope[:, None]
+            breaks = lam_k.copy()
+            T0 = float(lam_k[-1])
     else:
         raise _bad("plan.time_law must be an object (the answer's)", "plan.time_law")
     dur = plan.get("duration")
@@ -380,7 +381,8 @@ def read_plan(plan: Plan | PlanState | Mapping[str, Any]) -> PlanState:
                   or DEFAULT_SAMPLES)
     return PlanState(robot=robot, goal=goal, breaks=breaks, rates=rates, law=law,
                      plan_duration=T0, joint_bounds=bounds,
-                     samples=min(max(samples, 11), DEFAULT_SAMPLES), path_t=pt, path_u=pu)
+                     samples=min(max(samples, 11), DEFAULT_SAMPLES), path_t=pt, path_u=pu,
+                     jumps=law_d is None)
 
 
 # ------------------------------------------------------------------ end maps
@@ -469,7 +471,8 @@ def _commanded(ps: PlanState, t: float) -> np.ndarray:
 
 def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
            rates: Any = None, duration: float | None = None, *,
-           plain: bool = True, time_limit: float = 10.0) -> dict[str, Any]:
+           plain: bool = True, time_limit: float = 10.0,
+           keep_reversals: bool = False) -> dict[str, Any]:
     """The continuation of ``plan`` from the measured ``state`` at ``time_`` (see the module).
 
     Parameters
@@ -486,6 +489,11 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
         A new end time (s, on the plan's time axis); default the plan's end.
     time_limit : float
         Seconds for the full planner, when it runs (the fallback).
+    keep_reversals : bool
+        Hand out no continuation whose rates reverse ``phi`` or ``th1`` more often than the
+        plan's rest does (the fast path keeps every rate's sign; a fallback plan that adds a
+        reversal is refused, :class:`InfeasibleError` naming ``keep_reversals``). False (the
+        default): the goal first; ``indicators.reversals`` say what the continuation does.
     plain : bool
         True: Python lists and floats (:func:`~optimizer.results.json_safe`); False: numpy
         arrays left in, for an encoder that writes them (the service's orjson).
@@ -532,7 +540,7 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
     cont: Continuation | None = None
     if ps.rates is not None:
         try:
-            cont = _fast(ps, req, t, q_m, u_c, T_end)
+            cont = _fast(ps, req, t, q_m, u_c, T_end, keep_reversals)
         except PlannerError as exc:
             errors.append(f"{exc.code}: {exc.message}")
     timing["correction"] = time.perf_counter() - t_start
@@ -544,6 +552,18 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
             errors.append(f"{exc.code}: {exc.message}")
     if result is None:
         cont = _fallback(ps, req, t, q_m, u_c, T_end)
+        if keep_reversals and ps.rates is not None:
+            sig = float(ps.law.evaluate(np.array([t]))[0][0])
+            k = int(np.clip(np.searchsorted(ps.breaks, sig, side="right") - 1, 0,
+                            ps.rates.shape[0] - 1))
+            had, has = sign_changes(ps.rates[k:]), sign_changes(cont.rates)
+            if has > had:
+                raise InfeasibleError(
+                    f"the only continuation found reverses phi or th1 {has} time(s), the plan's "
+                    f"rest {had}: none was handed out (keep_reversals=false accepts it; or run "
+                    "on the current plan)", field="keep_reversals",
+                    diagnostics={"reversals": has, "plan_reversals": had,
+                                 "fast_path_failed": errors})
         result = _finish(ps, req, t, q_m, u_c, cont, timing)
     result["timing"]["total"] = time.perf_counter() - t_start
     if errors:
@@ -551,79 +571,154 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
     return json_safe(result) if plain else result
 
 
-def _kept(ps: PlanState, t: float, u_c: np.ndarray) -> tuple[int, float, np.ndarray, TimeLaw]:
-    """The piece that runs on: ``(k, sigma_t, direction, law until its end)``; ``k`` is the
-    first piece the correction may change (the kept piece is ``k - 1``; none at rest)."""
+@dataclass(frozen=True)
+class Kept:
+    """The motion that runs on as commanded: from plan time ``breaks[0]`` (now) to the next
+    stop ``breaks[-1]`` (empty at rest), its pieces' rates (the first: the commanded rates
+    over ``sigma'``), its law, and ``k``: the first of the plan's pieces after it."""
+
+    k: int
+    breaks: np.ndarray
+    rates: np.ndarray
+    law: TimeLaw
+
+    @property
+    def pieces(self) -> int:
+        return self.rates.shape[0]
+
+    @property
+    def s_stop(self) -> float:
+        return float(self.breaks[-1])
+
+
+def _kept(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
+    """What runs on from ``t`` to the next stop (see :class:`Kept`). A plan without a time law
+    jumps at every break: there its next break is the stop."""
     assert ps.rates is not None
     sig, ds, _ = ps.law.evaluate(np.array([t]))
     s_t, v = float(sig[0]), float(ds[0])
-    k = int(np.clip(np.searchsorted(ps.breaks, s_t, side="right") - 1, 0, ps.rates.shape[0] - 1))
-    moving = v > REST
-    if not moving:
+    tol = 1e-9 * max(1.0, ps.plan_duration)
+    k = int(np.clip(np.searchsorted(ps.breaks, s_t + tol, side="right") - 1, 0,
+                    ps.rates.shape[0] - 1))
+    if v <= REST:
         if float(np.max(np.abs(u_c))) > 1e-9:
             raise NumericalError("the plan is at rest at this time but rates were given",
                                  field="rates")
-        if abs(s_t - ps.breaks[k + 1]) <= 1e-12 * max(1.0, s_t):
-            k += 1
-        elif abs(s_t - ps.breaks[k]) > 1e-12 * max(1.0, s_t):
+        if abs(s_t - ps.breaks[k]) > tol:
             raise NumericalError("the plan is at rest inside a piece")
-        return k, s_t, np.zeros(2), TimeLaw(np.zeros((0, 6)))
-    law = ps.law.after(t).until_sigma(float(ps.breaks[k + 1]))
-    return k + 1, s_t, np.asarray(u_c, float) / v, law
+        return Kept(k, np.array([s_t]), np.zeros((0, 2)), TimeLaw(np.zeros((0, 6))))
+    P = ps.law.phases
+    if ps.jumps:
+        s_stop = float(ps.breaks[k + 1])
+        t_stop = float(P[np.argmin(np.abs(P[:, 2] - s_stop)), 0]) if s_stop < ps.breaks[-1] \
+            else ps.law.end
+    else:
+        at_rest = P[(P[:, 0] > t) & (np.abs(P[:, 3]) <= REST), 0]
+        t_stop = float(at_rest[0]) if at_rest.size else ps.law.end
+        s_stop = float(ps.law.evaluate(np.array([t_stop]))[0][0]) if at_rest.size \
+            else float(ps.law._sigma_ends()[-1])
+    j = int(np.argmin(np.abs(ps.breaks - s_stop)))
+    if abs(ps.breaks[j] - s_stop) > 1e-7 * max(1.0, ps.plan_duration):
+        raise NumericalError("the time law stops between the plan's breaks")
+    inner = ps.breaks[k + 1:j]
+    kb = np.concatenate([[s_t], inner, [ps.breaks[j]]])
+    kr = ps.rates[k:j].copy()
+    kr[0] = np.asarray(u_c, float) / v
+    law = ps.law.after(t)
+    kept_rows = law.phases[law.phases[:, 0] < t_stop - 1e-12]
+    return Kept(j, kb, kr, TimeLaw(kept_rows))
+
+
+def _braked(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
+    """The commanded motion braked to rest now: ``sigma'`` from its value down to 0 at a
+    constant rate within :data:`BRAKE_TIME` (the rates stay continuous, their slope jumps),
+    inside the current piece; what is left of that piece and the later pieces follow. Used
+    when no piece is left after the next stop (the plan's last segment)."""
+    assert ps.rates is not None
+    sig, ds, _ = ps.law.evaluate(np.array([t]))
+    s_t, v = float(sig[0]), float(ds[0])
+    if v <= REST:
+        return _kept(ps, t, u_c)
+    k = int(np.clip(np.searchsorted(ps.breaks, s_t, side="right") - 1, 0,
+                    ps.rates.shape[0] - 1))
+    room = float(ps.breaks[k + 1]) - s_t
+    D = min(BRAKE_TIME, 0.25 * (T_end - t), room / v)   # travels v D / 2 <= room / 2
+    if D <= 0.0:
+        raise NumericalError("no room left to brake the current motion")
+    s_b = s_t + 0.5 * v * D
+    law = np.array([[t, D, s_t, v, -v / D, 0.0]])
+    rates = (np.asarray(u_c, float) / v)[None, :]
+    # the rest of the current piece is free: ps.breaks[k + 1:] follow s_b
+    return Kept(k, np.array([s_t, s_b]), rates, TimeLaw(law))
+
+
+def _pieces_end(robot: Robot, q0: np.ndarray, breaks: np.ndarray, rates: np.ndarray
+                ) -> np.ndarray:
+    """The state after constant-rate pieces: RK4 with :data:`OWN_SUBSTEPS` steps each (as
+    close to the exact model as the correction's end map; the continuation's quadrature
+    proves the whole)."""
+    end, _ = _own_maps(tuple(robot.gains), tuple(robot.exponents), 1)
+    q = np.asarray(q0, float)
+    for L, r in zip(np.diff(breaks), rates):
+        if L > 0.0:
+            q = end(q, np.asarray(r, float) * L)[0]
+    return q
 
 
 def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
-          T_end: float) -> Continuation:
-    """Steps 1-2 of the module: kept piece, then Gauss-Newton on the later pieces."""
+          T_end: float, keep_reversals: bool = False) -> Continuation:
+    """Steps 1-2 of the module: the kept motion, then Gauss-Newton on the later pieces."""
     assert ps.rates is not None
-    k, s_t, d, kept_law = _kept(ps, t, u_c)
+    kept = _kept(ps, t, u_c)
     n = ps.robot.n
-    free = ps.breaks[k:]
-    rates0 = ps.rates[k:]
+    braked = kept.k >= ps.rates.shape[0]
+    if braked:      # the last segment: stop early, what follows is corrected
+        kept = _braked(ps, t, u_c, T_end)
+    free = np.concatenate([[kept.s_stop], ps.breaks[kept.k + 1:]]) if braked else \
+        ps.breaks[kept.k:]
+    rates0 = ps.rates[kept.k:]
     M = free.size - 1
-    if M == 0:
-        raise NumericalError("no piece is left after the current one to correct the miss")
-    h = np.diff(free)
-    if not np.allclose(h, h[0], rtol=1e-9, atol=0.0):
-        raise NumericalError("the later pieces are not of equal length")
     # few pieces left (near the end): split each into equal parts (the same path, more stops)
     # so that the correction has more inputs than joints to move
     split = 1 if 2 * M >= n + 2 else math.ceil((n + 2) / (2 * M))
     if split > 1:
-        free = np.concatenate([free[0] + (free[-1] - free[0]) * np.arange(M * split) / (M * split),
+        w = np.arange(split) / split
+        free = np.concatenate([(free[:-1, None] + np.diff(free)[:, None] * w).ravel(),
                                free[-1:]])
         rates0 = np.repeat(rates0, split, axis=0)
         M *= split
-        h = np.diff(free)
     N = next((tr.intervals for tr in ladder(n) if tr.intervals >= M), M)
     emap = end_map(ps.robot, N)
-    scale = h[0] * N                              # plan rates -> per unit normalised time
-    s_stop = float(ps.breaks[k]) if kept_law.phases.size else s_t
-    q_stop = q_m.copy()
-    if kept_law.phases.size:
-        q_stop = _constant_piece_end(ps.robot, q_m, d, s_stop - s_t)
-    U = np.zeros((N, 2))
-    U[N - M:] = rates0 * scale
+    # the end map's intervals are 1/N of normalised time: a piece of plan time L at rate g
+    # moves as the rate g L N there
+    scale = (np.diff(free) * N)[:, None]
+    q_stop = _pieces_end(ps.robot, q_m, kept.breaks, kept.rates)
+    U0 = np.zeros((N, 2))
+    U0[N - M:] = rates0 * scale
     goal = ps.goal
+    # with keep_reversals every rate keeps its sign (a rate that would change sign is held at
+    # 0 instead: no reversal is added to phi or th1, which integrate them)
+    signs = np.sign(rates0)
+    held = np.zeros((M, 2), bool)
     best: tuple[float, np.ndarray] | None = None
     steps = 0
-    for steps in range(MAX_STEPS + 1):
-        r = emap.end(q_stop, U)[1:] - goal
-        err = float(np.max(np.abs(r)))
-        if not math.isfinite(err):
+    for _ in range(MAX_HOLDS + 1):
+        start = U0.copy()
+        start[N - M:][held] = 0.0
+        err, U, steps = _gauss_newton(emap, q_stop, goal, start, N - M, ~held)
+        if err > 1e-6:
             break
-        if best is None or err < best[0]:
-            best = (err, U.copy())
-        if err <= CORRECTION_TARGET or steps == MAX_STEPS:
+        flipped = (signs != 0.0) & (np.sign(U[N - M:]) == -signs) & ~held
+        if not keep_reversals or not flipped.any():
+            best = (err, U)
             break
-        J = emap.jacobian(q_stop, U)[1:, 2 * (N - M):]
-        U[N - M:] -= minimum_norm_step(J, r).reshape(M, 2)
-    if best is None or best[0] > 1e-6:
-        raise NumericalError("the Gauss-Newton correction did not reach the goal "
-                             f"(end error {math.inf if best is None else best[0]:.3g} rad)")
+        held |= flipped
+    if best is None:
+        raise NumericalError("no correction of the later pieces' rates that keeps their signs "
+                             "reaches the goal (it would add a reversal)")
     new_rates = best[1][N - M:] / scale
-    t_stop = kept_law.end if kept_law.phases.size else t
-    if T_end == ps.end_time and split == 1:
+    t_stop = kept.law.end if kept.law.phases.size else t
+    if T_end == ps.end_time and split == 1 and not braked:
         later = ps.law.after(t_stop).phases
     else:
         later = _law_after_stop(t_stop, T_end, free)
@@ -637,54 +732,84 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
         J = emap.jacobian(q_stop, V)[1:, 2 * (N - M):]
         return current - minimum_norm_step(J, r).reshape(M, 2) / scale
 
-    return _assemble(s_t, s_stop, d, kept_law, free, new_rates, later, ps.plan_duration,
-                     "gauss_newton", steps, refine)
+    return _assemble(kept, free, new_rates, later, ps.plan_duration, "gauss_newton", steps,
+                     refine)
 
 
-def _assemble(s_t: float, s_stop: float, d: np.ndarray, kept_law: TimeLaw, free: np.ndarray,
-              new_rates: np.ndarray, later: np.ndarray, T0: float, route: str,
-              steps: int, refine: Any = None) -> Continuation:
-    if kept_law.phases.size and s_stop > s_t:
-        breaks = np.concatenate([[s_t], free])
-        rates = np.vstack([d, new_rates])
-        phases = np.vstack([kept_law.phases, later])
+def sign_changes(rates: np.ndarray) -> int:
+    """Sign changes of ``u1`` and of ``u2`` along pieces (zeros skipped): the reversals of
+    ``phi`` and ``th1``, which integrate them."""
+    total = 0
+    for col in np.asarray(rates, float).T:
+        nz = np.sign(col[np.abs(col) > 1e-12])
+        total += int(np.sum(nz[1:] != nz[:-1]))
+    return total
+
+
+def _gauss_newton(emap: "EndMap", q0: np.ndarray, goal: np.ndarray, U: np.ndarray, first: int,
+                  free: np.ndarray) -> tuple[float, np.ndarray, int]:
+    """Gauss-Newton steps of least norm on the rates ``U[first:]`` where ``free`` (the others
+    fixed) onto ``th(1) = goal``, each halved until the miss shrinks (a backtracking line
+    search: near a reversal the Jacobian is ill-conditioned and a full step overshoots).
+    Returns the miss (rad), the rates and the steps taken."""
+
+    def miss(V: np.ndarray) -> tuple[float, np.ndarray]:
+        r = emap.end(q0, V)[1:] - goal
+        e = float(np.max(np.abs(r)))
+        return (e if math.isfinite(e) else math.inf), r
+
+    cols = np.concatenate([np.zeros(2 * first, bool), free.ravel()])
+    err, r = miss(U)
+    steps = 0
+    while err > CORRECTION_TARGET and steps < MAX_STEPS and cols.any():
+        J = emap.jacobian(q0, U)[1:, cols]
+        flat = np.zeros(U.size)
+        flat[cols] = minimum_norm_step(J, r)
+        step = flat.reshape(U.shape)
+        alpha = 1.0
+        for _ in range(MAX_HALVINGS + 1):
+            V = U - alpha * step
+            e2, r2 = miss(V)
+            if e2 < err:
+                break
+            alpha *= 0.5
+        else:
+            break
+        U, err, r = V, e2, r2
+        steps += 1
+    return err, U, steps
+
+
+def _assemble(kept: Kept, free: np.ndarray, new_rates: np.ndarray, later: np.ndarray,
+              T0: float, route: str, steps: int, refine: Any = None) -> Continuation:
+    if kept.pieces:
+        breaks = np.concatenate([kept.breaks[:-1], free])
+        rates = np.vstack([kept.rates, new_rates])
+        phases = np.vstack([kept.law.phases, later])
     else:
         breaks, rates, phases = free.copy(), new_rates, later
-        breaks[0] = s_t
-    kept = int(bool(kept_law.phases.size and s_stop > s_t))
-    return Continuation(breaks, rates, TimeLaw(phases), T0, route, steps, kept, refine)
-
-
-def _constant_piece_end(robot: Robot, q0: np.ndarray, d: np.ndarray, L: float) -> np.ndarray:
-    """The state after plan time ``L`` under the constant geometric rate ``d``: RK4 with
-    :data:`OWN_SUBSTEPS` steps (a piece at most one interval of the plan's grid: as close to
-    the exact model as the correction's end map; the continuation's quadrature proves the
-    whole)."""
-    if L <= 0.0:
-        return q0.copy()
-    end, _ = _own_maps(tuple(robot.gains), tuple(robot.exponents), 1)
-    return end(q0, np.asarray(d, float) * L)[0]
+        breaks[0] = kept.breaks[0]
+    return Continuation(breaks, rates, TimeLaw(phases), T0, route, steps, kept.pieces, refine)
 
 
 def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
               T_end: float) -> Continuation:
     """Step 4 of the module: the kept motion (or a braking), then the full planner."""
     if ps.rates is not None:
-        k, s_t, d, kept_law = _kept(ps, t, u_c)
-        s_stop = float(ps.breaks[k]) if kept_law.phases.size else s_t
+        kept = _kept(ps, t, u_c)
+        if kept.k >= ps.rates.shape[0]:
+            kept = _braked(ps, t, u_c, T_end)
+    elif float(np.max(np.abs(u_c))) > REST:
+        Db = min(BRAKE_TIME, 0.5 * (T_end - t))
+        kept = Kept(0, np.array([0.0, 0.5 * Db]), np.asarray(u_c, float)[None, :],
+                    TimeLaw(braking(t, Db, 0.0)))
     else:
-        s_t = 0.0
-        if float(np.max(np.abs(u_c))) > REST:
-            Db = min(BRAKE_TIME, 0.5 * (T_end - t))
-            kept_law = TimeLaw(braking(t, Db, 0.0))
-            d, s_stop = np.asarray(u_c, float), 0.5 * Db
-        else:
-            kept_law, d, s_stop = TimeLaw(np.zeros((0, 6))), np.zeros(2), 0.0
-    q_stop = _constant_piece_end(ps.robot, q_m, d, s_stop - s_t) if kept_law.phases.size else q_m
-    t_stop = kept_law.end if kept_law.phases.size else t
+        kept = Kept(0, np.array([0.0]), np.zeros((0, 2)), TimeLaw(np.zeros((0, 6))))
+    q_stop = _pieces_end(ps.robot, q_m, kept.breaks, kept.rates)
+    t_stop = kept.law.end if kept.law.phases.size else t
     if T_end - t_stop <= 1e-9:
-        raise NumericalError("nothing is left after the current piece to correct the miss: "
-                             "give a later duration", field="duration")
+        raise NumericalError("nothing is left after the current motion's stop to correct the "
+                             "miss: give a later duration", field="duration")
     sub = replace(req, start=tuple(q_stop[1:]), phi_start=float(q_stop[0]), duration=None,
                   method="shooting", samples=11)
     try:
@@ -692,11 +817,11 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
     except PlannerError:
         p = full_plan(replace(sub, method="penalty"))
     sched = p.inputs
-    breaks = s_stop + np.asarray(sched.breaks, float)        # its plan time after the stop
+    breaks = kept.s_stop + np.asarray(sched.breaks, float)   # its plan time after the stop
     rates = np.asarray(sched.rates, float)                    # type: ignore[union-attr]
     later = _law_after_stop(t_stop, T_end, breaks)
-    return _assemble(s_t, s_stop, d, kept_law, breaks, rates, later,
-                     s_stop + float(sched.breaks[-1]), "full_planner", 0)
+    return _assemble(kept, breaks, rates, later, kept.s_stop + float(sched.breaks[-1]),
+                     "full_planner", 0)
 
 
 def _piece(breaks: np.ndarray, s: np.ndarray) -> np.ndarray:
