@@ -39,6 +39,7 @@ from optimizer.analysis import closed_loop_run
 from optimizer.errors import PlannerError
 from optimizer.planner.plan import plan
 from optimizer.planner.replan import read_plan, replan
+from optimizer.model import Robot
 from optimizer.problem import PlanRequest
 
 from .goals import generate
@@ -68,7 +69,7 @@ def latency(joints: list[int], goals: int, replans: int) -> dict[str, Any]:
         times: list[float] = []
         routes: dict[str, int] = {}
         for g in generate(n, goals):
-            req = PlanRequest(start=g.start, goal=g.goal)
+            req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(n))
             warm = plan(req).to_dict()             # the NLP built, as in a warm worker
             try:
                 replan(warm, *_perturbed_state(warm, np.random.default_rng(0)))
@@ -144,7 +145,7 @@ def closed_loop(joints: list[int], goals: int, gain_error: float, spread_deg: fl
     for n in joints:
         rows = []
         for g in generate(n, goals):
-            p = plan(PlanRequest(start=g.start, goal=g.goal))
+            p = plan(PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(n)))
             answer = p.to_dict()
             start = np.asarray(g.start) + rng.uniform(-spread_deg, spread_deg, n) * DEG
             e = rng.uniform(-gain_error, gain_error, n - 1)

@@ -277,6 +277,9 @@ every sample goes to `bench/results/`, which is not versioned). It holds the lat
     .venv/bin/python -m bench --quick          # fewer repeats, 3 s per HTTP level (page untouched)
     .venv/bin/python -m bench --help           # choose cases, methods, repeats, --report PATH
     .venv/bin/python bench/profile_plan.py     # profile of the hot path (any --case, --method)
+    .venv/bin/python -m bench.replan --http    # closed-loop replanning (issue 29): latency
+                                               # against a cold plan, HTTP, closed loop on
+                                               # perturbed plants (docs/closed-loop.md)
 
 ## What is measured
 

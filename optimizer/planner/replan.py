@@ -80,6 +80,8 @@ OWN_SUBSTEPS = 8
 BRAKE_TIME = 0.05
 #: Samples of the handed-out continuation (fewer when less time is left, at least 2 per piece).
 DEFAULT_SAMPLES = 101
+#: Rates above this (rad/s) are no plan of ours.
+MAX_RATE = 1e4
 #: A rate below this (rad/s) is at rest.
 REST = 1e-12
 #: ``time_law.rule`` of a continuation (as :meth:`optimizer.timing.TimeLaw.as_dict` says it).
@@ -304,6 +306,16 @@ def read_plan(plan: Plan | PlanState | Mapping[str, Any]) -> PlanState:
         return plan
     if isinstance(plan, Plan):
         plan = plan.to_dict()
+    try:
+        return _read(plan)
+    except PlannerError:
+        raise
+    except (TypeError, ValueError, KeyError, AttributeError, IndexError) as exc:
+        raise _bad(f"plan is not an answer of this service ({type(exc).__name__}: "
+                   f"{str(exc)[:120]})", "plan") from None
+
+
+def _read(plan: Any) -> PlanState:
     if not isinstance(plan, Mapping):
         raise _bad("plan must be an answer of /v1/plans or /v1/replans", "plan")
     if plan.get("status", "success") != "success":
@@ -341,6 +353,9 @@ def read_plan(plan: Plan | PlanState | Mapping[str, Any]) -> PlanState:
     rates: np.ndarray | None = None
     if all(isinstance(s.get("u"), list) and len(s["u"]) == 2 for s in segs):
         rates = _floats([s["u"] for s in segs], "plan.coefficients.segments", (len(segs), 2))
+        if float(np.max(np.abs(rates))) > MAX_RATE:
+            raise _bad(f"plan.coefficients.segments hold rates above {MAX_RATE:g} rad/s: not a "
+                       "plan of this service", "plan.coefficients.segments")
     T0 = float(breaks[-1])
     law_d = plan.get("time_law")
     if law_d is None:
@@ -763,8 +778,13 @@ def _gauss_newton(emap: "EndMap", q0: np.ndarray, goal: np.ndarray, U: np.ndarra
     steps = 0
     while err > CORRECTION_TARGET and steps < MAX_STEPS and cols.any():
         J = emap.jacobian(q0, U)[1:, cols]
+        if not np.all(np.isfinite(J)):
+            break
         flat = np.zeros(U.size)
-        flat[cols] = minimum_norm_step(J, r)
+        try:
+            flat[cols] = minimum_norm_step(J, r)
+        except np.linalg.LinAlgError:
+            break
         step = flat.reshape(U.shape)
         alpha = 1.0
         for _ in range(MAX_HALVINGS + 1):
@@ -810,6 +830,10 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
     if T_end - t_stop <= 1e-9:
         raise NumericalError("nothing is left after the current motion's stop to correct the "
                              "miss: give a later duration", field="duration")
+    lo, hi = joint_limits(req)
+    if not (np.all(np.isfinite(q_stop)) and np.all(q_stop[1:] > lo) and np.all(q_stop[1:] < hi)):
+        raise InfeasibleError("the motion under way leaves the region before its next stop: "
+                              "no continuation starts there", field="state")
     sub = replace(req, start=tuple(q_stop[1:]), phi_start=float(q_stop[0]), duration=None,
                   method="shooting", samples=11)
     try:
