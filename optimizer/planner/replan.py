@@ -729,8 +729,9 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
             break
         held |= flipped
     if best is None:
-        raise NumericalError("no correction of the later pieces' rates that keeps their signs "
-                             "reaches the goal (it would add a reversal)")
+        raise NumericalError("the Gauss-Newton correction of the later pieces' rates did not "
+                             "reach the goal" + (" keeping their signs" if keep_reversals else
+                                                 f" (miss {err:.3g} rad)"))
     new_rates = best[1][N - M:] / scale
     t_stop = kept.law.end if kept.law.phases.size else t
     if T_end == ps.end_time and split == 1 and not braked:
