@@ -38,7 +38,7 @@ import numpy as np
 from optimizer.analysis import closed_loop_run
 from optimizer.errors import PlannerError
 from optimizer.planner.plan import plan
-from optimizer.planner.replan import read_plan, replan
+from optimizer.planner.replan import replan
 from optimizer.model import Robot
 from optimizer.problem import PlanRequest
 
