@@ -216,3 +216,16 @@ def test_a_start_error_alone_is_removed_by_the_first_replan(answer: dict) -> Non
     closed_miss = np.max(np.abs(closed_loop(answer, q0, PROTOTYPE_K, 0.25)[1:] - GOAL))
     assert open_miss > 1e-2
     assert closed_miss < 1e-8
+
+
+def test_the_compact_form_replans_like_the_answer(answer: dict) -> None:
+    """What the replanner reads of an answer (its compact form, a few kB) gives the same
+    continuation as the whole answer."""
+    import json
+
+    from optimizer.planner.plan_state import read_plan
+    compact = json.loads(json.dumps(read_plan(answer).compact()))
+    q = np.array([0.05, 0.47, 0.58, 0.57])
+    a, b = replan(answer, 0.25, q), replan(compact, 0.25, q)
+    assert np.allclose(np.array(a["path"]["u"]), np.array(b["path"]["u"]), rtol=0, atol=1e-12)
+    assert a["path"]["t"] == b["path"]["t"]

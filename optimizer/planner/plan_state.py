@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import InvalidRequestError, PlannerError
 from ..model import Robot
-from ..results import Plan
+from ..results import Plan, json_safe
 from ..timing import ramp_profile
 
 #: Samples of the handed-out continuation (fewer when less time is left, at least 2 per piece).
@@ -220,7 +220,7 @@ class PlanState:
         }
         if self.joint_bounds is not None:
             out["joint_bounds"] = [None if b is None else list(b) for b in self.joint_bounds]
-        return out
+        return json_safe(out)  # type: ignore[no-any-return]
 
 
 def invalid(message: str, field: str) -> InvalidRequestError:
