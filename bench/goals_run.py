@@ -116,8 +116,9 @@ def _request(g: Goal, time_limit: float, method: str | None,
     from optimizer.model import Robot
     from optimizer.problem import PlanRequest
     if method is None:  # the user's default request: nothing but start, goal, robot, limit
-        return PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(g.n),
-                           time_limit=time_limit, **(limits or {}))
+        return PlanRequest.from_dict({"start": g.start, "goal": g.goal,
+                                      "robot": Robot.default(g.n), "time_limit": time_limit,
+                                      **(limits or {})})
     return PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(g.n),
                        time_limit=time_limit, method=method)
 

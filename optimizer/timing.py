@@ -32,8 +32,10 @@ cheap to evaluate (:class:`Phases`). On a segment of length ``L`` (in ``lam``):
   the trapezoid (:func:`trapezoid_profile`) or, with a jerk limit, the 7-phase S-curve
   (:func:`scurve_profile`), in closed form. With ``max_u`` alone (no acceleration limit there
   is no fastest law with continuous rates) the ramp law cruising at ``V``;
-* with limits on a segment whose direction varies (the paper's polynomial paths): the ramp
-  law's shape (the smooth law's of jerk ``+J, -J, -J, +J``, :func:`smooth_profile`, under a
+* with limits on a segment whose direction varies (the paper's polynomial paths): the
+  time-optimal law of ``b = lam'^2``, a convex program (:func:`topp_segment`); under a jerk
+  limit (not convex in ``b``), or should the program fail, a law of fixed shape (the ramp
+  law's, or the smooth law's of jerk ``+J, -J, -J, +J``, :func:`smooth_profile`, under a
   jerk limit), of the shortest duration meeting every limit on a dense grid: for a fixed shape
   ``u = a(s) / D``, ``u' = a'(s) / D^2``, ``u'' = a''(s) / D^3`` (``s = t / D``), so each limit
   gives its ``D`` in closed form from the grid's maxima (not time-optimal: said so in the docs).
@@ -436,6 +438,76 @@ def _shape_need(path: GeometricPath, lam0: float, L: float,
     return best
 
 
+#: Intervals of the convex time-optimal retiming of a segment whose direction varies.
+TOPP_INTERVALS = 160
+#: It keeps this much more room below each limit (its constraints hold at the grid's
+#: points; between them the rates are checked on the handed-out form).
+TOPP_MARGIN = 5e-3
+
+
+def topp_segment(path: GeometricPath, lam0: float, L: float,
+                 bounds: tuple[np.ndarray, np.ndarray, np.ndarray],
+                 intervals: int = TOPP_INTERVALS) -> Phases | None:
+    """The time-optimal rest-to-rest law along a segment ``[lam0, lam0 + L]`` whose direction
+    varies, under the rate and acceleration bounds (``bounds[2]``, jerk, is not convex here
+    and is ignored: the caller does not ask then).
+
+    With ``b = lam'^2`` as a function of ``lam`` (time-optimal path parameterisation), the
+    rates are ``u = g sqrt(b)`` and their derivatives ``u' = g'(lam) b + g(lam) b'/2``: linear
+    in ``b``. On a grid ``lam_k`` with ``b`` linear between the points (constant acceleration
+    ``a_k = (b_{k+1} - b_k) / (2 d_k)`` on interval ``k``), ``|g_i| sqrt(b_k) <= max_u_i`` and
+    ``|g_i' b + g_i a_k| <= max_du_i`` at both ends of every interval (``g'`` from inside it)
+    are linear constraints; the time ``sum 2 d_k / (sqrt(b_k) + sqrt(b_{k+1}))`` is convex in
+    ``s = sqrt(b)`` with ``s^2 <= b``. cvxpy over Clarabel solves it; ``None`` when it fails.
+    """
+    import cvxpy as cp
+
+    rate, accel, _ = bounds
+    knots = path.lam[(path.lam > lam0) & (path.lam < lam0 + L)]
+    grid = np.union1d(np.linspace(lam0, lam0 + L, intervals + 1), knots)
+    d = np.diff(grid)
+    g = path.g(grid)
+    eps = 1e-3 * d
+    g_in_left = (path.g(grid[:-1] + eps) - g[:-1]) / eps[:, None]    # g' at each start
+    g_in_right = (g[1:] - path.g(grid[1:] - eps)) / eps[:, None]     # g' at each end
+    g_left = path.g(grid[:-1] + 1e-9 * d)                            # g inside, at the ends
+    g_right = path.g(grid[1:] - 1e-9 * d)
+    N = grid.size
+    b = cp.Variable(N, nonneg=True)
+    sq = cp.Variable(N, nonneg=True)
+    acc = cp.multiply(b[1:] - b[:-1], 1.0 / (2.0 * d))
+    cons = [b[0] == 0, b[N - 1] == 0, cp.square(sq) <= b]
+    for i in range(2):
+        if math.isfinite(rate[i]):
+            gi = np.maximum(np.abs(g[:, i]), np.abs(np.r_[g_left[:, i], g_right[-1, i]]))
+            cap = np.where(gi > 0, (rate[i] / np.where(gi > 0, gi, 1.0)) ** 2, np.inf)
+            finite = np.isfinite(cap)
+            if finite.any():
+                cons.append(b[np.nonzero(finite)[0]] <= cap[finite])
+        if math.isfinite(accel[i]):
+            lhs = [cp.multiply(g_in_left[:, i], b[:-1]) + cp.multiply(g_left[:, i], acc),
+                   cp.multiply(g_in_right[:, i], b[1:]) + cp.multiply(g_right[:, i], acc)]
+            cons += [cp.abs(e) <= accel[i] for e in lhs]
+    if not any(math.isfinite(x) for x in np.r_[rate, accel]):
+        return None
+    time_ = cp.sum(cp.multiply(2.0 * d, cp.inv_pos(sq[:-1] + sq[1:])))
+    prob = cp.Problem(cp.Minimize(time_), cons)
+    try:
+        prob.solve(solver=cp.CLARABEL)
+    except (cp.error.SolverError, ValueError):
+        return None
+    if prob.status not in ("optimal", "optimal_inaccurate") or b.value is None:
+        return None
+    bv = np.maximum(np.asarray(b.value, float), 0.0)
+    bv[0] = bv[-1] = 0.0
+    v = np.sqrt(bv)
+    if np.any(v[:-1] + v[1:] <= 0.0):
+        return None
+    dt = 2.0 * d / (v[:-1] + v[1:])
+    a = (bv[1:] - bv[:-1]) / (2.0 * d)
+    return phases_from([(float(h), float(x), 0.0) for h, x in zip(dt, a)])
+
+
 def _constant_need(g: np.ndarray, L: float,
                    bounds: tuple[np.ndarray, np.ndarray, np.ndarray]
                    ) -> tuple[Phases | None, int, int]:
@@ -518,8 +590,16 @@ def time_law(path: GeometricPath, limits: Limits, duration: float | None, nomina
             binding.append((law_j.duration if law_j is not None else 0.0, order, i))
         else:
             D, order, i = _shape_need(path, float(lam_ends[j]), float(L), bounds, shape)
-            parts_min.append(shape(float(L), D) if D > 0 else None)
-            binding.append((D, order, i))
+            fast = None
+            if shape is ramp_profile and D > 0:     # no jerk limit: the convex retiming
+                fast = topp_segment(path, float(lam_ends[j]), float(L),
+                                    limits.scaled(1.0 - TOPP_MARGIN).arrays())
+            if fast is not None and fast.duration < D:
+                parts_min.append(fast)
+                binding.append((fast.duration, order, i))
+            else:
+                parts_min.append(shape(float(L), D) if D > 0 else None)
+                binding.append((D, order, i))
     bounded = [p.duration for p in parts_min if p is not None]
     hb = sum(h for p, h in zip(parts_min, hs) if p is not None)
     rate = sum(bounded) / hb  # seconds per plan second where a limit binds

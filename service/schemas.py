@@ -272,6 +272,12 @@ class ExecutedValidation(BaseModel):
                                                               "integration (rad).")
     integrator: str
     final: list[Optional[float]] = Field(..., description="Final state [phi, th1..thn] (rad).")
+    reversals: Optional[Reversals] = Field(
+        None, description="Direction changes of phi and th1 on this form's execution (its "
+                          "samples and three points inside every interval).")
+    deviation: Optional[float] = Field(
+        None, description="Largest joint-space distance (rad) of this form's execution from "
+                          "the straight segment start -> goal.")
 
 
 Validation.model_rebuild()

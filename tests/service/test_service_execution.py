@@ -28,7 +28,8 @@ def test_default_path_replays_by_linear_interpolation(client):
     path = body["path"]
     assert path["rule"] == "linear"
     t, u = np.array(path["t"]), np.array(path["u"])
-    assert np.any(np.diff(t) == 0.0)  # a retimed plan's breaks are in t twice
+    assert np.all(np.diff(t) > 0.0)   # continuous rates: no time twice (no jump)
+    assert np.all(u[0] == 0.0) and np.all(u[-1] == 0.0)   # rest to rest
     qf, margin = replay_linear(ROBOT, t, u, Q0)
     assert _err(qf) < 1e-4 and margin > 0.0
     ex = body["validation"]["executed"]
