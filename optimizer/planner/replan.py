@@ -59,7 +59,7 @@ import numpy as np
 from ..chained_form import chained_form
 from ..dynamics import rk4_step, vector_field
 from ..errors import InfeasibleError, NumericalError, PlannerError
-from ..execution import EXECUTION_TOLERANCE, REPLAY_NODES, correct, linear_form
+from ..forms import EXECUTION_TOLERANCE, REPLAY_NODES, correct, linear_form
 from ..indicators import compute_indicators
 from ..model import Robot
 from ..problem import PlanRequest
@@ -610,10 +610,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         # samples are corrected until the original model under that rule reaches the goal
         # (optimizer.execution.correct), the first (the commanded rates) and the last (rest)
         # held
-        form = linear_form(times - t)
-        free = form.free.copy()
-        free[0] = free[-1] = False
-        form = replace(form, free=free)
+        form = linear_form(times - t, held=np.array([0, times.size - 1]))
         target = np.concatenate([[rep.final[0]], goal])
         u, q, check = correct(robot, form, u, q_m, target, limits_region(req), times - t)
         exe_final = np.asarray(check.final)
