@@ -6,19 +6,23 @@ the paper's Figs 11-14 and b0 map.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
+from scipy.integrate import solve_ivp
 
 from .chained_form import chained_form
-from .errors import InvalidRequestError
+from .errors import InvalidRequestError, NumericalError, PlannerError
 from .execution import HandedOutInputs
-from .indicators import compute_indicators, sensitivity_frobenius
+from .indicators import (compute_indicators, count_reversals, segment_distance,
+                         sensitivity_frobenius)
 from .model import Robot
 from .planner.family import PolynomialFamily
 from .planner.intervals import feasible_intervals
 from .planner.context import Deadline
+from .planner.replan import PlanState, read_plan, replan
 from .planner.rules import check_endpoints, make_region
 from .problem import PlanRequest
 from .results import Plan
@@ -213,5 +217,217 @@ def robustness(plan: Plan, starts: np.ndarray, mode: str, goal: Sequence[float],
         "nominal_t_p": plan.indicators.t_p,
         "sensitivity": plan.indicators.sensitivity,
         "replay": mode,
+    }
+    return {"runs": runs, "summary": summary}
+
+
+# ---------------------------------------------------------------------- closed loop
+#: Tolerances of the plant's integration (scipy DOP853, between the inputs' knots).
+PLANT_RTOL = 1e-11
+PLANT_ATOL = 1e-13
+#: Samples of each run's executed path per replan period (deviation, margin, reversals, figure).
+PATH_POINTS_PER_PERIOD = 6
+
+
+def _commanded_rates(ps: PlanState, t: np.ndarray) -> np.ndarray:
+    """The rates a plan commands at times ``t`` (open loop): ``U(sigma(t)) sigma'(t)``."""
+    assert ps.rates is not None
+    sig, ds, _ = ps.law.evaluate(t)
+    k = np.clip(np.searchsorted(ps.breaks, sig, side="right") - 1, 0, ps.rates.shape[0] - 1)
+    return ps.rates[k] * np.asarray(ds)[..., None]
+
+
+def _drive(plant: Robot, ps: PlanState, q0: np.ndarray, t0: float, t1: float,
+           out_t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Integrate the plant from ``q0`` at ``t0`` to ``t1`` under the plan's rates, knot to knot
+    (the rates are smooth between the time law's phase starts); states at ``out_t`` too."""
+    knots = ps.law.phases[:, 0]
+    edges = np.unique(np.concatenate([[t0, t1], knots[(knots > t0) & (knots < t1)]]))
+    q = np.asarray(q0, float)
+    rows = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        mid = 0.5 * (a + b)
+        sig_mid = float(ps.law.evaluate(np.array([mid]))[0][0])
+        k = int(np.clip(np.searchsorted(ps.breaks, sig_mid, side="right") - 1, 0,
+                        ps.breaks.size - 2))
+        U = ps.rates[k]   # type: ignore[index]
+
+        def rhs(t: float, x: np.ndarray, U: np.ndarray = U) -> np.ndarray:
+            ds = float(ps.law.evaluate(np.array([t]))[1][0])
+            return plant.rhs(x, U * ds)
+
+        inside = out_t[(out_t > a) & (out_t <= b)]
+        te = np.unique(np.concatenate([inside, [b]]))
+        sol = solve_ivp(rhs, (a, b), q, method="DOP853", rtol=PLANT_RTOL, atol=PLANT_ATOL,
+                        t_eval=te)
+        if not sol.success:
+            raise NumericalError(f"the plant's integration failed: {sol.message}")
+        rows.append(sol.y.T[np.isin(te, inside)])
+        q = sol.y[:, -1]
+    states = np.vstack(rows) if rows else np.zeros((0, q.size))
+    return q, states
+
+
+def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.ndarray,
+                    gain_errors: Sequence[float] | np.ndarray, period: float | None,
+                    noise: float = 0.0, seed: int = 0,
+                    joint_limits: tuple[np.ndarray, np.ndarray] | None = None,
+                    keep_reversals: bool = False) -> dict[str, Any]:
+    """Run a plan on a plant whose gains are off, from ``start``; with ``period``, replan from
+    the measured state every ``period`` s (:func:`~optimizer.planner.replan.replan`), else
+    open loop.
+
+    Parameters
+    ----------
+    plan : Plan or dict
+        An actuator-rate plan (its answer or the library's :class:`Plan`).
+    start : sequence of float
+        The plant's true start ``th_1..th_n`` (``phi`` starts at the plan's).
+    gain_errors : sequence of float
+        Relative errors of the plant's ``K_2..K_n`` (``K_i (1 + e_i)``).
+    period : float or None
+        Seconds between replans (the first at the plan's start); None: open loop.
+    noise : float
+        Standard deviation (rad) of the measurement noise on every joint and ``phi``.
+    seed : int
+        Seed of the noise.
+    joint_limits : (lo, hi), optional
+        For the margin (default (0, pi/2) for every joint).
+    keep_reversals : bool
+        Passed to the replanner: a continuation that adds a reversal is refused, and the run
+        goes on with the current plan.
+
+    Returns
+    -------
+    dict
+        ``final``, ``terminal_error`` (rad, ``max |th(T) - goal|``), ``reversals``
+        (``phi`` and ``th1`` of the executed path), ``deviation`` (largest distance of the
+        executed joints from the segment start -> goal, rad), ``margin`` (smallest distance
+        to the limits along the path, rad), ``replans`` (accepted), ``replan_failures``,
+        ``path_t``, ``path_q``.
+    """
+    ps = read_plan(plan)
+    if ps.rates is None:
+        raise InvalidRequestError("closed-loop runs take actuator-rate plans (shooting, "
+                                  "penalty)", field="plan.method")
+    robot = ps.robot
+    plant = Robot(tuple(k * (1.0 + e) for k, e in zip(robot.gains, gain_errors)),
+                  robot.exponents)
+    rng = np.random.default_rng(seed)
+    t, T = ps.start_time, ps.end_time
+    phi0 = float(_phi_start(plan))
+    q = np.concatenate([[phi0], np.asarray(start, float)])
+    current = ps
+    out_t = [t]
+    out_q = [q.copy()]
+    replans = failures = 0
+    step = (T - t) / 50 if period is None else float(period)
+    while t < T - 1e-12:
+        t_next = min(t + step, T)
+        if period is not None:
+            measured = q + (rng.normal(0.0, noise, q.size) if noise > 0.0 else 0.0)
+            try:
+                cont = replan(current, t, measured,
+                              rates=_commanded_rates(current, np.array([t]))[0], plain=False,
+                              keep_reversals=keep_reversals)
+                current = read_plan(cont)
+                replans += 1
+            except PlannerError:
+                failures += 1
+        grid = np.linspace(t, t_next, PATH_POINTS_PER_PERIOD + 1)[1:]
+        q, states = _drive(plant, current, q, t, t_next, grid)
+        out_t.extend(grid.tolist())
+        out_q.extend(states.tolist())
+        t = t_next
+    path_q = np.asarray(out_q)
+    lo, hi = joint_limits if joint_limits is not None else (
+        np.zeros(robot.n), np.full(robot.n, math.pi / 2))
+    th = path_q[:, 1:]
+    return {
+        "final": q[1:].tolist(),
+        "terminal_error": float(np.max(np.abs(q[1:] - ps.goal))),
+        "reversals": int(count_reversals(path_q[:, 0]) + count_reversals(path_q[:, 1])),
+        "deviation": segment_distance(th, np.asarray(start, float), ps.goal),
+        "margin": float(np.min(np.minimum(th - lo, hi - th))),
+        "replans": replans,
+        "replan_failures": failures,
+        "path_t": out_t,
+        "path_q": path_q.tolist(),
+    }
+
+
+def _phi_start(plan: Plan | dict[str, Any]) -> float:
+    if isinstance(plan, Plan):
+        return float(plan.path.q[0, 0])
+    diag = (plan.get("diagnostics") or {}).get("replan") or {}
+    if diag.get("start_state"):
+        return float(diag["start_state"][0])
+    q = (plan.get("path") or {}).get("q")
+    return 0.0 if q is None or len(q) == 0 else float(q[0][0])
+
+
+#: What each closed-loop run reports side by side (open and closed loop), besides its path.
+RUN_FIELDS = ("terminal_error", "reversals", "deviation", "margin", "replans",
+              "replan_failures", "final")
+
+
+def closed_loop_robustness(plan: Plan, starts: np.ndarray, gain_error: float, period: float,
+                           noise: float = 0.0, seed: int = 0, *, paths: bool = False,
+                           deadline: Deadline | None = None) -> dict[str, Any]:
+    """Each start on its own plant (gains ``K_i (1 + e_i)``, ``e_i`` uniform in
+    ``+-gain_error``, seeded), open loop and closed loop (:func:`closed_loop_run` with
+    ``period`` and measurement ``noise``), side by side.
+
+    Returns
+    -------
+    dict
+        ``runs``: per start its ``start``, ``gain_errors``, ``open`` and ``closed`` (the
+        fields of :data:`RUN_FIELDS`; ``path_t``/``path_q`` too with ``paths``);
+        ``summary``: medians and worst of both, the median ratio of the terminal errors, the
+        runs with no more reversals closed than the plan has, and those whose joints stayed
+        inside throughout.
+
+    Raises
+    ------
+    InvalidRequestError
+        The plan's inputs are not actuator rates (``closed_loop``).
+    """
+    if plan.chained is not None:
+        raise InvalidRequestError(
+            f"the closed-loop mode continues actuator-rate plans (shooting, penalty: the default "
+            f"auto gives one); method {plan.method!r} plans chained inputs", field="closed_loop")
+    answer = plan.to_dict()
+    rng = np.random.default_rng(seed)
+    nominal = int(plan.indicators.reversals_phi + plan.indicators.reversals_th1)
+    runs = []
+    keep = RUN_FIELDS + (("path_t", "path_q") if paths else ())
+    for i, s in enumerate(np.atleast_2d(starts)):
+        if deadline is not None:
+            deadline.check(f"the closed-loop runs ({i} of {len(np.atleast_2d(starts))} done)")
+        e = rng.uniform(-gain_error, gain_error, plan.robot.n - 1)
+        op = closed_loop_run(answer, s, e, None)
+        cl = closed_loop_run(answer, s, e, period, noise=noise, seed=seed + 1 + i)
+        runs.append({"start": np.asarray(s, float).tolist(), "gain_errors": e.tolist(),
+                     "open": {k: op[k] for k in keep}, "closed": {k: cl[k] for k in keep}})
+
+    def column(side: str, key: str) -> np.ndarray:
+        return np.array([r[side][key] for r in runs], float)
+
+    eo, ec = column("open", "terminal_error"), column("closed", "terminal_error")
+    summary = {
+        "runs": len(runs), "gain_error": gain_error, "period": period, "noise": noise,
+        "plan_reversals": nominal,
+        "open": {"terminal_error_median": float(np.median(eo)),
+                 "terminal_error_max": float(np.max(eo)),
+                 "reversals_max": int(np.max(column("open", "reversals"))),
+                 "margin_min": float(np.min(column("open", "margin")))},
+        "closed": {"terminal_error_median": float(np.median(ec)),
+                   "terminal_error_max": float(np.max(ec)),
+                   "reversals_max": int(np.max(column("closed", "reversals"))),
+                   "margin_min": float(np.min(column("closed", "margin"))),
+                   "replan_failures": int(np.sum(column("closed", "replan_failures")))},
+        "terminal_error_ratio_median": float(np.median(eo / np.maximum(ec, 1e-300))),
+        "closed_no_more_reversals": int(np.sum(column("closed", "reversals") <= nominal)),
+        "closed_inside": int(np.sum(column("closed", "margin") > 0.0)),
     }
     return {"runs": runs, "summary": summary}

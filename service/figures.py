@@ -437,6 +437,19 @@ def robustness(plan: Mapping[str, Any], robustness: Mapping[str, Any], fmt: str 
             t, q = t[keep], q[keep]
         runs.append((t, _deg(q), singular))
     summary = robustness.get("summary") or {}
+    # the closed-loop mode: each start on a plant with gains off, open and closed loop
+    loops: list[tuple[np.ndarray, np.ndarray, str]] = []
+    loop = robustness.get("closed_loop")
+    if isinstance(loop, Mapping):
+        for i, r in enumerate(loop.get("runs") or []):
+            for side in ("open", "closed"):
+                run = r.get(side) if isinstance(r, Mapping) else None
+                if isinstance(run, Mapping) and run.get("path_q") is not None:
+                    loops.append((_array(run["path_t"], f"closed_loop.runs[{i}].{side}.path_t",
+                                         1),
+                                  _deg(_array(run["path_q"],
+                                              f"closed_loop.runs[{i}].{side}.path_q", 2)),
+                                  side))
 
     def build() -> Figure:
         fig, axes = _new_figure(1.5 + 1.9 * p.n, p.n)
@@ -450,6 +463,9 @@ def robustness(plan: Mapping[str, Any], robustness: Mapping[str, Any], fmt: str 
                         lw=0.9, alpha=alpha, zorder=2)
                 if singular:
                     ax.plot([t[-1]], [q[-1, j]], "x", color="tab:red", ms=7, mew=1.8, zorder=4)
+            for t, q, side in loops:
+                ax.plot(t, q[:, j], color="tab:purple" if side == "open" else "tab:green",
+                        lw=0.9, alpha=0.8, ls=":" if side == "open" else "-", zorder=2)
             ax.plot([tn[0], tn[-1]], [qn[0, j], qn[-1, j]], color="0.35", ls="--", lw=1.0,
                     zorder=2)
             ax.plot(tn, qn[:, j], color="black", lw=2.0, zorder=3)
@@ -472,7 +488,14 @@ def robustness(plan: Mapping[str, Any], robustness: Mapping[str, Any], fmt: str 
                  f"d_a max = {_fdeg(da_max)} "
                  f"(nominal {_fdeg(p.d_a)}), "
                  f"t_p max = {summary.get('t_p_max', 'n/a')} (nominal {p.t_p})")
-        axes[0].set_title(line1 + "\n" + line2)
+        title = line1 + "\n" + line2
+        if isinstance(loop, Mapping) and loop.get("summary"):
+            ls = loop["summary"]
+            title += (f"\nplant gains +-{100 * float(ls.get('gain_error', 0)):.3g} %: terminal "
+                      f"error median open {_fdeg(ls['open']['terminal_error_median'])}, closed "
+                      f"loop (replans every {ls.get('period')} s) "
+                      f"{_fdeg(ls['closed']['terminal_error_median'])}")
+        axes[0].set_title(title)
         handles = [Line2D([], [], color="black", lw=2.0, label="nominal plan"),
                    Line2D([], [], color="tab:orange", lw=0.9, label="perturbed start"),
                    Line2D([], [], color="0.35", ls="--", lw=1.0, label="straight reference"),
@@ -480,6 +503,11 @@ def robustness(plan: Mapping[str, Any], robustness: Mapping[str, Any], fmt: str 
         if n_sing:
             handles.insert(2, Line2D([], [], color="tab:red", lw=0.9, marker="x", mew=1.8,
                                      label="singular run\n(stopped)"))
+        if loops:
+            handles += [Line2D([], [], color="tab:purple", lw=0.9, ls=":",
+                               label="plant with gains off,\nopen loop"),
+                        Line2D([], [], color="tab:green", lw=0.9,
+                               label="same plant, closed\nloop (replans)")]
         _legend_right(axes[0], handles)
         return fig
 

@@ -26,6 +26,7 @@ from optimizer.errors import InvalidRequestError, PlannerError
 from optimizer.model import Robot
 from optimizer.planner.context import Deadline
 from optimizer.planner.plan import plan
+from optimizer.planner.replan import replan
 from optimizer.planner.shooting import prepare
 from optimizer.problem import PlanRequest
 from optimizer.results import json_safe
@@ -112,11 +113,27 @@ def job_robustness(payload: Payload) -> dict[str, Any]:
             run.pop("path_q", None)
     out["phi_change"] = nominal.phi_change
     out["method"] = nominal.method
+    loop = payload.get("closed_loop")
+    if loop is not None:
+        out["closed_loop"] = analysis.closed_loop_robustness(
+            nominal, np.asarray(starts, float), float(loop["gain_error"]),
+            float(loop["period"]), float(loop["noise"]), int(loop["seed"]),
+            paths=bool(payload.get("include_paths")), deadline=deadline)
     return out
+
+
+def job_replan(payload: Payload) -> dict[str, Any]:
+    """``POST /v1/replans``: ``plan`` (an answer or its compact form), ``time``, ``state``,
+    ``rates`` and ``duration`` (optional)."""
+    return replan(payload["plan"], payload["time"], payload["state"], payload.get("rates"),
+                  payload.get("duration"), plain=False,
+                  time_limit=float(payload.get("time_limit", 10.0)),
+                  keep_reversals=bool(payload.get("keep_reversals", False)))
 
 
 JOBS: dict[str, Callable[[Payload], Any]] = {
     "plan": job_plan,
+    "replan": job_replan,
     "sweep": job_sweep,
     "transform": job_transform,
     "robustness": job_robustness,
@@ -186,6 +203,11 @@ def job_figure(payload: Payload) -> bytes:
             starts = analysis.perturbed_starts(req.start, int(rnd["count"]),
                                                float(rnd["spread"]), int(rnd["seed"]))
         runs = analysis.robustness(nominal, starts, inner["replay"], req.goal)
+        loop = inner.get("closed_loop")
+        if loop is not None:
+            runs["closed_loop"] = analysis.closed_loop_robustness(
+                nominal, np.asarray(starts, float), float(loop["gain_error"]),
+                float(loop["period"]), float(loop["noise"]), int(loop["seed"]), paths=True)
         data = {"plan": nominal.to_dict(), "robustness": json_safe(runs)}
     else:
         raise ValueError(f"unknown figure kind {kind!r}")

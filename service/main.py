@@ -30,7 +30,8 @@ from .fastpath import FastPlanRoute, is_json
 from .metrics import Metrics
 from .middleware import RequestContextMiddleware
 from .problems import PROBLEM_MEDIA_TYPE, SafeJSONResponse, ServiceProblem
-from .routers import explorer, figures, health, plans, robots, robustness, sweeps, transforms
+from .routers import (explorer, figures, health, plans, replans, robots, robustness, sweeps,
+                      transforms)
 from .schemas import build_schemas
 from .settings import Settings
 from .workers import WorkerPool
@@ -106,7 +107,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     guard = [Depends(_api_key_guard(settings.api_keys))]
     # the paths of the OpenAPI document, known without building it (that takes 0.2 s)
     known = {"/docs", "/redoc", "/openapi.json"}
-    for router in (plans.build_router(schemas), sweeps.build_router(schemas),
+    for router in (plans.build_router(schemas), replans.build_router(),
+                   sweeps.build_router(schemas),
                    transforms.build_router(schemas), robustness.build_router(schemas),
                    robots.build_router(settings.max_joints), figures.build_router(schemas)):
         app.include_router(router, prefix="/v1", dependencies=guard)

@@ -447,6 +447,82 @@ class RobustnessResponse(BaseModel):
     method: str = Field(..., description="Method of the nominal plan.")
     runs: list[RobustnessRun]
     summary: RobustnessSummary
+    closed_loop: Optional[dict[str, Any]] = Field(
+        None, description="With closed_loop in the request: per run the plant's gain errors, "
+                          "the open-loop and the closed-loop run on that plant (terminal_error "
+                          "rad, reversals of phi and th1, deviation rad, margin rad, replans), "
+                          "and a summary of both (medians, worst) with their ratio.")
+
+
+class ReplanResponse(PlanResponse):
+    """``POST /v1/replans``: the continuation of a plan, in a plan's shape; ``path.t`` runs
+    from ``time`` to the end."""
+
+    goal: list[float] = Field(..., description="th1..thn the continuation ends at (rad): the "
+                                               "plan's goal.")
+    time: float = Field(..., description="Seconds on the plan's time axis where the "
+                                         "continuation starts (path.t[0]).")
+    time_law: dict[str, Any] = Field(
+        ..., description="sigma(t): plan_duration, stops (s) and phases rows [t0, dt, sigma0, "
+                         "dsigma0, ddsigma0, jerk] of constant jerk; the rates at t are "
+                         "u(sigma(t)) sigma'(t) with u from coefficients.segments (in plan "
+                         "time sigma).")
+
+
+#: Largest time_limit of a replan (s): the fast path takes about a millisecond, the full
+#: planner (its fallback) tens.
+MAX_REPLAN_TIME_LIMIT = 30.0
+
+
+class ReplanRequest(RequestModel):
+    """A plan (an answer of /v1/plans or /v1/replans, or its compact form), the time since
+    its start, the measured state and the rates being commanded."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"plan": {"robot": {"gains": [0.88658, 0.7115], "exponents": [2, 3]},
+                  "goal": [0.9, 1.0, 0.8],
+                  "coefficients": {"segments": [
+                      {"t_start": 0.0, "t_end": 0.5, "u": [0.6, 1.0]},
+                      {"t_start": 0.5, "t_end": 1.0, "u": [0.6, 0.2]}]}},
+         "time": 0.25, "state": [0.15, 0.55, 0.6, 0.55]}]})
+
+    plan: dict[str, Any] = Field(
+        ..., description="An answer of POST /v1/plans or /v1/replans as returned, or its "
+                         "compact form: robot (gains, exponents), goal, coefficients.segments "
+                         "(t_start, t_end, u), time_law (optional), joint_bounds (optional).")
+    time: Number = Field(..., ge=0.0, description="Seconds since the plan's start (on its "
+                                                  "time axis), before its end.")
+    state: list[Number] = Field(..., min_length=MIN_JOINTS + 1, max_length=MAX_JOINTS + 1,
+                                description="Measured [phi, th1, ..., thn] (rad).")
+    rates: Optional[list[Number]] = Field(
+        None, min_length=2, max_length=2,
+        description="Rates [u1, u2] (rad/s) being commanded at time; default the plan's.")
+    duration: Optional[num(gt=0.0)] = Field(  # type: ignore[valid-type]
+        None, description="A new end time (s, on the plan's time axis); default the plan's.")
+    keep_reversals: bool = Field(
+        False, description="true: no continuation that reverses phi or th1 more often than the "
+                           "plan's rest (a 422 naming keep_reversals instead); false: the goal "
+                           "first (indicators.reversals say what the continuation does).")
+    time_limit: num(hi=MAX_REPLAN_TIME_LIMIT, gt=0.0) = Field(  # type: ignore[valid-type]
+        5.0, description="Seconds for the job (the full planner is the fast path's fallback).")
+
+    def to_library(self) -> dict[str, Any]:
+        return self.model_dump(exclude_none=True, exclude={"time_limit"})
+
+
+class ClosedLoop(RequestModel):
+    """The closed-loop mode of ``POST /v1/robustness``: a plant whose gains are off, replans
+    from the measured state every ``period`` s."""
+
+    gain_error: num(0.0, 0.5) = Field(  # type: ignore[valid-type]
+        0.05, description="Each run's plant gains K2..Kn are K_i (1 + e_i), e_i drawn "
+                          "uniformly in [-gain_error, gain_error] (relative).")
+    period: num(gt=0.0, hi=10.0) = Field(  # type: ignore[valid-type]
+        0.05, description="Seconds between replans (the first at the start).")
+    noise: num(0.0, 0.1) = Field(  # type: ignore[valid-type]
+        0.0, description="Standard deviation (rad) of the measurement noise (Gaussian, on "
+                         "phi and every joint).")
+    seed: StrictInt = Field(0, description="Seed of the gain errors and the noise.")
 
 
 class BatchItem(BaseModel):
@@ -764,6 +840,10 @@ def build_schemas(limits: Limits) -> Schemas:
         include_paths: bool = Field(
             False, description=f"Return each run's path rows (runs x plan.samples at most "
                                f"{L.max_total_samples}).")
+        closed_loop: Optional[ClosedLoop] = Field(
+            None, description="Also run each start on a plant with gains off, open loop and "
+                              "closed loop (replans from the measured state), side by side "
+                              "(actuator-rate plans: shooting, penalty, the default auto).")
         time_limit: TimeLimit = Field(  # type: ignore[valid-type]
             L.default_time_limit, description="Seconds for the whole job (plan and replays).")
 

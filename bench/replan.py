@@ -1,0 +1,222 @@
+"""``python -m bench.replan``: closed-loop replanning (issue 29), measured.
+
+Three parts, each on the benchmark's generated goals (:func:`bench.goals.generate`):
+
+* **latency in process**: per goal a cold default plan (``plan()``, timed: the baseline of the
+  same run), then replans of it (:func:`optimizer.planner.replan.replan`) at random times from
+  states off the plan's by up to 0.5 deg, with the plan's rates at that time; p50 / p99 per
+  ``n``, and the ratio of the cold plan's median to the replan's;
+* **latency over HTTP** (``--http``): ``python -m service`` in a subprocess (one worker),
+  ``POST /v1/replans`` with the whole earlier answer, sequentially, p50 / p99;
+* **closed loop**: per goal a plant whose gains ``K_i`` are off by ``e_i`` uniform in +-5 %,
+  a start off by up to +-0.5 deg per joint, the plan run open loop and in closed loop (a
+  replan from the measured state every 0.05 s) by scipy's DOP853
+  (:func:`optimizer.analysis.closed_loop_run`): the median ratio of the terminal errors,
+  every joint inside throughout, no more reversals than the plan.
+
+Usage::
+
+    .venv/bin/python -m bench.replan                       # n = 3..5, 5 goals each
+    .venv/bin/python -m bench.replan --goals 3 --joints 3 --no-loop
+    .venv/bin/python -m bench.replan --http
+
+Timings depend on the machine's load (2 shared cores here): compare the ratio to the cold
+plan, measured in the same run, rather than the milliseconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from optimizer.analysis import closed_loop_run
+from optimizer.errors import PlannerError
+from optimizer.planner.plan import plan
+from optimizer.planner.replan import replan
+from optimizer.model import Robot
+from optimizer.problem import PlanRequest
+
+from .goals import generate
+
+#: Seed of the perturbations (the goals have their own).
+SEED = 29
+DEG = math.pi / 180.0
+
+
+def _perturbed_state(answer: dict[str, Any], rng: np.random.Generator,
+                     spread_deg: float = 0.5) -> tuple[float, np.ndarray]:
+    """A time in the plan's first 90 % and its handed-out state, the joints moved by up to
+    ``spread_deg``."""
+    t = np.asarray(answer["path"]["t"], float)
+    q = np.asarray(answer["path"]["q"], float)
+    i = int(rng.integers(0, int(0.9 * (t.size - 1))))
+    state = q[i].copy()
+    state[1:] += rng.uniform(-spread_deg, spread_deg, q.shape[1] - 1) * DEG
+    return float(t[i]), state
+
+
+def latency(joints: list[int], goals: int, replans: int,
+            spread_deg: float = 0.5) -> dict[str, Any]:
+    """Replan latency in process against a cold default plan (see the module), states off
+    the plan's by up to ``spread_deg`` per joint."""
+    rng = np.random.default_rng(SEED)
+    out: dict[str, Any] = {}
+    for n in joints:
+        plans: list[float] = []
+        times: list[float] = []
+        routes: dict[str, int] = {}
+        for g in generate(n, goals):
+            req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(n))
+            warm = plan(req).to_dict()             # the NLP built, as in a warm worker
+            try:
+                replan(warm, *_perturbed_state(warm, np.random.default_rng(0)))
+            except PlannerError:
+                pass
+            t0 = time.perf_counter()
+            answer = plan(req).to_dict()
+            plans.append(time.perf_counter() - t0)
+            for _ in range(replans):
+                t, state = _perturbed_state(answer, rng, spread_deg)
+                t1 = time.perf_counter()
+                try:
+                    cont = replan(answer, t, state, plain=False)
+                    route = cont["diagnostics"]["replan"]["route"]
+                except PlannerError as exc:
+                    route = f"refused ({exc.code})"
+                times.append(time.perf_counter() - t1)
+                routes[route] = routes.get(route, 0) + 1
+        p50, p99 = (float(np.percentile(times, q)) for q in (50, 99))
+        out[str(n)] = {"replans": len(times), "p50_ms": 1e3 * p50, "p99_ms": 1e3 * p99,
+                       "cold_plan_median_ms": 1e3 * float(np.median(plans)),
+                       "plan_over_replan": float(np.median(plans)) / p50, "routes": routes}
+    return out
+
+
+def http_latency(replans: int) -> dict[str, Any]:
+    """``POST /v1/replans`` against ``python -m service`` (one worker), sequentially."""
+    import httpx
+
+    from .http_load import Server
+
+    server = Server({"PLANNER_WORKERS": "1"})
+    server.start()
+    try:
+        with httpx.Client(base_url=server.url, timeout=60.0) as client:
+            deadline = time.monotonic() + 180.0
+            while time.monotonic() < deadline:
+                try:
+                    if client.get("/readyz").status_code == 200:
+                        break
+                except httpx.HTTPError:
+                    pass
+                time.sleep(0.5)
+            g = generate(3, 1)[0]
+            answer = client.post("/v1/plans", json={"start": list(g.start),
+                                                    "goal": list(g.goal)}).json()
+            rng = np.random.default_rng(SEED)
+            times, sizes = [], []
+            for _ in range(replans):
+                t, state = _perturbed_state(answer, rng, 0.05)
+                body = {"plan": answer, "time": t, "state": state.tolist()}
+                t0 = time.perf_counter()
+                r = client.post("/v1/replans", json=body)
+                times.append(time.perf_counter() - t0)
+                if r.status_code == 200:
+                    sizes.append(len(r.content))
+            t0 = time.perf_counter()
+            client.post("/v1/plans", json={"start": list(g.start), "goal": list(g.goal)})
+            plan_ms = 1e3 * (time.perf_counter() - t0)
+    finally:
+        server.stop()
+    return {"replans": len(times), "p50_ms": 1e3 * float(np.percentile(times, 50)),
+            "p99_ms": 1e3 * float(np.percentile(times, 99)),
+            "answer_bytes": int(np.median(sizes)) if sizes else 0, "answered": len(sizes),
+            "one_plan_ms": plan_ms}
+
+
+def closed_loop(joints: list[int], goals: int, gain_error: float, spread_deg: float,
+                period: float) -> dict[str, Any]:
+    """Open against closed loop on perturbed plants (see the module)."""
+    rng = np.random.default_rng(SEED + 1)
+    out: dict[str, Any] = {}
+    for n in joints:
+        rows = []
+        for g in generate(n, goals):
+            p = plan(PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(n)))
+            answer = p.to_dict()
+            start = np.asarray(g.start) + rng.uniform(-spread_deg, spread_deg, n) * DEG
+            e = rng.uniform(-gain_error, gain_error, n - 1)
+            op = closed_loop_run(answer, start, e, None)
+            cl = closed_loop_run(answer, start, e, period)
+            nominal = p.indicators.reversals_phi + p.indicators.reversals_th1
+            rows.append({"goal": g.name, "open": op["terminal_error"],
+                         "closed": cl["terminal_error"],
+                         "ratio": op["terminal_error"] / max(cl["terminal_error"], 1e-300),
+                         "inside": cl["margin"] > 0.0, "reversals_plan": nominal,
+                         "reversals_open": op["reversals"], "reversals_closed": cl["reversals"],
+                         "replan_failures": cl["replan_failures"]})
+        ratios = [r["ratio"] for r in rows]
+        out[str(n)] = {
+            "goals": len(rows),
+            "open_median_rad": float(np.median([r["open"] for r in rows])),
+            "closed_median_rad": float(np.median([r["closed"] for r in rows])),
+            "ratio_of_medians": float(np.median([r["open"] for r in rows])
+                                      / np.median([r["closed"] for r in rows])),
+            "ratio_median": float(np.median(ratios)),
+            "inside": sum(r["inside"] for r in rows),
+            "no_more_reversals": sum(r["reversals_closed"] <= r["reversals_plan"] for r in rows),
+            "rows": rows}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.replan", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--joints", type=int, nargs="+", default=[3, 4, 5])
+    ap.add_argument("--goals", type=int, default=5, help="goals per n (default 5)")
+    ap.add_argument("--replans", type=int, default=40, help="replans per goal (latency)")
+    ap.add_argument("--http", action="store_true", help="also measure over HTTP")
+    ap.add_argument("--state-error-deg", type=float, default=0.05,
+                    help="latency: states off the plan's by up to this per joint (default "
+                         "0.05 deg: a 0.05 s period's drift under 5 %% gain errors)")
+    ap.add_argument("--no-loop", action="store_true", help="skip the closed-loop runs")
+    ap.add_argument("--gain-error", type=float, default=0.05)
+    ap.add_argument("--spread-deg", type=float, default=0.5)
+    ap.add_argument("--period", type=float, default=0.05)
+    ap.add_argument("--out", help="write the JSON here too")
+    args = ap.parse_args(argv)
+    report: dict[str, Any] = {
+        "latency": latency(args.joints, args.goals, args.replans, args.state_error_deg)}
+    if args.http:
+        report["http"] = http_latency(10 * args.replans)
+    if not args.no_loop:
+        report["closed_loop"] = closed_loop(args.joints, args.goals, args.gain_error,
+                                            args.spread_deg, args.period)
+    print(f"latency: states off the plan by up to {args.state_error_deg:g} deg per joint")
+    for n, r in report["latency"].items():
+        print(f"n = {n}: replan p50 {r['p50_ms']:.2f} ms, p99 {r['p99_ms']:.2f} ms; cold "
+              f"default plan median {r['cold_plan_median_ms']:.1f} ms "
+              f"({r['plan_over_replan']:.1f}x); routes {r['routes']}")
+    if "http" in report:
+        h = report["http"]
+        print(f"HTTP: replan p50 {h['p50_ms']:.2f} ms, p99 {h['p99_ms']:.2f} ms "
+              f"({h['replans']} sequential, answer {h['answer_bytes']} B)")
+    for n, r in report.get("closed_loop", {}).items():
+        print(f"closed loop n = {n} ({r['goals']} goals): terminal error median open "
+              f"{r['open_median_rad']:.3g} rad, closed {r['closed_median_rad']:.3g} rad, median "
+              f"ratio {r['ratio_median']:.0f}x; inside {r['inside']}/{r['goals']}; no more "
+              f"reversals than the plan {r['no_more_reversals']}/{r['goals']}")
+    if args.out:
+        with open(args.out, "w") as fh:
+            json.dump(report, fh, indent=1, default=float)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,679 @@
+"""Closed loop: the continuation of a plan from a measured state, to the same goal, at once.
+
+A controller runs a plan, measures the state ``q_m = (phi, th_1..th_n)`` at time ``t`` and asks
+for the rest of the motion from there. :func:`replan` answers with a continuation that
+
+* starts at the rates being commanded at ``t`` (given, or the plan's own at ``t``), so the
+  drive sees no jump;
+* ends at the plan's goal at rest, by the plan's end or by a new ``duration``;
+* is verified on the original model like any plan (cascade quadrature of its exact input
+  pieces, the region at every break, the handed-out linear form replayed);
+* is a pure function of its arguments (nothing is kept between calls).
+
+How (actuator-rate plans: ``shooting``, ``penalty``, the default)
+-----------------------------------------------------------------
+A plan's rates are ``u(t) = g(lam(t)) lam'(t)``: piecewise-constant *geometric* rates ``g``
+on pieces of the path's parameter ``lam``, run along a time law ``lam(t)``
+(:mod:`optimizer.timing`, read by :mod:`.plan_state`; phases of constant jerk, ``lam' = 0``
+at every stop; a plan without a time law has ``lam = t`` and rates that jump at its breaks).
+The model is driftless: the state reached at ``lam`` does not depend on the time law, so the
+geometry and the timing are corrected separately.
+
+1. **Kept motion.** The motion under way runs on to the time law's next stop as commanded
+   (the current piece's direction is the commanded rate over ``lam'(t)``): the rates stay
+   continuous and reach that stop at rest. In the last segment, where nothing would be left
+   after its stop, it is braked to rest within :data:`BRAKE_TIME` instead (``lam'`` falls
+   linearly; the rest of the piece becomes correctable).
+2. **Gauss-Newton on what follows.** The rates of the later pieces start at the plan's (the
+   warm start) and take least-norm Gauss-Newton steps onto the goal (``th_1..th_n``; ``phi``
+   is free), each halved until the miss shrinks, with the NLP layer's compiled RK4 end map and
+   its Jacobian (:meth:`~.nlp.MultipleShootingNLP.fine_end`, ``rk4_end_jacobian``; pieces
+   before them get zero rates, under which the driftless model does not move). With
+   ``keep_reversals`` a rate that would change sign is held at zero instead. The remaining
+   time law is kept; pieces split near the end (so that there are more rates than joints) or
+   a new ``duration`` get the default rest-to-rest law (:func:`~.plan_state.rest_to_rest`).
+3. **Proof.** The continuation's pieces are integrated by cascade quadrature on the original
+   model (a miss above 1e-9 rad gets one defect-corrected step), every joint checked at every
+   break (monotone on a constant-rate piece), the handed-out samples replayed by their rule.
+4. **Fallback: the full planner.** A correction that fails (near a reversal the end map's
+   Jacobian is ill-conditioned), or a plan of chained inputs (braked first): the full
+   planner (method ``shooting``, then ``penalty``) plans from the stop; its pieces run rest to
+   rest until the end.
+
+Why not change the current piece: its direction changed mid-motion would jump the rates; a
+stop is where the direction may change. The motion after the last replan is what no replan
+corrects (docs/closed-loop.md).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from dataclasses import dataclass, replace
+from typing import Any, Callable, Mapping
+
+import casadi as ca
+import numpy as np
+
+from ..chained_form import chained_form
+from ..dynamics import rk4_step, vector_field
+from ..errors import InfeasibleError, NumericalError, PlannerError
+from ..forms import EXECUTION_TOLERANCE, REPLAY_NODES, correct, linear_form
+from ..indicators import compute_indicators
+from ..model import Robot
+from ..problem import PlanRequest
+from ..results import Plan, json_safe
+from ..verify import integrate_cascade
+from .plan import plan as full_plan
+from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array,
+                         invalid, law_after_stop, read_plan)
+from .nlp import BufferedCall, ladder, minimum_norm_step, multiple_shooting_nlp
+from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
+
+#: Gauss-Newton steps stop once the fine end map is this close to the goal (rad)...
+CORRECTION_TARGET = 1e-11
+#: ... or after this many steps...
+MAX_STEPS = 12
+#: ... each halved at most this many times until the miss shrinks.
+MAX_HALVINGS = 8
+#: Rounds of holding at 0 the rates that a correction would reverse.
+MAX_HOLDS = 3
+#: RK4 steps per piece of the end map built here when no NLP rung fits the pieces.
+OWN_SUBSTEPS = 8
+#: Seconds over which a chained plan's commanded rates are braked to rest (fallback).
+BRAKE_TIME = 0.05
+# ------------------------------------------------------------------ end maps
+class EndMap:
+    """The RK4 end state of ``N`` equal pieces of normalised time under rates ``(N, 2)`` and
+    its Jacobian: the NLP's compiled maps when a rung of the ladder has ``N`` intervals, else
+    CasADi functions built here (cached)."""
+
+    def __init__(self, robot: Robot, N: int) -> None:
+        self.N = N
+        self.end: Callable[[np.ndarray, np.ndarray], np.ndarray]
+        self.jacobian: Callable[[np.ndarray, np.ndarray], np.ndarray]
+        rung = next((tr for tr in ladder(robot.n) if tr.intervals == N), None)
+        if rung is not None:
+            nlp = multiple_shooting_nlp(tuple(robot.gains), tuple(robot.exponents), False,
+                                        rung.intervals, rung.substeps)
+            self.end, self.jacobian = nlp.fine_end, nlp.rk4_end_jacobian
+        else:
+            fe, jac = _own_maps(tuple(robot.gains), tuple(robot.exponents), N)
+            nq = robot.n + 1
+            self.end = lambda q0, U: fe(q0, U)[0]
+            self.jacobian = lambda q0, U: jac(q0, U)[0].reshape(2 * N, nq).T
+
+
+@functools.lru_cache(maxsize=32)
+def _own_maps(gains: tuple[float, ...], exponents: tuple[int, ...], N: int
+              ) -> tuple[BufferedCall, BufferedCall]:
+    nq = len(gains) + 2
+    q, u = ca.SX.sym("q", nq), ca.SX.sym("u", 2)
+    step = ca.Function("rk4", [q, u], [rk4_step(
+        lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1], ca.cos)),
+        q, u, 1.0 / N, OWN_SUBSTEPS)])
+    U = ca.SX.sym("U", 2 * N)
+    x = q
+    for k in range(N):
+        x = step(x, U[2 * k:2 * k + 2])
+    end = ca.Function("replan_end", [q, U], [x])
+    jac = ca.Function("replan_jac", [q, U], [ca.densify(ca.jacobian(x, U))])
+    return BufferedCall(end, 2), BufferedCall(jac, 2)
+
+
+@functools.lru_cache(maxsize=32)
+def end_map(robot: Robot, N: int) -> EndMap:
+    return EndMap(robot, N)
+
+
+# ------------------------------------------------------------------ the replanner
+@dataclass(frozen=True)
+class Continuation:
+    """Geometric pieces from the measured state and the time law that runs them."""
+
+    breaks: np.ndarray          # plan time sigma (s)
+    rates: np.ndarray           # (M, 2) rad per s of plan time
+    law: TimeLaw
+    plan_duration: float
+    route: str
+    steps: int
+    kept: int = 0               # 1: the first piece is the commanded motion run on
+    refine: Any = None          # (exact end, free rates) -> free rates (one defect step)
+
+
+def _commanded(ps: PlanState, t: float) -> np.ndarray:
+    """The rates the plan commands at ``t``."""
+    if ps.rates is not None:
+        sig, ds, _ = ps.law.evaluate(np.array([t]))
+        k = int(np.clip(np.searchsorted(ps.breaks, sig[0], side="right") - 1, 0,
+                        ps.rates.shape[0] - 1))
+        return ps.rates[k] * float(ds[0])
+    assert ps.path_t is not None and ps.path_u is not None
+    # a chained plan: its handed-out linear form (the later copy of a doubled sample)
+    pt, pu = ps.path_t, ps.path_u
+    k = int(np.clip(np.searchsorted(pt, t, side="right") - 1, 0, pt.size - 2))
+    a, b = pt[k], pt[k + 1]
+    w = 0.0 if b <= a else (t - a) / (b - a)
+    return np.asarray((1.0 - w) * pu[k] + w * pu[k + 1], float)
+
+
+def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
+           rates: Any = None, duration: float | None = None, *,
+           plain: bool = True, time_limit: float = 10.0,
+           keep_reversals: bool = False) -> dict[str, Any]:
+    """The continuation of ``plan`` from the measured ``state`` at ``time_`` (see the module).
+
+    Parameters
+    ----------
+    plan : Plan, PlanState or dict
+        An answer of ``/v1/plans`` or ``/v1/replans`` (or its compact form).
+    time_ : float
+        Seconds since the plan's start (its time axis: a replan's answer keeps it).
+    state : sequence of float
+        Measured ``(phi, th_1..th_n)`` (rad).
+    rates : sequence of 2 floats, optional
+        The rates being commanded at ``time_`` (rad/s); default the plan's.
+    duration : float, optional
+        A new end time (s, on the plan's time axis); default the plan's end.
+    time_limit : float
+        Seconds for the full planner, when it runs (the fallback).
+    keep_reversals : bool
+        Hand out no continuation whose rates reverse ``phi`` or ``th1`` more often than the
+        plan's rest does (the fast path keeps every rate's sign; a fallback plan that adds a
+        reversal is refused, :class:`InfeasibleError` naming ``keep_reversals``). False (the
+        default): the goal first; ``indicators.reversals`` say what the continuation does.
+    plain : bool
+        True: Python lists and floats (:func:`~optimizer.results.json_safe`); False: numpy
+        arrays left in, for an encoder that writes them (the service's orjson).
+
+    Returns
+    -------
+    dict
+        An answer with the shape of a plan's: ``path.t`` runs from ``time_`` to the end.
+
+    Raises
+    ------
+    InvalidRequestError
+        A state outside the region (``state``), a time past the end (``time``), rates of
+        the wrong shape (``rates``), a plan that is not one of ours (``plan....``).
+    InfeasibleError, NumericalError
+        No continuation could be verified.
+    """
+    t_start = time.perf_counter()
+    ps = read_plan(plan)
+    n = ps.robot.n
+    t = float(time_)
+    if not math.isfinite(t) or t < ps.start_time - 1e-12 or t >= ps.end_time:
+        raise invalid(f"time = {t!r} s must lie in [{ps.start_time:.6g}, {ps.end_time:.6g}) s, "
+                   "the plan's remaining span", "time")
+    q_m = finite_array(state, "state")
+    if q_m.shape != (n + 1,):
+        raise invalid(f"state must give phi and th1..th{n} ({n + 1} numbers), not {q_m.size}",
+                   "state")
+    T_end = ps.end_time if duration is None else float(duration)
+    if not math.isfinite(T_end) or T_end <= t:
+        raise invalid(f"duration = {duration!r} s must end after time = {t:.6g} s", "duration")
+    req = PlanRequest(start=tuple(q_m[1:]), goal=tuple(ps.goal), robot=ps.robot,
+                      phi_start=float(q_m[0]), duration=T_end - t, samples=ps.samples,
+                      joint_bounds=ps.joint_bounds, time_limit=float(time_limit))
+    lo, hi = joint_limits(req)
+    for i, (x, a, b) in enumerate(zip(q_m[1:], lo, hi)):
+        if not a < x < b:
+            raise invalid(f"state[{i + 1}] = th{i + 1} = {x:.6g} rad is outside ({a:.6g}, "
+                       f"{b:.6g}) rad, the singularity-free region within the joint bounds: "
+                       "no continuation starts there", f"state[{i + 1}]")
+    u_c = _commanded(ps, t) if rates is None else finite_array(rates, "rates", (2,))
+    timing: dict[str, float] = {}
+    errors: list[str] = []
+    cont: Continuation | None = None
+    if ps.rates is not None:
+        try:
+            cont = _fast(ps, req, t, q_m, u_c, T_end, keep_reversals)
+        except PlannerError as exc:
+            errors.append(f"{exc.code}: {exc.message}")
+    timing["correction"] = time.perf_counter() - t_start
+    result: dict[str, Any] | None = None
+    if cont is not None:
+        try:
+            result = _finish(ps, req, t, q_m, u_c, cont, timing)
+        except PlannerError as exc:
+            errors.append(f"{exc.code}: {exc.message}")
+    if result is None:
+        cont = _fallback(ps, req, t, q_m, u_c, T_end)
+        if keep_reversals and ps.rates is not None:
+            sig = float(ps.law.evaluate(np.array([t]))[0][0])
+            k = int(np.clip(np.searchsorted(ps.breaks, sig, side="right") - 1, 0,
+                            ps.rates.shape[0] - 1))
+            had, has = sign_changes(ps.rates[k:]), sign_changes(cont.rates)
+            if has > had:
+                raise InfeasibleError(
+                    f"the only continuation found reverses phi or th1 {has} time(s), the plan's "
+                    f"rest {had}: none was handed out (keep_reversals=false accepts it; or run "
+                    "on the current plan)", field="keep_reversals",
+                    diagnostics={"reversals": has, "plan_reversals": had,
+                                 "fast_path_failed": errors})
+        result = _finish(ps, req, t, q_m, u_c, cont, timing)
+    result["timing"]["total"] = time.perf_counter() - t_start
+    if errors:
+        result["diagnostics"]["replan"]["fast_path_failed"] = errors
+    return json_safe(result) if plain else result
+
+
+@dataclass(frozen=True)
+class Kept:
+    """The motion that runs on as commanded: from plan time ``breaks[0]`` (now) to the next
+    stop ``breaks[-1]`` (empty at rest), its pieces' rates (the first: the commanded rates
+    over ``sigma'``), its law, and ``k``: the first of the plan's pieces after it."""
+
+    k: int
+    breaks: np.ndarray
+    rates: np.ndarray
+    law: TimeLaw
+
+    @property
+    def pieces(self) -> int:
+        return self.rates.shape[0]
+
+    @property
+    def s_stop(self) -> float:
+        return float(self.breaks[-1])
+
+
+def _kept(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
+    """What runs on from ``t`` to the next stop (see :class:`Kept`). A plan without a time law
+    jumps at every break: there its next break is the stop."""
+    assert ps.rates is not None
+    sig, ds, _ = ps.law.evaluate(np.array([t]))
+    s_t, v = float(sig[0]), float(ds[0])
+    tol = 1e-9 * max(1.0, ps.plan_duration)
+    k = int(np.clip(np.searchsorted(ps.breaks, s_t + tol, side="right") - 1, 0,
+                    ps.rates.shape[0] - 1))
+    if v <= REST:
+        if float(np.max(np.abs(u_c))) > 1e-9:
+            raise NumericalError("the plan is at rest at this time but rates were given",
+                                 field="rates")
+        if abs(s_t - ps.breaks[k]) > tol:
+            raise NumericalError("the plan is at rest inside a piece")
+        return Kept(k, np.array([s_t]), np.zeros((0, 2)), TimeLaw(np.zeros((0, 6))))
+    P = ps.law.phases
+    if ps.jumps:
+        s_stop = float(ps.breaks[k + 1])
+        t_stop = float(P[np.argmin(np.abs(P[:, 2] - s_stop)), 0]) if s_stop < ps.breaks[-1] \
+            else ps.law.end
+    else:
+        at_rest = P[(P[:, 0] > t) & (np.abs(P[:, 3]) <= REST), 0]
+        t_stop = float(at_rest[0]) if at_rest.size else ps.law.end
+        s_stop = float(ps.law.evaluate(np.array([t_stop]))[0][0]) if at_rest.size \
+            else float(ps.law.sigma_ends()[-1])
+    j = int(np.argmin(np.abs(ps.breaks - s_stop)))
+    if abs(ps.breaks[j] - s_stop) > 1e-7 * max(1.0, ps.plan_duration):
+        raise NumericalError("the time law stops between the plan's breaks")
+    inner = ps.breaks[k + 1:j]
+    kb = np.concatenate([[s_t], inner, [ps.breaks[j]]])
+    kr = ps.rates[k:j].copy()
+    kr[0] = np.asarray(u_c, float) / v
+    law = ps.law.after(t)
+    kept_rows = law.phases[law.phases[:, 0] < t_stop - 1e-12]
+    return Kept(j, kb, kr, TimeLaw(kept_rows))
+
+
+def _braked(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
+    """The commanded motion braked to rest now: ``sigma'`` from its value down to 0 at a
+    constant rate within :data:`BRAKE_TIME` (the rates stay continuous, their slope jumps),
+    inside the current piece; what is left of that piece and the later pieces follow. Used
+    when no piece is left after the next stop (the plan's last segment)."""
+    assert ps.rates is not None
+    sig, ds, _ = ps.law.evaluate(np.array([t]))
+    s_t, v = float(sig[0]), float(ds[0])
+    if v <= REST:
+        return _kept(ps, t, u_c)
+    k = int(np.clip(np.searchsorted(ps.breaks, s_t, side="right") - 1, 0,
+                    ps.rates.shape[0] - 1))
+    room = float(ps.breaks[k + 1]) - s_t
+    D = min(BRAKE_TIME, 0.25 * (T_end - t), room / v)   # travels v D / 2 <= room / 2
+    if D <= 0.0:
+        raise NumericalError("no room left to brake the current motion")
+    s_b = s_t + 0.5 * v * D
+    law = np.array([[t, D, s_t, v, -v / D, 0.0]])
+    rates = (np.asarray(u_c, float) / v)[None, :]
+    # the rest of the current piece is free: ps.breaks[k + 1:] follow s_b
+    return Kept(k, np.array([s_t, s_b]), rates, TimeLaw(law))
+
+
+def _pieces_end(robot: Robot, q0: np.ndarray, breaks: np.ndarray, rates: np.ndarray
+                ) -> np.ndarray:
+    """The state after constant-rate pieces: RK4 with :data:`OWN_SUBSTEPS` steps each (as
+    close to the exact model as the correction's end map; the continuation's quadrature
+    proves the whole)."""
+    end, _ = _own_maps(tuple(robot.gains), tuple(robot.exponents), 1)
+    q = np.asarray(q0, float)
+    for L, r in zip(np.diff(breaks), rates):
+        if L > 0.0:
+            q = end(q, np.asarray(r, float) * L)[0]
+    return q
+
+
+def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
+          T_end: float, keep_reversals: bool = False) -> Continuation:
+    """Steps 1-2 of the module: the kept motion, then Gauss-Newton on the later pieces."""
+    assert ps.rates is not None
+    kept = _kept(ps, t, u_c)
+    n = ps.robot.n
+    braked = kept.k >= ps.rates.shape[0]
+    if braked:      # the last segment: stop early, what follows is corrected
+        kept = _braked(ps, t, u_c, T_end)
+    free = np.concatenate([[kept.s_stop], ps.breaks[kept.k + 1:]]) if braked else \
+        ps.breaks[kept.k:]
+    rates0 = ps.rates[kept.k:]
+    M = free.size - 1
+    # few pieces left (near the end): split each into equal parts (the same path, more stops)
+    # so that the correction has more inputs than joints to move
+    split = 1 if 2 * M >= n + 2 else math.ceil((n + 2) / (2 * M))
+    if split > 1:
+        w = np.arange(split) / split
+        free = np.concatenate([(free[:-1, None] + np.diff(free)[:, None] * w).ravel(),
+                               free[-1:]])
+        rates0 = np.repeat(rates0, split, axis=0)
+        M *= split
+    N = next((tr.intervals for tr in ladder(n) if tr.intervals >= M), M)
+    emap = end_map(ps.robot, N)
+    # the end map's intervals are 1/N of normalised time: a piece of plan time L at rate g
+    # moves as the rate g L N there
+    scale = (np.diff(free) * N)[:, None]
+    q_stop = _pieces_end(ps.robot, q_m, kept.breaks, kept.rates)
+    U0 = np.zeros((N, 2))
+    U0[N - M:] = rates0 * scale
+    goal = ps.goal
+    # with keep_reversals every rate keeps its sign (a rate that would change sign is held at
+    # 0 instead: no reversal is added to phi or th1, which integrate them)
+    signs = np.sign(rates0)
+    held = np.zeros((M, 2), bool)
+    best: tuple[float, np.ndarray] | None = None
+    steps = 0
+    for _ in range(MAX_HOLDS + 1):
+        start = U0.copy()
+        start[N - M:][held] = 0.0
+        err, U, steps = _gauss_newton(emap, q_stop, goal, start, N - M, ~held)
+        if err > 1e-6:
+            break
+        flipped = (signs != 0.0) & (np.sign(U[N - M:]) == -signs) & ~held
+        if not keep_reversals or not flipped.any():
+            best = (err, U)
+            break
+        held |= flipped
+    if best is None:
+        raise NumericalError("the Gauss-Newton correction of the later pieces' rates did not "
+                             "reach the goal" + (" keeping their signs" if keep_reversals else
+                                                 f" (miss {err:.3g} rad)"))
+    new_rates = best[1][N - M:] / scale
+    t_stop = kept.law.end if kept.law.phases.size else t
+    if T_end == ps.end_time and split == 1 and not braked:
+        later = ps.law.after(t_stop).phases
+    else:
+        later = law_after_stop(t_stop, T_end, free)
+
+    def refine(exact_end: np.ndarray, current: np.ndarray) -> np.ndarray:
+        # the quadrature's end missed: one step aimed where the fine map must end for the
+        # exact model to reach the goal (a defect correction)
+        V = np.zeros((N, 2))
+        V[N - M:] = current * scale
+        r = exact_end[1:] - goal
+        J = emap.jacobian(q_stop, V)[1:, 2 * (N - M):]
+        return current - minimum_norm_step(J, r).reshape(M, 2) / scale
+
+    return _assemble(kept, free, new_rates, later, ps.plan_duration, "gauss_newton", steps,
+                     refine)
+
+
+def sign_changes(rates: np.ndarray) -> int:
+    """Sign changes of ``u1`` and of ``u2`` along pieces (zeros skipped): the reversals of
+    ``phi`` and ``th1``, which integrate them."""
+    total = 0
+    for col in np.asarray(rates, float).T:
+        nz = np.sign(col[np.abs(col) > 1e-12])
+        total += int(np.sum(nz[1:] != nz[:-1]))
+    return total
+
+
+def _gauss_newton(emap: "EndMap", q0: np.ndarray, goal: np.ndarray, U: np.ndarray, first: int,
+                  free: np.ndarray) -> tuple[float, np.ndarray, int]:
+    """Gauss-Newton steps of least norm on the rates ``U[first:]`` where ``free`` (the others
+    fixed) onto ``th(1) = goal``, each halved until the miss shrinks (a backtracking line
+    search: near a reversal the Jacobian is ill-conditioned and a full step overshoots).
+    Returns the miss (rad), the rates and the steps taken."""
+
+    def miss(V: np.ndarray) -> tuple[float, np.ndarray]:
+        r = emap.end(q0, V)[1:] - goal
+        e = float(np.max(np.abs(r)))
+        return (e if math.isfinite(e) else math.inf), r
+
+    cols = np.concatenate([np.zeros(2 * first, bool), free.ravel()])
+    err, r = miss(U)
+    steps = 0
+    while err > CORRECTION_TARGET and steps < MAX_STEPS and cols.any():
+        J = emap.jacobian(q0, U)[1:, cols]
+        if not np.all(np.isfinite(J)):
+            break
+        flat = np.zeros(U.size)
+        try:
+            flat[cols] = minimum_norm_step(J, r)
+        except np.linalg.LinAlgError:
+            break
+        step = flat.reshape(U.shape)
+        alpha = 1.0
+        for _ in range(MAX_HALVINGS + 1):
+            V = U - alpha * step
+            e2, r2 = miss(V)
+            if e2 < err:
+                break
+            alpha *= 0.5
+        else:
+            break
+        U, err, r = V, e2, r2
+        steps += 1
+    return err, U, steps
+
+
+def _assemble(kept: Kept, free: np.ndarray, new_rates: np.ndarray, later: np.ndarray,
+              T0: float, route: str, steps: int, refine: Any = None) -> Continuation:
+    if kept.pieces:
+        breaks = np.concatenate([kept.breaks[:-1], free])
+        rates = np.vstack([kept.rates, new_rates])
+        phases = np.vstack([kept.law.phases, later])
+    else:
+        breaks, rates, phases = free.copy(), new_rates, later
+        breaks[0] = kept.breaks[0]
+    return Continuation(breaks, rates, TimeLaw(phases), T0, route, steps, kept.pieces, refine)
+
+
+def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
+              T_end: float) -> Continuation:
+    """Step 4 of the module: the kept motion (or a braking), then the full planner."""
+    if ps.rates is not None:
+        kept = _kept(ps, t, u_c)
+        if kept.k >= ps.rates.shape[0]:
+            kept = _braked(ps, t, u_c, T_end)
+    elif float(np.max(np.abs(u_c))) > REST:
+        Db = min(BRAKE_TIME, 0.5 * (T_end - t))
+        kept = Kept(0, np.array([0.0, 0.5 * Db]), np.asarray(u_c, float)[None, :],
+                    TimeLaw(braking(t, Db, 0.0)))
+    else:
+        kept = Kept(0, np.array([0.0]), np.zeros((0, 2)), TimeLaw(np.zeros((0, 6))))
+    q_stop = _pieces_end(ps.robot, q_m, kept.breaks, kept.rates)
+    t_stop = kept.law.end if kept.law.phases.size else t
+    if T_end - t_stop <= 1e-9:
+        raise NumericalError("nothing is left after the current motion's stop to correct the "
+                             "miss: give a later duration", field="duration")
+    lo, hi = joint_limits(req)
+    if not (np.all(np.isfinite(q_stop)) and np.all(q_stop[1:] > lo) and np.all(q_stop[1:] < hi)):
+        raise InfeasibleError("the motion under way leaves the region before its next stop: "
+                              "no continuation starts there", field="state")
+    sub = replace(req, start=tuple(q_stop[1:]), phi_start=float(q_stop[0]), duration=None,
+                  method="shooting", samples=11)
+    try:
+        p = full_plan(sub)
+    except PlannerError:
+        p = full_plan(replace(sub, method="penalty"))
+    sched = p.inputs
+    breaks = kept.s_stop + np.asarray(sched.breaks, float)   # its plan time after the stop
+    rates = np.asarray(sched.rates, float)                    # type: ignore[union-attr]
+    later = law_after_stop(t_stop, T_end, breaks)
+    return _assemble(kept, breaks, rates, later, kept.s_stop + float(sched.breaks[-1]),
+                     "full_planner", 0)
+
+
+def _piece(breaks: np.ndarray, s: np.ndarray) -> np.ndarray:
+    return np.clip(np.searchsorted(breaks, s, side="right") - 1, 0, breaks.size - 2)
+
+
+def _replay(robot: Robot, q_m: np.ndarray, cont: Continuation, rates: np.ndarray,
+            s_eval: np.ndarray) -> Any:
+    sb = cont.breaks - cont.breaks[0]
+    L = float(sb[-1])
+    return integrate_cascade(robot, lambda s: rates[_piece(sb, s)], q_m, L,
+                             np.clip(np.concatenate([sb, s_eval]), 0.0, L), sb,
+                             nodes=REPLAY_NODES, initial_panels=1, constant_pieces=True)
+
+
+def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
+            cont: Continuation, timing: dict[str, float]) -> dict[str, Any]:
+    """Verify a continuation on the original model and answer it in a plan's shape.
+
+    Raises
+    ------
+    InfeasibleError
+        A joint leaves its limits (checked at every break: each joint is monotone on a piece
+        of constant rates).
+    NumericalError
+        The exact pieces, or the handed-out form, miss the goal by more than
+        :data:`~.rules.TERMINAL_TOLERANCE`.
+    """
+    t0 = time.perf_counter()
+    robot, goal = ps.robot, ps.goal
+    law = cont.law
+    T_end = law.end
+    sb = cont.breaks - cont.breaks[0]
+    # the handed-out times: an even grid and every phase start; where the rates jump (a break
+    # passed at speed: plans without a time law) the time is there twice
+    times = np.unique(np.concatenate([np.linspace(t, T_end, ps.samples), law.phases[:, 0],
+                                      [T_end]]))
+    times = times[times >= t]
+    sig, ds, _ = law.evaluate(times)
+    # at the stops sigma' is 0 up to rounding of the cubics: the drive is told exactly 0
+    ds[np.abs(ds) <= 1e-12 * max(1.0, float(np.max(np.abs(ds))))] = 0.0
+    sl = np.clip(sig - cont.breaks[0], 0.0, float(sb[-1]))
+    ph = law.phases
+    jump_t = ph[(ph[:, 3] > REST) & np.isin(ph[:, 2], cont.breaks[1:-1]) & (ph[:, 0] > t), 0]
+    rates = cont.rates
+    rep = _replay(robot, q_m, cont, rates, sl)
+    miss = float(np.max(np.abs(rep.final[1:] - goal))) if rep.success else math.inf
+    if cont.refine is not None and rep.success and miss > 1e-9:
+        free = cont.refine(rep.final, rates[cont.kept:])
+        again = np.vstack([rates[:cont.kept], free])
+        rep2 = _replay(robot, q_m, cont, again, sl)
+        miss2 = float(np.max(np.abs(rep2.final[1:] - goal))) if rep2.success else math.inf
+        if miss2 < miss:
+            rep, miss, rates = rep2, miss2, again
+    timing["verification"] = time.perf_counter() - t0
+    if not rep.success or rep.singular:
+        raise NumericalError(f"the continuation's re-integration failed: {rep.message}")
+    lo, hi = joint_limits(req)
+    qb = rep.q[:sb.size, 1:]
+    margins = np.minimum(qb - lo, hi - qb)
+    margin = float(np.min(margins))
+    if not margin > 0.0:
+        j = int(np.unravel_index(int(np.argmin(margins)), margins.shape)[1])
+        raise InfeasibleError(f"the continuation takes th{j + 1} outside its limits",
+                              diagnostics={"margin": margin})
+    if not miss <= TERMINAL_TOLERANCE:
+        raise NumericalError(f"the continuation misses the goal by {miss:.3g} rad",
+                             diagnostics={"terminal_error": miss})
+    q = rep.q[sb.size:]
+    k = _piece(sb, sl)
+    u = rates[k] * ds[:, None]
+    u[0] = u_c          # the commanded rates (equal to the plan's up to rounding)
+    if jump_t.size:     # the rate before each jump, as the linear form's first copy
+        at = np.searchsorted(times, jump_t)
+        before = rates[np.maximum(k[at] - 1, 0)] * ds[at][:, None]
+        times = np.insert(times, at, jump_t)
+        q = np.insert(q, at, q[at], axis=0)
+        u = np.insert(u, at, before, axis=0)
+    cf = chained_form(robot)
+    al, be = cf.input_coefficients(q)
+    v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
+    smooth_law = not law.piecewise_linear
+    exe_initial = None
+    corrections = 0
+    if smooth_law:
+        # continuous rates: linear interpolation of their samples is not the exact rates; the
+        # samples are corrected until the original model under that rule reaches the goal
+        # (optimizer.execution.correct), the first (the commanded rates) and the last (rest)
+        # held
+        form = linear_form(times - t, held=np.array([0, times.size - 1]))
+        target = np.concatenate([[rep.final[0]], goal])
+        u, q, check = correct(robot, form, u, q_m, target, limits_region(req), times - t)
+        exe_final = np.asarray(check.final)
+        exe_integrator = check.integrator
+        exe_initial, corrections = check.initial_terminal_error, check.corrections
+        if not check.terminal_error <= EXECUTION_TOLERANCE or check.singular or \
+                not check.margin > 0.0:
+            raise NumericalError(
+                f"the handed-out path of {times.size} samples misses the goal by "
+                f"{check.terminal_error:.3g} rad when executed (margin {check.margin:.3g} rad)",
+                diagnostics={"execution": check.as_dict()})
+        al, be = cf.input_coefficients(q)
+        v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
+    else:
+        exe_final, exe_integrator = rep.final, rep.integrator
+    exe_err = float(np.max(np.abs(exe_final[1:] - goal)))
+    ind = compute_indicators(times, q, u)
+    timing["sampling"] = time.perf_counter() - t0 - timing["verification"]
+    out: dict[str, Any] = {
+        "status": "success",
+        "method": "replan",
+        "robot": robot.as_dict(),
+        "goal": goal.tolist(),
+        "time": t,
+        "phi_change": float(rep.final[0] - q_m[0]),
+        "b0": None,
+        "duration": T_end,
+        "feasible_phi_changes": [],
+        "coefficients": {
+            "basis": "actuator rates u = (u1, u2) (rad per s of plan time) constant on each "
+                     "segment of plan time sigma; the rates at time t are u(sigma(t)) "
+                     "sigma'(t) (time_law)",
+            "segments": [{"t_start": float(a), "t_end": float(b), "v1": [float(r[0])],
+                          "v2": [], "u": [float(r[0]), float(r[1])]}
+                         for a, b, r in zip(cont.breaks[:-1], cont.breaks[1:], rates)]},
+        "time_law": law.as_dict(cont.plan_duration, cont.breaks),
+        "indicators": {
+            "d_a": ind.d_a, "d_a_per_joint": list(ind.d_a_per_joint),
+            "d_a_joint_space": ind.d_a_joint_space, "t_p": ind.t_p,
+            "phi_reversals": ind.phi_reversals, "sensitivity": ind.sensitivity,
+            "sensitivity_max": ind.sensitivity_max, "energy": ind.energy, "margin": margin,
+            "deviation": ind.deviation,
+            "reversals": {"phi": ind.reversals_phi, "th1": ind.reversals_th1}},
+        "path": {"t": times, "q": q, "z": cf.to_chained(q), "u": u, "v": v, "rule": "linear"},
+        "validation": {
+            "terminal_error": miss, "phi_error": 0.0, "max_deviation": 0.0, "singular": False,
+            "final": rep.final.tolist(), "integrator": f"{rep.integrator} on the original model",
+            "error_estimate": rep.error_estimate, "rtol": None, "atol": None,
+            "executed": {"rule": "linear", "terminal_error": exe_err, "phi_error":
+                         float(abs(exe_final[0] - rep.final[0])), "margin": margin,
+                         "singular": False, "initial_terminal_error":
+                         exe_err if exe_initial is None else exe_initial,
+                         "corrections": corrections, "integrator": f"{exe_integrator} on the original "
+                         "model", "final": exe_final.tolist()}},
+        "timing": dict(timing),
+        "diagnostics": {"replan": {
+            "route": cont.route, "gauss_newton_steps": cont.steps,
+            "kept_piece": bool(cont.kept), "pieces": int(rates.shape[0]),
+            "commanded_rates": [float(x) for x in u_c],
+            "start_state": q_m.tolist()}},
+    }
+    return out
+
+
+__all__ = ["Continuation", "EndMap", "Kept", "PlanState", "TimeLaw", "end_map", "read_plan",
+           "replan", "sign_changes"]

@@ -1,0 +1,108 @@
+"""``POST /v1/replans`` over HTTP: a continuation of a plan's answer as sent back, its rates
+continuing the commanded ones, 422s naming the field, and the same request answered the same."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from svc_support import TestClient
+
+PLAN = {"start": [0.3, 0.4, 0.5], "goal": [0.9, 1.0, 0.8]}
+
+
+@pytest.fixture(scope="module")
+def answer(client: TestClient) -> dict:
+    r = client.post("/v1/plans", json=PLAN)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def _state_at(answer: dict, t: float, bump: float = 0.0) -> list[float]:
+    """The plan's handed-out state at sample time ``t``, its joints moved by ``bump`` rad."""
+    i = int(np.searchsorted(answer["path"]["t"], t))
+    q = np.array(answer["path"]["q"][i], float)
+    q[1:] += bump
+    return q.tolist()
+
+
+def test_replan_continues_the_answer_to_the_goal(client: TestClient, answer: dict) -> None:
+    t = answer["path"]["t"][int(np.searchsorted(answer["path"]["t"], 0.4))]
+    r = client.post("/v1/replans", json={"plan": answer, "time": t,
+                                          "state": _state_at(answer, 0.4, math.radians(0.5)),
+                                          "rates": [0.9, 0.5]})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["path"]["t"][0] == pytest.approx(t, abs=1e-12)
+    assert body["path"]["t"][-1] == pytest.approx(answer["duration"], abs=1e-12)
+    assert body["path"]["u"][0] == pytest.approx([0.9, 0.5], abs=1e-12)
+    assert np.max(np.abs(np.array(body["validation"]["final"][1:]) - PLAN["goal"])) < 1e-6
+    # a replan of the replan: the answer is a plan the service takes back
+    t2 = body["path"]["t"][len(body["path"]["t"]) // 3]
+    q2 = np.array(body["path"]["q"][len(body["path"]["t"]) // 3]) + [0.0, 1e-3, -1e-3, 1e-3]
+    r2 = client.post("/v1/replans", json={"plan": body, "time": t2, "state": q2.tolist()})
+    assert r2.status_code == 200, r2.text
+    assert r2.json()["validation"]["terminal_error"] < 1e-6
+
+
+def test_same_request_same_answer(client: TestClient, answer: dict) -> None:
+    req = {"plan": answer, "time": 0.5, "state": _state_at(answer, 0.5, 0.004)}
+    a, b = (client.post("/v1/replans", json=req).json() for _ in range(2))
+    for key in ("coefficients", "path", "time_law"):
+        assert a[key] == b[key]
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"state": [0.0, 0.5, 1.7, 0.5]}, "state[2]"),           # th2 outside (0, pi/2)
+    ({"time": 5.0}, "time"),                                 # past the end
+    ({"plan": {"robot": {"gains": [1.0]}}}, "plan.robot"),   # not one of ours
+    ({"plan": "x"}, "plan"),
+    ({"state": [0.1, 0.2]}, "state"),
+    ({"rates": [1.0, 2.0, 3.0]}, "rates"),
+])
+def test_bad_requests_are_422_naming_the_field(client: TestClient, answer: dict,
+                                               change: dict, field: str) -> None:
+    req = {"plan": answer, "time": 0.5, "state": _state_at(answer, 0.5)}
+    req.update(change)
+    r = client.post("/v1/replans", json=req)
+    assert r.status_code == 422, r.text
+    assert r.json()["field"].startswith(field), r.json()
+
+
+def test_segments_tampered_are_refused(client: TestClient, answer: dict) -> None:
+    bad = dict(answer)
+    segs = [dict(s) for s in answer["coefficients"]["segments"]]
+    segs[2]["t_start"] += 0.01   # no longer contiguous
+    bad["coefficients"] = {"basis": "", "segments": segs}
+    r = client.post("/v1/replans", json={"plan": bad, "time": 0.5,
+                                         "state": _state_at(answer, 0.5)})
+    assert r.status_code == 422
+    assert r.json()["field"] == "plan.coefficients.segments"
+
+
+def test_robustness_closed_loop_side_by_side(client: TestClient) -> None:
+    """The closed-loop mode: each start on a plant whose gains are off, open and closed loop;
+    the closed loop ends closer (the open loop misses by the start error and the gains)."""
+    body = {"plan": PLAN, "random": {"count": 2, "spread": math.radians(1.0), "seed": 3},
+            "closed_loop": {"gain_error": 0.01, "period": 0.05, "seed": 1}}
+    r = client.post("/v1/robustness", json=body)
+    assert r.status_code == 200, r.text
+    loop = r.json()["closed_loop"]
+    assert loop["summary"]["runs"] == 2
+    for run in loop["runs"]:
+        assert all(abs(e) <= 0.01 for e in run["gain_errors"])
+        assert run["closed"]["terminal_error"] < 0.1 * run["open"]["terminal_error"]
+        assert run["closed"]["replans"] >= 19 and run["closed"]["margin"] > 0.0
+    fig = client.post("/v1/figures/robustness", json={**body, "random": {
+        "count": 1, "spread": math.radians(1.0), "seed": 3}})
+    assert fig.status_code == 200 and fig.content[:4] == b"\x89PNG"
+
+
+def test_robustness_closed_loop_needs_actuator_rates(client: TestClient) -> None:
+    body = {"plan": {**PLAN, "method": "polynomial"}, "random": {"count": 1, "spread": 0.01},
+            "closed_loop": {"period": 0.1}}
+    r = client.post("/v1/robustness", json=body)
+    assert r.status_code == 422, r.text
+    assert r.json()["field"] == "closed_loop"

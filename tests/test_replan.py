@@ -1,0 +1,231 @@
+"""The replanner (optimizer.planner.replan): closed loop on a plant whose gains are off,
+integrated by scipy on the tests' own model; continuations start at the commanded rates;
+the same request gives the same answer; bad input is refused naming its field."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from optimizer.errors import InvalidRequestError, PlannerError
+from optimizer.planner.plan import plan
+from optimizer.planner.replan import replan
+from optimizer.problem import PlanRequest
+
+from reference import PROTOTYPE_K, PROTOTYPE_M, model_rhs
+
+START, GOAL = (0.3, 0.4, 0.5), (0.9, 1.0, 0.8)
+
+
+@pytest.fixture(scope="module")
+def answer() -> dict:
+    return plan(PlanRequest(start=START, goal=GOAL)).to_dict()
+
+
+@pytest.fixture(scope="module")
+def timed(answer: dict) -> dict:
+    """The answer without its time law: a plan whose rates jump at its breaks (a compact
+    form may leave the law out)."""
+    return {k: v for k, v in answer.items() if k != "time_law"}
+
+
+def rates_of(ans: dict, t: float) -> np.ndarray:
+    """The rates an answer commands at ``t``, read from its documented representation
+    (docs/execution.md): ``u_plan(sigma) dsigma/dlam lam'(t)``, ``lam`` a cubic on each
+    phase, ``sigma`` linear in ``lam`` on each knot piece (``sigma = t`` without a law)."""
+    segs = ans["coefficients"]["segments"]
+    law = ans.get("time_law")
+    if law is None:
+        sig, ds = t, 1.0
+    else:
+        ph = law["phases"]
+        k = max([i for i, s0 in enumerate(ph["start"]) if s0 <= t] or [0])
+        r = min(t - ph["start"][k], ph["length"][k])
+        lam = ph["lam0"][k] + ph["v0"][k] * r + ph["a0"][k] * r * r / 2 + ph["jerk"][k] * r ** 3 / 6
+        dlam = ph["v0"][k] + ph["a0"][k] * r + ph["jerk"][k] * r * r / 2
+        kn = law["knots"]
+        j = max([i for i, l0 in enumerate(kn["lam"][:-1]) if l0 <= lam] or [0])
+        sig = kn["sigma"][j] + kn["slope"][j] * (lam - kn["lam"][j])
+        ds = kn["slope"][j] * dlam
+    seg = next((g for g in segs if g["t_start"] <= sig < g["t_end"]), segs[-1])
+    return np.array(seg["u"]) * ds
+
+
+def knots_of(ans: dict) -> list[float]:
+    law = ans.get("time_law")
+    if law is None:
+        return [g["t_start"] for g in ans["coefficients"]["segments"]]
+    return list(law["phases"]["start"])
+
+
+def run_plant(ans: dict, q0: np.ndarray, t0: float, t1: float, K: tuple) -> np.ndarray:
+    """The plant (the tests' own model, gains ``K``) under the answer's rates, knot to knot."""
+    edges = sorted({t0, t1, *(k for k in knots_of(ans) if t0 < k < t1)})
+    q = np.asarray(q0, float)
+    for a, b in zip(edges[:-1], edges[1:]):
+        sol = solve_ivp(lambda t, x: model_rhs(x, rates_of(ans, t), K, PROTOTYPE_M), (a, b), q,
+                        method="DOP853", rtol=1e-12, atol=1e-13)
+        assert sol.success
+        q = sol.y[:, -1]
+    return q
+
+
+def closed_loop(ans: dict, q0: np.ndarray, K: tuple, period: float | None) -> np.ndarray:
+    T = ans["duration"]
+    t, q, current = 0.0, np.asarray(q0, float), ans
+    while t < T - 1e-12:
+        if period is not None:
+            try:
+                current = replan(current, t, q, rates=rates_of(current, t))
+            except PlannerError:     # none verified: the controller runs on what it has
+                pass
+        t_next = T if period is None else min(t + period, T)
+        q = run_plant(current, q, t, t_next, K)
+        t = t_next
+    return q
+
+
+@pytest.mark.parametrize("law", ["none", "rest_to_rest"])
+def test_closed_loop_reaches_the_goal_where_open_loop_misses(answer: dict, timed: dict,
+                                                              law: str) -> None:
+    ans = timed if law == "none" else answer
+    K = (PROTOTYPE_K[0] * 1.005, PROTOTYPE_K[1] * 0.995)     # the plant's gains 0.5 % off
+    q0 = np.array([0.0, *START]) + np.radians([0.0, 1.0, -1.0, 1.0])
+    open_miss = np.max(np.abs(closed_loop(ans, q0, K, None)[1:] - GOAL))
+    closed_miss = np.max(np.abs(closed_loop(ans, q0, K, 0.025)[1:] - GOAL))
+    assert open_miss > 1e-2
+    assert closed_miss < 1e-4, (open_miss, closed_miss)
+
+
+@pytest.mark.parametrize("law", ["none", "rest_to_rest"])
+def test_a_replan_starts_at_the_given_rates(answer: dict, timed: dict, law: str) -> None:
+    ans = timed if law == "none" else answer
+    t = 0.37
+    given = rates_of(ans, t) * 1.02            # the drive's rates, a little off the plan's
+    q = np.array([0.0, *START]) + 0.3 * (np.array([0.6, *GOAL]) - [0.0, *START])
+    out = replan(ans, t, q, rates=given)
+    path_t, path_u = np.array(out["path"]["t"]), np.array(out["path"]["u"])
+    assert path_t[0] == t
+    assert np.array_equal(path_u[0], given)
+    # the exact rates of the continuation right after t are those rates (no jump)
+    assert rates_of(out, t + 1e-9) == pytest.approx(given, rel=1e-6, abs=1e-9)
+    # on the handed-out path: the next sample moves at most by the rates' slope
+    if law == "none":
+        assert np.array_equal(path_u[1], given)
+    else:
+        du = np.abs(path_u[1] - path_u[0]) / (path_t[1] - path_t[0])
+        assert np.all(du < 200.0)      # rad/s^2: a jump of 1e-2 rad/s would read 1e3 here
+        assert np.array_equal(path_u[-1], [0.0, 0.0])       # and it ends at rest
+    assert out["validation"]["terminal_error"] < 1e-6
+    assert out["validation"]["executed"]["terminal_error"] < 1e-6
+
+
+def test_the_continuation_reaches_the_goal_on_the_tests_model(answer: dict) -> None:
+    """The continuation's own rates, integrated on the tests' model from the measured state,
+    end at the goal (not only the library's verification says so)."""
+    t = 0.25
+    q = np.array([0.05, 0.47, 0.58, 0.57])
+    out = replan(answer, t, q)
+    end = run_plant(out, q, t, out["duration"], PROTOTYPE_K)
+    assert np.max(np.abs(end[1:] - GOAL)) < 1e-8
+
+
+def test_same_request_same_answer(answer: dict) -> None:
+    q = np.array([0.05, 0.47, 0.58, 0.57])
+    first = replan(answer, 0.25, q)
+    replan(answer, 0.6, np.array([0.3, 0.7, 0.8, 0.7]))      # another in between
+    again = replan(answer, 0.25, q)
+    assert first["coefficients"] == again["coefficients"]
+    assert first["path"] == again["path"]
+
+
+def test_fallback_near_the_end_and_with_a_new_duration(answer: dict) -> None:
+    q = np.array([0.9, 0.85, 0.95, 0.78])
+    out = replan(answer, 0.8, q, duration=1.5)
+    assert out["duration"] == 1.5 and out["path"]["t"][-1] == 1.5
+    assert out["validation"]["terminal_error"] < 1e-6
+    assert np.array_equal(out["path"]["u"][-1], [0.0, 0.0])
+
+
+def test_a_chained_plan_is_braked_then_replanned() -> None:
+    ans = plan(PlanRequest(start=START, goal=GOAL, method="polynomial")).to_dict()
+    t = 0.4
+    i = int(np.searchsorted(ans["path"]["t"], t))
+    q = np.array(ans["path"]["q"][i]) + [0.0, 0.002, -0.002, 0.002]
+    out = replan(ans, ans["path"]["t"][i], q)
+    assert out["diagnostics"]["replan"]["route"] == "full_planner"
+    assert np.allclose(out["path"]["u"][0], ans["path"]["u"][i], atol=1e-12)
+    assert out["validation"]["terminal_error"] < 1e-6
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"time_": 1.0}, "time"),
+    ({"time_": -0.1}, "time"),
+    ({"state": [0.0, 0.5, 1.6, 0.5]}, "state[2]"),
+    ({"state": [0.0, 0.5, 0.5]}, "state"),
+    ({"rates": [1.0]}, "rates"),
+    ({"duration": 0.2}, "duration"),
+])
+def test_bad_input_names_its_field(answer: dict, kwargs: dict, field: str) -> None:
+    args = {"time_": 0.5, "state": [0.0, 0.5, 0.5, 0.5], **kwargs}
+    with pytest.raises(InvalidRequestError) as err:
+        replan(answer, **args)
+    assert err.value.field == field
+
+
+def test_not_our_plan(answer: dict) -> None:
+    with pytest.raises(InvalidRequestError) as err:
+        replan({"robot": answer["robot"], "goal": list(GOAL)}, 0.5, [0.0, 0.5, 0.5, 0.5])
+    assert err.value.field == "plan.coefficients.segments"
+    bad = {k: v for k, v in answer.items() if k != "time_law"}
+    bad["coefficients"] = {"segments": [dict(s, t_end=s["t_end"] * 2, t_start=s["t_start"] * 2)
+                                        for s in answer["coefficients"]["segments"]]}
+    with pytest.raises(InvalidRequestError) as err:
+        replan(bad, 0.5, [0.0, 0.5, 0.5, 0.5])
+    assert err.value.field.startswith("plan.")
+    assert math.isfinite(answer["duration"])
+
+
+def test_keep_reversals_keeps_the_rates_signs(answer: dict) -> None:
+    """With keep_reversals the continuation's rates keep the plan's signs (no added reversal
+    of phi or th1), or none is handed out (an error naming keep_reversals)."""
+    from optimizer.planner.replan import read_plan, sign_changes
+    ps = read_plan(answer)
+    rng = np.random.default_rng(5)
+    for _ in range(6):
+        t = float(rng.uniform(0.0, 0.8))
+        i = int(np.searchsorted(answer["path"]["t"], t))
+        q = np.array(answer["path"]["q"][i]) + [0.0, *rng.uniform(-0.01, 0.01, 3)]
+        try:
+            out = replan(answer, answer["path"]["t"][i], q, keep_reversals=True)
+        except PlannerError as exc:
+            assert exc.field == "keep_reversals"
+            continue
+        rates = np.array([s["u"] for s in out["coefficients"]["segments"]])
+        assert sign_changes(rates) <= sign_changes(ps.rates)
+
+
+def test_a_start_error_alone_is_removed_by_the_first_replan(answer: dict) -> None:
+    """Exact gains, a start 1 deg off on every joint: closed loop ends on the goal to the
+    integrators' precision (open loop misses by about the start error)."""
+    q0 = np.array([0.0, *START]) + np.radians([0.0, 1.0, -1.0, 1.0])
+    open_miss = np.max(np.abs(closed_loop(answer, q0, PROTOTYPE_K, None)[1:] - GOAL))
+    closed_miss = np.max(np.abs(closed_loop(answer, q0, PROTOTYPE_K, 0.25)[1:] - GOAL))
+    assert open_miss > 1e-2
+    assert closed_miss < 1e-8
+
+
+def test_the_compact_form_replans_like_the_answer(answer: dict) -> None:
+    """What the replanner reads of an answer (its compact form, a few kB) gives the same
+    continuation as the whole answer."""
+    import json
+
+    from optimizer.planner.plan_state import read_plan
+    compact = json.loads(json.dumps(read_plan(answer).compact()))
+    q = np.array([0.05, 0.47, 0.58, 0.57])
+    a, b = replan(answer, 0.25, q), replan(compact, 0.25, q)
+    assert np.allclose(np.array(a["path"]["u"]), np.array(b["path"]["u"]), rtol=0, atol=1e-12)
+    assert a["path"]["t"] == b["path"]["t"]
