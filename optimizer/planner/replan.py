@@ -68,7 +68,9 @@ from ..verify import integrate_cascade
 from .plan import plan as full_plan
 from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array,
                          invalid, law_after_stop, read_plan)
-from .nlp import BufferedCall, ladder, minimum_norm_step, multiple_shooting_nlp
+from .correction import minimum_norm_step
+from .nlp import ladder, multiple_shooting_nlp
+from .solvers import BufferedCall
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
 
 #: Gauss-Newton steps stop once the fine end map is this close to the goal (rad)...
