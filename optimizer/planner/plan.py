@@ -50,8 +50,8 @@ def check_reach(req: PlanRequest) -> None:
     """Refuse at once a goal that no method's paths can reach within the joint limits.
 
     The most ``phi`` travels in any method's path: the NLPs' largest rate bound (rad per unit
-    of normalised time, so rad over the path), the paper's family its ``|dphi|`` bound, and
-    with ``max_u1`` and a ``duration`` at most their product.
+    of normalised time, so rad over the path) and the paper's family its ``|dphi|`` bound. (A
+    ``duration`` too short for the rate limits is the time law's to name: ``duration``.)
 
     Raises
     ------
@@ -60,8 +60,6 @@ def check_reach(req: PlanRequest) -> None:
     """
     travel = max(max(t.rate_bound for t in ladder(req.n)),
                  max(abs(x) for x in req.phi_change_bounds))
-    if req.max_u1 is not None and req.duration is not None:
-        travel = min(travel, req.max_u1 * req.duration)
     why = travel_reach_error(req, travel)
     if why is not None:
         raise InfeasibleError(why, field="joint_bounds",
