@@ -72,7 +72,7 @@ DEVIATION_TOLERANCE = 1e-6
 #: Merges tried at one step when the NLP of the smallest run's merge fails.
 MERGE_TRIES = 2
 #: Longest IPOPT solve of a merged pattern (s; from 5 joints, where fatrop is not used).
-SIGN_HELD_SECONDS = 1.0
+SIGN_HELD_SECONDS = 0.5
 #: No NLP starts once less than this is left of the deadline (s).
 MIN_SOLVE_TIME = 1e-3
 
@@ -145,10 +145,11 @@ def _solve(req: PlanRequest, deadline: Any, tr: Transcription,
                            np.clip(nlp.guess(a, b, req.phi_start, travel), lbw, ubw)))
     seconds = math.inf
     if signs is not None:
-        # a merged pattern may be infeasible: fatrop alone (its iteration cap bounds the cost
-        # of finding out, as on the ladder's sign-held rungs), or IPOPT for at most
-        # SIGN_HELD_SECONDS from 5 joints (fatrop fails there, see IPOPT_FIRST_JOINTS)
-        solvers = solvers[:1]
+        # a merged pattern, from the previous candidate's nodes: IPOPT alone (fatrop reached
+        # its iteration cap on nearly every such NLP, whose deviation weight is 1000 times the
+        # default's; IPOPT converged in 20-35 iterations), for at most SIGN_HELD_SECONDS: a
+        # pattern may be infeasible, which IPOPT takes 100-200 iterations to find out
+        solvers = [s for s in solvers if s == "ipopt"] or solvers
         seconds = SIGN_HELD_SECONDS
     tried: list[dict[str, Any]] = []
     for guess, x0 in starts:
