@@ -78,7 +78,7 @@ def _peer(g: Goal, peers: dict[tuple[int, str], Any], objective: str) -> dict[st
     bl = peers[(g.n, objective)]
     a, b = np.asarray(g.start), np.asarray(g.goal)
     res = bl.solve(a, b)
-    m = reintegrate_baseline(res, gains, exps, a, b).as_dict()
+    m = reintegrate_baseline(res, gains, [int(x) for x in exps], a, b).as_dict()
     return {"status": res.return_status, "success": res.success, "time": res.solve_time,
             "verified": bool(res.success and verified(m)), "reversals": _rev(m),
             "deviation_deg": m["segment_dev_deg"]}

@@ -206,13 +206,14 @@ class PlanRequest:
             raise InvalidRequestError("joint_trajectory must be true or false",
                                       field="joint_trajectory")
         if self.max_reversals is not None:
-            k = self.max_reversals
-            if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not \
-                    0 <= int(k) <= MAX_REVERSALS:
+            budget = self.max_reversals
+            if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or not \
+                    0 <= int(budget) <= MAX_REVERSALS:
                 raise InvalidRequestError(
-                    f"max_reversals = {k!r} must be a whole number in [0, {MAX_REVERSALS}] "
-                    "(direction changes of phi and th1 together)", field="max_reversals")
-            object.__setattr__(self, "max_reversals", int(k))
+                    f"max_reversals = {budget!r} must be a whole number in [0, "
+                    f"{MAX_REVERSALS}] (direction changes of phi and th1 together)",
+                    field="max_reversals")
+            object.__setattr__(self, "max_reversals", int(budget))
         if not isinstance(self.pareto, bool):
             raise InvalidRequestError("pareto must be true or false", field="pareto")
 
