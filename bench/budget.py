@@ -245,19 +245,67 @@ def run(counts: dict[int, int], log: Callable[[str], None] = print) -> dict[str,
             "markdown": markdown(summary, meta)}
 
 
+#: The page a run writes (unless ``--md``).
+PAGE = ROOT / "docs" / "benchmark-budget.md"
+PAGE_INTRO = """\
+# Benchmark: the reversal budget and the trade-off (issue 26)
+
+Written by `python -m bench.budget` (see its docstring for what each column means); the JSON
+with every goal goes to `bench/results/`. The machine is shared by several engineers: times
+are from one run under that load, compare the ratios.
+
+    .venv/bin/python -m bench.budget --goals-counts 3:20,4:20,5:20,6:20
+    .venv/bin/python -m bench.budget --report-only bench/results/budget_....json   # page only
+
+"""
+
+
+def page(res: dict[str, Any]) -> str:
+    """The results page: the intro, the table and the goals that miss the budget target."""
+    misses = []
+    for r in res["rows"]:
+        b = r.get("budget")
+        if b is None:
+            continue
+        mm = r["minmax"]
+        if not (b.get("verified") and b.get("reversals") is not None
+                and b["reversals"] <= b["max_reversals"]
+                and b["deviation_deg"] <= mm["deviation_deg"] + DEVIATION_SLACK_DEG):
+            misses.append(f"| {r['name']} | {mm['reversals']} | {mm['deviation_deg']:.3f} | "
+                          f"{b.get('reversals')} | {b.get('deviation_deg', math.nan):.3f} | "
+                          f"{b['status']} |")
+    text = PAGE_INTRO + res["markdown"] + "\n"
+    if misses:
+        text += ("\nGoals where max_reversals = the peer's reversals is not within 0.25 deg of "
+                 "the peer:\n\n| goal | peer reversals | peer deviation [deg] | reversals | "
+                 "deviation [deg] | status |\n|---|---|---|---|---|---|\n"
+                 + "\n".join(misses) + "\n")
+    return text
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--goals-counts", default=",".join(f"{n}:{k}" for n, k in COUNTS.items()),
                     help="goals per n, e.g. 3:20,4:20,5:20,6:20")
     ap.add_argument("--out", default=None, help="JSON results (default bench/results/...)")
+    ap.add_argument("--md", default=str(PAGE), help="the results page (default "
+                                                     "docs/benchmark-budget.md)")
+    ap.add_argument("--report-only", default=None, metavar="JSON",
+                    help="write the page from a run's JSON, run nothing")
     args = ap.parse_args(argv)
-    res = run(parse_counts(args.goals_counts), log=lambda s: print(s, flush=True))
-    out = Path(args.out) if args.out else ROOT / "bench" / "results" / (
-        "budget_" + res["meta"]["stamp"].replace(":", "") + ".json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=1, default=float))
+    if args.report_only:
+        res = json.loads(Path(args.report_only).read_text())
+        res["summary"] = summarise(res["rows"])
+        res["markdown"] = markdown(res["summary"], res["meta"])
+    else:
+        res = run(parse_counts(args.goals_counts), log=lambda s: print(s, flush=True))
+        out = Path(args.out) if args.out else ROOT / "bench" / "results" / (
+            "budget_" + res["meta"]["stamp"].replace(":", "") + ".json")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(res, indent=1, default=float))
+        print(f"JSON: {out}")
+    Path(args.md).write_text(page(res))
     print(res["markdown"])
-    print(f"JSON: {out}")
     return 0
 
 

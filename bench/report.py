@@ -277,6 +277,8 @@ every sample goes to `bench/results/`, which is not versioned). It holds the lat
     .venv/bin/python -m bench --quick          # fewer repeats, 3 s per HTTP level (page untouched)
     .venv/bin/python -m bench --help           # choose cases, methods, repeats, --report PATH
     .venv/bin/python bench/profile_plan.py     # profile of the hot path (any --case, --method)
+    .venv/bin/python -m bench.budget           # reversal budget and front against IPOPT peers:
+                                               # writes docs/benchmark-budget.md (--help)
 
 ## What is measured
 
@@ -297,6 +299,12 @@ every sample goes to `bench/results/`, which is not versioned). It holds the lat
   for every request; throughput, p50/p99 latency, memory of every process.
 * **Cost growth** (`bench/scaling.py`): plan time against `samples`, and the chained-form maps,
   the region scan and a plan for n = 3..8.
+* **Reversal budget** (`bench/budget.py`, issue 26, its own page
+  [benchmark-budget.md](benchmark-budget.md)): on generated reachable goals, `max_reversals` set
+  to the reversals of an IPOPT peer that minimises the largest deviation from the segment
+  start -> goal, against that peer's deviation; every member of `pareto: true` re-integrated;
+  the front's time against the default plan's; the default's reversals against the
+  minimum-energy peer's (n up to 6).
 
 The machine is shared: compare ratios within one run rather than absolute times.
 
