@@ -52,8 +52,7 @@ from ..problem import PlanRequest
 from ..results import Plan, ParetoMember
 from . import nlp as nlp_layer
 from .context import PlanContext
-from .nlp import (D_A_WEIGHT, IPOPT_FIRST_JOINTS, Transcription, nlp_for, node_bounds,
-                  run_solver)
+from .nlp import D_A_WEIGHT, Transcription, nlp_for, node_bounds, run_solver
 from .ranking import best
 from .rules import joint_limits, monotone_reach_ok, monotone_signs
 from .shooting import GUESS_PHI_TRAVEL, ShootingSolution
@@ -124,34 +123,30 @@ def check_budget_request(req: PlanRequest) -> None:
 
 def _solve(req: PlanRequest, deadline: Any, tr: Transcription,
            signs: np.ndarray | None, start_nodes: np.ndarray | None,
-           w_dev: float) -> ShootingSolution:
+           w_dev: float, phi_travel: float = GUESS_PHI_TRAVEL) -> ShootingSolution:
     """The transcription ``tr`` with deviation weight ``w_dev`` and rates held to ``signs``
-    (per interval and actuator, 0: free), from ``start_nodes`` or the straight-line guesses;
-    fatrop then IPOPT (IPOPT alone from :data:`~.nlp.IPOPT_FIRST_JOINTS` joints)."""
+    (per interval and actuator, 0: free), from ``start_nodes`` or else the straight line with
+    ``phi`` travelling ``phi_travel`` (rad), by IPOPT.
+
+    IPOPT alone: at this deviation weight (a thousand times the default's) fatrop reached its
+    iteration cap from nearly every start, where IPOPT converged in 20-90 iterations. No time
+    cap of its own (the answer would depend on the machine's load): patterns the rules rule
+    out are not solved (:func:`possible`), and at most :data:`MERGE_TRIES` fail per level.
+    """
     nlp = nlp_for(req, tr, deviation="segment")
     a, b = np.array(req.start), np.array(req.goal)
     lo, hi = node_bounds(req, joint_limits(req))
     lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi, signs)
     p = nlp_layer.parameters(req, w_dev, 1.0, D_A_WEIGHT)
-    solvers = [s for s, _ in nlp.solvers]
-    if req.n >= IPOPT_FIRST_JOINTS:
-        solvers = [s for s in solvers if s == "ipopt"] or solvers
+    solvers = [s for s, _ in nlp.solvers if s == "ipopt"]
     starts: list[tuple[str, np.ndarray]] = []
     if start_nodes is not None:
         starts.append(("the previous candidate's nodes",
                        np.clip(nlp.guess_from_nodes(start_nodes, a, b), lbw, ubw)))
     else:
-        for sign in (1.0, -1.0):
-            travel = min(max(sign * GUESS_PHI_TRAVEL, lo_phi), hi_phi)
-            starts.append((f"phi travel {travel:+.3g} rad",
-                           np.clip(nlp.guess(a, b, req.phi_start, travel), lbw, ubw)))
-    if signs is not None:
-        # a merged pattern, from the previous candidate's nodes: IPOPT alone (fatrop reached
-        # its iteration cap on nearly every such NLP, whose deviation weight is 1000 times the
-        # default's; IPOPT converged in 20-50 iterations). No time cap of its own (the answer
-        # would depend on the machine's load): patterns the rules rule out are not solved
-        # (possible), and at most MERGE_TRIES fail per level
-        solvers = [s for s in solvers if s == "ipopt"] or solvers
+        travel = min(max(phi_travel, lo_phi), hi_phi)
+        starts.append((f"phi travel {travel:+.3g} rad",
+                       np.clip(nlp.guess(a, b, req.phi_start, travel), lbw, ubw)))
     tried: list[dict[str, Any]] = []
     for guess, x0 in starts:
         for name in solvers:
@@ -283,17 +278,24 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
         cands.append(Candidate(first, "objective"))
     floor = first.indicators.reversals if first is not None else 0
     tr = BUDGET_TRANSCRIPTION
-    try:
-        sol = _solve(req, deadline, tr, None, None, FREE_DEVIATION_WEIGHT)
-    except InfeasibleError as exc:
-        tried.append({"candidate": "straightest", "outcome": f"infeasible: {exc.message}",
-                      "tried": exc.diagnostics.get("tried", [])})
-        sol = None
-    if sol is not None:
+    # the straightest from both of phi's directions (the NLP has local optima: on the bench's
+    # 3-joint goals the two differed by up to 0.7 deg), the straighter verified one kept
+    sol: ShootingSolution | None = None
+    top: Candidate | None = None
+    for sign in (1.0, -1.0):
+        try:
+            alt = _solve(req, deadline, tr, None, None, FREE_DEVIATION_WEIGHT,
+                         sign * GUESS_PHI_TRAVEL)
+        except InfeasibleError as exc:
+            tried.append({"candidate": "straightest", "outcome": f"infeasible: {exc.message}",
+                          "tried": exc.diagnostics.get("tried", [])})
+            continue
+        cand = _verified(req, tr, alt, None, "straightest", tried)
+        if cand is not None and (top is None or cand.key[1] < top.key[1]):
+            sol, top = alt, cand
+    if sol is not None and top is not None:
         signs = pattern(sol.rates)
-        top = _verified(req, tr, sol, None, "straightest", tried)
-        if top is not None:
-            cands.append(top)
+        cands.append(top)
         level = _count(signs[:, 0]) + _count(signs[:, 1])
         prev = sol
         while level > floor and deadline.remaining > MIN_SOLVE_TIME:
