@@ -200,9 +200,10 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
 
     lines = [f"Reversal budget and front (issue 26), {meta['stamp']}, {meta['machine']}", "",
              "| n | goals | max_reversals = min-max peer's: within 0.25 deg | members verified "
-             "| K median | front / default plan | front / (K+1) plans (median; share <= 1) "
+             "| K median | front [s] (median) | min-max peer [s] | front / default plan "
+             "| front / (K+1) plans (median; share <= 1) "
              "| default reversals <= min-energy peer's | worse on both |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for n, s in summary.items():
         t = TARGET_WITHIN.get(int(n))
         lines.append(
@@ -210,7 +211,9 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
             + (f"{f(s.get('budget_within_slack'), True)} of {s.get('budget_compared')}"
                f" (target {f(t, True)})" if 'budget_within_slack' in s else "-")
             + f" | {s.get('front_members_verified', '-')} / {s.get('front_members', '-')}"
-            f" | {f(s.get('front_K_median'))} | {f(s.get('front_over_default_median'))}"
+            f" | {f(s.get('front_K_median'))} | {f(s.get('front_time_median_s'))}"
+            f" | {f(s.get('minmax_peer_time_median_s'))}"
+            f" | {f(s.get('front_over_default_median'))}"
             f" | {f(s.get('front_over_K_plus_1_plans_median'))}; "
             f"{f(s.get('front_within_K_plus_1_plans'), True)}"
             f" | {f(s['default_reversals_no_more_than_energy_peer'], True)} of "
@@ -275,6 +278,8 @@ def page(res: dict[str, Any]) -> str:
                           f"{b.get('reversals')} | {b.get('deviation_deg', math.nan):.3f} | "
                           f"{b['status']} |")
     text = PAGE_INTRO + res["markdown"] + "\n"
+    if res["meta"].get("note"):
+        text += "\n" + res["meta"]["note"] + "\n"
     if misses:
         text += ("\nGoals where max_reversals = the peer's reversals is not within 0.25 deg of "
                  "the peer:\n\n| goal | peer reversals | peer deviation [deg] | reversals | "
