@@ -299,7 +299,7 @@ every sample goes to `bench/results/`, which is not versioned). It holds the lat
   for every request; throughput, p50/p99 latency, memory of every process.
 * **Cost growth** (`bench/scaling.py`): plan time against `samples`, and the chained-form maps,
   the region scan and a plan for n = 3..8.
-* **Reversal budget** (`bench/budget.py`, issue 26, its own page
+* **Reversal budget** (`bench/budget.py`, its own page
   [benchmark-budget.md](benchmark-budget.md)): on generated reachable goals, `max_reversals` set
   to the reversals of an IPOPT peer that minimises the largest deviation from the segment
   start -> goal, against that peer's deviation; every member of `pareto: true` re-integrated;
