@@ -288,6 +288,8 @@ every sample goes to `bench/results/`, which is not versioned). It holds the lat
     .venv/bin/python -m bench.replan --http    # closed-loop replanning: latency
                                                # against a cold plan, HTTP, closed loop on
                                                # perturbed plants (docs/closed-loop.md)
+    .venv/bin/python -m bench.budget           # reversal budget and front against IPOPT peers:
+                                               # writes docs/benchmark-budget.md (--help)
 
 ## What is measured
 
@@ -323,6 +325,12 @@ worker), *workers* the plan itself plus what surrounds it there (`PlanRequest.fr
 `Plan.to_dict`, the answer's JSON, encoded once by the worker with orjson and forwarded as
 bytes by the event loop). To see where a share goes, profile the server's processes while a
 load runs: `py-spy record -p <pid>` on the event loop and on a worker.
+* **Reversal budget** (`bench/budget.py`, its own page
+  [benchmark-budget.md](benchmark-budget.md)): on generated reachable goals, `max_reversals` set
+  to the reversals of an IPOPT peer that minimises the largest deviation from the segment
+  start -> goal, against that peer's deviation; every member of `pareto: true` re-integrated;
+  the front's time against the default plan's; the default's reversals against the
+  minimum-energy peer's (n up to 6).
 
 The machine is shared: compare ratios within one run rather than absolute times.
 

@@ -30,6 +30,8 @@ MIN_DURATION = 1e-3
 MAX_TIME_LIMIT = 600.0
 #: Shortest controller period (s).
 MIN_CONTROLLER_PERIOD = 1e-4
+#: Largest ``max_reversals`` (the finest transcription has 50 intervals per actuator).
+MAX_REVERSALS = 100
 
 
 @dataclass(frozen=True)
@@ -87,6 +89,12 @@ class PlanRequest:
         input breaks twice, linear interpolation.
     joint_trajectory : bool
         Also return the ROS ``trajectory_msgs/JointTrajectory`` form (cubic Hermite).
+    max_reversals : int or None
+        A budget of actuator direction changes (``phi`` and ``th_1`` together, as
+        ``indicators.reversals`` counts them): the straightest verified path with at most that
+        many (:mod:`optimizer.planner.budget`). ``None``: the objective decides.
+    pareto : bool
+        Also return the non-dominated plans over (reversals, deviation).
     """
 
     start: tuple[float, ...]
@@ -112,6 +120,8 @@ class PlanRequest:
     joint_bounds: tuple[tuple[float, float] | None, ...] | None = None
     controller_period: float | None = None
     joint_trajectory: bool = False
+    max_reversals: int | None = None
+    pareto: bool = False
 
     def __post_init__(self) -> None:
         n = self.robot.n
@@ -208,6 +218,17 @@ class PlanRequest:
         if not isinstance(self.joint_trajectory, bool):
             raise InvalidRequestError("joint_trajectory must be true or false",
                                       field="joint_trajectory")
+        if self.max_reversals is not None:
+            budget = self.max_reversals
+            if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or not \
+                    0 <= int(budget) <= MAX_REVERSALS:
+                raise InvalidRequestError(
+                    f"max_reversals = {budget!r} must be a whole number in [0, "
+                    f"{MAX_REVERSALS}] (direction changes of phi and th1 together)",
+                    field="max_reversals")
+            object.__setattr__(self, "max_reversals", int(budget))
+        if not isinstance(self.pareto, bool):
+            raise InvalidRequestError("pareto must be true or false", field="pareto")
 
     @property
     def n(self) -> int:
@@ -295,7 +316,7 @@ class PlanRequest:
         for k in ("start", "goal"):
             d[k] = tuple(d[k])
         for k in ("method", "objective", "singularity", "samples", "time_limit", "phi_start",
-                  "joint_trajectory"):
+                  "joint_trajectory", "pareto"):
             if k in d and d[k] is None:
                 d.pop(k)
         return cls(**d)

@@ -18,6 +18,38 @@ from .timing import TimeLaw
 from .verify import Verification
 
 
+@dataclass(frozen=True)
+class ParetoMember:
+    """One member of the trade-off between actuator reversals and deviation (``pareto``).
+
+    Attributes
+    ----------
+    plan : Plan
+        The member, verified like any plan (its indicators, inputs and handed-out path).
+    origin : str
+        Which candidate it is (``objective``: the plan the objective picked; ``straightest``;
+        ``merged to k``: the straightest's sign pattern with runs merged, see
+        :mod:`optimizer.planner.budget`).
+    max_reversals : int
+        The ``max_reversals`` that asks for this member alone (its reversal count).
+    chosen : bool
+        It is the answer's main plan.
+    """
+
+    plan: "Plan"
+    origin: str
+    max_reversals: int
+    chosen: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """Its JSON shape: the plan's without the front, robot, timing and diagnostics."""
+        out = self.plan.to_dict(plain=False)
+        for key in ("pareto", "robot", "timing", "diagnostics", "status",
+                    "feasible_phi_changes"):
+            out.pop(key, None)
+        out.update(origin=self.origin, max_reversals=self.max_reversals, chosen=self.chosen)
+        return out
+
 
 @dataclass(frozen=True)
 class Plan:
@@ -61,6 +93,9 @@ class Plan:
     time_law : TimeLaw or None
         How the handed-out path runs the plan's: ``u(t) = u_plan(sigma(t)) sigma'(t)``, rest
         to rest (:mod:`optimizer.timing`).
+    pareto : tuple of ParetoMember or None
+        With ``pareto`` in the request: the non-dominated plans over (reversals, deviation),
+        fewest reversals first (:mod:`optimizer.planner.budget`).
     """
 
     robot: Robot
@@ -78,6 +113,7 @@ class Plan:
     diagnostics: dict[str, Any] = field(default_factory=dict)
     execution: Execution | None = None
     time_law: TimeLaw | None = None
+    pareto: tuple[ParetoMember, ...] | None = None
 
     @property
     def b0(self) -> float | None:
@@ -162,6 +198,8 @@ class Plan:
                 out["joint_trajectory"] = exe.joint_trajectory
         if self.time_law is not None:
             out["time_law"] = self.time_law.as_dict()
+        if self.pareto is not None:
+            out["pareto"] = [m.to_dict() for m in self.pareto]
         return json_safe(out) if plain else out
 
 

@@ -21,6 +21,9 @@ Figures (after the paper's):
 ``sweep``
     d_a, t_p and ||J_R(T)||_F against dphi with the singularity-free intervals shaded (Fig 12 and
     the paper's b0 map).
+``pareto``
+    The trade-off of a ``pareto: true`` answer: each member's deviation (deg) against its
+    actuator reversals, the main plan starred (issue 26; not in the paper).
 """
 
 from __future__ import annotations
@@ -40,7 +43,8 @@ from matplotlib.ticker import MaxNLocator
 
 from .formats import FORMATS, KINDS
 
-__all__ = ["FORMATS", "KINDS", "joint_angles", "chained_state", "robustness", "sweep", "render"]
+__all__ = ["FORMATS", "KINDS", "joint_angles", "chained_state", "robustness", "sweep", "pareto",
+           "render"]
 
 
 #: Width of every figure (inches) and PNG resolution: 9 in x 100 dpi = 900 px.
@@ -636,15 +640,65 @@ def sweep(sweep: Mapping[str, Any], fmt: str = "png", planned: float | None = No
     return _draw(build, fmt)
 
 
+def pareto(plan: Mapping[str, Any], fmt: str = "png") -> bytes:
+    """The members of a ``pareto: true`` answer: deviation (deg) against reversals (phi and th1
+    together), each labelled with the ``max_reversals`` that asks for it, the main plan starred.
+    """
+    data = _unwrap_plan(plan)
+    members = data.get("pareto")
+    if not isinstance(members, list) or not members:
+        raise ValueError("the plan has no 'pareto' members: ask for it with pareto: true")
+    keys: list[tuple[int, float, bool]] = []
+    for i, m in enumerate(members):
+        try:
+            ind = m["indicators"]
+            rev = int(ind["reversals"]["phi"]) + int(ind["reversals"]["th1"])
+            dev = math.degrees(float(ind["deviation"]))
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"pareto[{i}] has no indicators.reversals and "
+                             "indicators.deviation") from None
+        if not math.isfinite(dev):
+            raise ValueError(f"pareto[{i}].indicators.deviation is not a finite number")
+        keys.append((rev, dev, bool(m.get("chosen"))))
+
+    def build() -> Figure:
+        fig, (ax,) = _new_figure(4.2, 1)
+        r = [k[0] for k in keys]
+        d = [k[1] for k in keys]
+        ax.step(r, d, where="post", color="0.6", lw=1.0, zorder=1)
+        ax.plot(r, d, "o", color="tab:blue", zorder=2)
+        handles = [Line2D([], [], color="tab:blue", marker="o", ls="",
+                          label="verified plan\n(label: max_reversals)")]
+        for rev, dev, chosen in keys:
+            ax.annotate(str(rev), (rev, dev), textcoords="offset points", xytext=(4, 4),
+                        fontsize=8)
+            if chosen:
+                ax.plot([rev], [dev], "*", color="tab:orange", ms=16, zorder=3)
+        if any(k[2] for k in keys):
+            handles.append(Line2D([], [], color="tab:orange", marker="*", ls="", ms=12,
+                                  label="main plan"))
+        ax.set_xlabel("actuator reversals (phi and th1) [-]")
+        ax.set_ylabel("deviation from the straight segment [deg]")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_title(f"Reversals against deviation: {len(keys)} non-dominated plans, from "
+                     f"{_fmt_num(keys[0][1], '.3g', DEG)} at {keys[0][0]} to "
+                     f"{_fmt_num(keys[-1][1], '.3g', DEG)} at {keys[-1][0]}")
+        _legend_right(ax, handles)
+        return fig
+
+    return _draw(build, fmt)
+
+
 # ------------------------------------------------------------------ dispatch
 def render(kind: str, data: Mapping[str, Any], fmt: str) -> tuple[bytes, str]:
     """Render figure ``kind`` from ``data`` in ``fmt``; returns ``(bytes, media_type)``.
 
     Parameters
     ----------
-    kind : {"joint_angles", "chained_state", "robustness", "sweep"}
+    kind : {"joint_angles", "chained_state", "robustness", "sweep", "pareto"}
     data : dict
-        A plan response (``joint_angles``, ``chained_state``; optionally wrapped as
+        A plan response (``joint_angles``, ``chained_state``, ``pareto``: one of
+        ``pareto: true``; optionally wrapped as
         ``{"plan": ..., "constraint_points": [...]}``), ``{"plan": ..., "robustness": ...}``
         (``robustness``) or a sweep response (``sweep``; optionally wrapped as
         ``{"sweep": ..., "planned_phi_change": dphi}``).
@@ -663,6 +717,8 @@ def render(kind: str, data: Mapping[str, Any], fmt: str) -> tuple[bytes, str]:
         raise ValueError("data must be a JSON object")
     if k == "joint_angles":
         out = joint_angles(data, f)
+    elif k == "pareto":
+        out = pareto(data, f)
     elif k == "chained_state":
         out = chained_state(data, f)
     elif k == "robustness":

@@ -188,7 +188,7 @@ def job_figure(payload: Payload) -> bytes:
     from . import figures as _figures
     kind, fmt, inner = payload["figure"], payload["format"], payload["request"]
     data: dict[str, Any]
-    if kind in ("joint_angles", "chained_state"):
+    if kind in ("joint_angles", "chained_state", "pareto"):
         data = json_safe(job_plan(inner))  # the plain JSON shape the figures are drawn from
         if inner.get("constraint_points"):
             data = {"plan": data, "constraint_points": inner["constraint_points"]}

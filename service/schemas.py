@@ -22,7 +22,7 @@ from pydantic import (BaseModel, ConfigDict, Field, Strict, ValidationInfo, fiel
 from pydantic_core import PydanticCustomError
 
 from optimizer.planner.registry import METHODS, method_names
-from optimizer.problem import DEFAULT_OBJECTIVE, OBJECTIVES
+from optimizer.problem import DEFAULT_OBJECTIVE, MAX_REVERSALS, OBJECTIVES
 
 from .settings import LIBRARY_MAX_JOINTS, LIBRARY_MIN_DURATION, LIBRARY_MIN_JOINTS, Limits
 
@@ -322,6 +322,29 @@ class JointTrajectory(BaseModel):
                     "1 otherwise.")
 
 
+class ParetoMember(BaseModel):
+    """One plan of the trade-off between actuator reversals and deviation (``pareto: true``),
+    verified like the main plan: its inputs, indicators, handed-out path and validation."""
+
+    max_reversals: int = Field(..., ge=0, description="Its reversal count (phi and th1): "
+                                                      "send it as max_reversals to ask for "
+                                                      "this plan alone.")
+    origin: str = Field(..., description="objective (the plan the objective picked), "
+                                         "straightest (the smallest deviation found) or "
+                                         "'merged to k' (the straightest's sign pattern with "
+                                         "its shortest runs merged).")
+    chosen: bool = Field(..., description="It is the answer's main plan.")
+    method: str
+    phi_change: float = Field(..., description="dphi = phi(T) - phi(0) (rad).")
+    b0: Optional[float] = None
+    duration: float = Field(..., description="T (s).")
+    coefficients: Coefficients
+    indicators: Indicators
+    path: PlanPath
+    validation: Validation
+    joint_trajectory: Optional[JointTrajectory] = None
+
+
 class PlanResponse(BaseModel):
     """A verified, singularity-free plan."""
 
@@ -348,6 +371,10 @@ class PlanResponse(BaseModel):
                           "parameter lam, knots mapping lam to sigma, the stops (times where "
                           "both rates are 0), the shortest duration within the limits and "
                           "the binding limit (docs/execution.md).")
+    pareto: Optional[list[ParetoMember]] = Field(
+        None, description="With pareto: true in the request: the non-dominated plans over "
+                          "(reversals, deviation), fewest reversals first, each straighter "
+                          "than every one before it.")
     timing: dict[str, Optional[float]] = Field(..., description="Seconds per stage.")
     diagnostics: dict[str, Any] = Field(..., description="Extra facts about the solve.")
 
@@ -707,6 +734,19 @@ def build_schemas(limits: Limits) -> Schemas:
             False, description="Also return the plan as a ROS trajectory_msgs/JointTrajectory "
                                "(positions [phi, th1], velocities [u1, u2]; cubic Hermite "
                                "between points).")
+        max_reversals: Optional[StrictInt] = Field(
+            None, ge=0, le=MAX_REVERSALS,
+            description="A budget of actuator direction changes (phi and th1 together, as "
+                        "indicators.reversals counts them): the answer is the straightest "
+                        "verified path (smallest deviation) with at most that many; 422 "
+                        "infeasible naming max_reversals and the fewest found when there is "
+                        "none. Method auto or shooting, no constraint points.")
+        pareto: bool = Field(
+            False, description="Also return the trade-off: the non-dominated verified plans "
+                               "over (reversals, deviation), from the fewest reversals to the "
+                               "straightest (response field pareto); the main plan is the "
+                               "objective's pick (with max_reversals: the budget's). Method "
+                               "auto or shooting; costs several plans' time.")
 
         @field_validator("controller_period")
         @classmethod

@@ -73,12 +73,21 @@ def robustness_data(request_3, plan_obj, plan_dict) -> dict:
 
 
 @pytest.fixture(scope="module")
-def all_inputs(plan_dict, cp_plan_dict, sweep_dict, robustness_data) -> dict:
+def pareto_dict() -> dict:
+    """A trade-off answer (issue 26): several members on this goal."""
+    req = PlanRequest(start=tuple(deg2rad([50, 20, 30])), goal=tuple(deg2rad([30, 40, 50])),
+                      pareto=True, samples=21, time_limit=120.0)
+    return json.loads(json.dumps(make_plan(req).to_dict()))
+
+
+@pytest.fixture(scope="module")
+def all_inputs(plan_dict, cp_plan_dict, sweep_dict, robustness_data, pareto_dict) -> dict:
     return {
         "joint_angles": plan_dict,
         "chained_state": {"plan": cp_plan_dict, "constraint_points": CP_LIST},
         "robustness": robustness_data,
         "sweep": sweep_dict,
+        "pareto": pareto_dict,
     }
 
 
@@ -110,6 +119,8 @@ EXPECTED = {
                    "v-replay", "5 runs", "th1", "th3"],
     "sweep": ["d_a [deg]", "t_p [-]", "||J_R(T)||_F [-]", "dphi [deg]",
               "singularity-free", "33.201"],
+    "pareto": ["actuator reversals (phi and th1) [-]",
+               "deviation from the straight segment [deg]", "main plan", "non-dominated"],
 }
 
 

@@ -24,7 +24,12 @@ Transcription
   transform used by our planner is invertible; ``th_n`` is unconstrained except
   for its goal.  (The box is enforced at the nodes only, as usual for multiple
   shooting.)
-* Objective: minimum input energy ``sum_k (u1_k**2 + u2_k**2) * h``.
+* Objective (``objective``): ``"energy"`` (the default), minimum input energy
+  ``sum_k (u1_k**2 + u2_k**2) * h``; or ``"min_max_deviation"``, the smallest largest
+  squared distance of a node's ``(th1..thn)`` from the straight segment start -> goal
+  in joint space (the planner's ``deviation``) (an epigraph variable ``S >= dist_k^2`` at every node, minimised), plus
+  :data:`MIN_MAX_ENERGY_WEIGHT` times the energy, which only makes the inputs unique. This
+  is the peer a user who wants the straightest path would write (issue 26).
 
 The NLP is built once, parametrised by ``phi_start``, the start and the goal
 (CasADi parameters), so repeated :meth:`MultipleShootingBaseline.solve` calls
@@ -66,6 +71,13 @@ _DEFAULT_IPOPT_OPTIONS: dict[str, Any] = {
     "sb": "yes",
     "max_wall_time": 30.0,
 }
+
+#: The objectives :class:`MultipleShootingBaseline` offers (see the module docstring).
+OBJECTIVES = ("energy", "min_max_deviation")
+#: Weight of the input energy in the ``min_max_deviation`` objective: small against the
+#: squared deviation (rad^2), so that the largest deviation decides; not 0 (the inputs of
+#: the intervals whose nodes are not the farthest would be undetermined).
+MIN_MAX_ENERGY_WEIGHT = 1e-4
 
 #: Net rotation of ``phi`` (rad) assumed by the initial guess when the goal
 #: does not suggest anything better (see :meth:`MultipleShootingBaseline.initial_guess`).
@@ -125,7 +137,7 @@ class BaselineResult:
     duration : float
         Trajectory duration ``T`` in seconds.
     objective : float
-        Final objective value (input energy).
+        Final objective value (input energy, or the ``min_max_deviation`` objective).
     iterations : int
         Number of IPOPT iterations (``-1`` if unavailable).
     """
@@ -185,6 +197,8 @@ class MultipleShootingBaseline:
         IPOPT options (plain IPOPT names, without the ``ipopt.`` prefix) that
         override the defaults ``print_level=0``, ``sb="yes"``,
         ``max_wall_time=30``.
+    objective : {"energy", "min_max_deviation"}, optional
+        What is minimised (see the module docstring); default ``"energy"``.
 
     Attributes
     ----------
@@ -203,6 +217,7 @@ class MultipleShootingBaseline:
         duration: float = 1.0,
         box_deg: tuple[float, float] = (0.5, 89.5),
         ipopt_options: Mapping[str, Any] | None = None,
+        objective: str = "energy",
     ) -> None:
         gains = tuple(float(k) for k in gains)
         exponents = tuple(float(m) for m in exponents)
@@ -216,6 +231,9 @@ class MultipleShootingBaseline:
             raise ValueError("duration must be positive")
         if not box_deg[0] < box_deg[1]:
             raise ValueError("box_deg must be (low, high) with low < high")
+        if objective not in OBJECTIVES:
+            raise ValueError(f"objective must be one of {OBJECTIVES}, not {objective!r}")
+        self.objective = objective
 
         self.gains = gains
         self.exponents = exponents
@@ -284,19 +302,37 @@ class MultipleShootingBaseline:
         rows = [X[:, 0] - ca.vertcat(phi0, th0)]
         rows += [X[:, k + 1] - self._step(X[:, k], U[:, k]) for k in range(N)]
         rows.append(X[1:, N] - thg)
-        f = self.h * ca.sumsqr(U)
-
+        energy = self.h * ca.sumsqr(U)
         w = ca.vertcat(ca.vec(X), ca.vec(U))
+        n_eq = sum(int(r.shape[0]) for r in rows)
+        if self.objective == "min_max_deviation":
+            # S >= squared distance of every interior node from the line start -> goal
+            S = ca.SX.sym("S")
+            ell = thg - th0
+            nrm = ca.fmax(ca.sumsqr(ell), 1e-300)
+            for k in range(1, N):
+                d = X[1:, k] - th0
+                along = ca.fmin(ca.fmax(ca.dot(d, ell) / nrm, 0.0), 1.0)
+                rows.append(ca.sumsqr(d - along * ell) - S)
+            f = S + MIN_MAX_ENERGY_WEIGHT * energy
+            w = ca.vertcat(w, S)
+        else:
+            f = energy
         g = ca.vertcat(*rows)
         self._ng = g.shape[0]
+        self._lbg = np.zeros(self._ng)
+        self._lbg[n_eq:] = -np.inf
 
         # Variable bounds: th1..th_{n-1} in the box at every node.
         lbX = np.full((nx, N + 1), -np.inf)
         ubX = np.full((nx, N + 1), np.inf)
         lbX[1:n, :] = self.box[0]
         ubX[1:n, :] = self.box[1]
-        self._lbw = np.concatenate([lbX.ravel(order="F"), np.full(2 * N, -np.inf)])
-        self._ubw = np.concatenate([ubX.ravel(order="F"), np.full(2 * N, np.inf)])
+        extra = 1 if self.objective == "min_max_deviation" else 0
+        self._lbw = np.concatenate([lbX.ravel(order="F"), np.full(2 * N, -np.inf),
+                                    np.zeros(extra)])
+        self._ubw = np.concatenate([ubX.ravel(order="F"), np.full(2 * N, np.inf),
+                                    np.full(extra, np.inf)])
         self._nX = nx * (N + 1)
 
         opts: dict[str, Any] = {
@@ -385,11 +421,13 @@ class MultipleShootingBaseline:
 
         X0, U0 = self.initial_guess(start, goal, float(phi_start))
         w0 = np.concatenate([X0.ravel(order="F"), U0.ravel(order="F")])
+        if self.objective == "min_max_deviation":
+            w0 = np.concatenate([w0, [1e-4]])
         p = np.concatenate([[float(phi_start)], start, goal])
 
         t0 = time.perf_counter()
         sol = self._solver(
-            x0=w0, p=p, lbx=self._lbw, ubx=self._ubw, lbg=0.0, ubg=0.0
+            x0=w0, p=p, lbx=self._lbw, ubx=self._ubw, lbg=self._lbg, ubg=0.0
         )
         solve_time = time.perf_counter() - t0
 
@@ -397,7 +435,7 @@ class MultipleShootingBaseline:
         status = str(stats.get("return_status", "unknown"))
         w = np.asarray(sol["x"]).reshape(-1)
         X = w[: self._nX].reshape((n + 1, N + 1), order="F")
-        U = w[self._nX :].reshape((2, N), order="F")
+        U = w[self._nX : self._nX + 2 * N].reshape((2, N), order="F")
         return BaselineResult(
             success=status in _SUCCESS_STATUSES,
             return_status=status,

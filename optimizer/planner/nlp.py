@@ -110,6 +110,11 @@ D_A_WEIGHT = 0.3
 PAPER_D_A_WEIGHT = 3.0
 #: Region modes of the transcription (see the module docstring).
 REGION_MODES = ("hard", "penalty")
+#: What the deviation epigraph ``S`` bounds: the squared distance of a node from the LINE
+#: through start and goal (every method's), or from the SEGMENT start -> goal (the reversal
+#: budget's straightest candidates, :mod:`.budget`: the answer's ``deviation``; the squared
+#: distance from a convex set is continuously differentiable, so the solvers do not mind).
+DEVIATION_MODES = ("line", "segment")
 #: Distance (rad) kept from the region's bounds at the nodes (0.5 deg).
 MARGIN = math.radians(0.5)
 #: RK4 steps of the correction's end map per RK4 step of the NLP. On the bench's goals (rates
@@ -155,9 +160,12 @@ class MultipleShootingNLP:
     """
 
     def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
-                 intervals: int, substeps: int, region: str = "hard") -> None:
+                 intervals: int, substeps: int, region: str = "hard",
+                 deviation: str = "line") -> None:
         if region not in REGION_MODES:
             raise ValueError(f"region must be one of {REGION_MODES}, not {region!r}")
+        if deviation not in DEVIATION_MODES:
+            raise ValueError(f"deviation must be one of {DEVIATION_MODES}, not {deviation!r}")
         t0 = time.perf_counter()
         n = self.n = len(gains) + 1
         N = self.N = intervals
@@ -225,8 +233,13 @@ class MultipleShootingNLP:
                     rows.append((X[N][0] - phi0 - dphi, True))
                 return rows
             d = X[k][1:nq] - a
-            along = ca.if_else(nrm > 0, ca.dot(d, ell) ** 2 / ca.fmax(nrm, 1e-300), 0)
-            rows = [(ca.sumsqr(d) - along - X[k][nq], False),
+            if deviation == "segment":  # (reversal budget) squared distance from the segment
+                s_k = ca.fmin(ca.fmax(ca.dot(d, ell) / ca.fmax(nrm, 1e-300), 0.0), 1.0)
+                dist2 = ca.sumsqr(d - s_k * ell)
+            else:
+                along = ca.if_else(nrm > 0, ca.dot(d, ell) ** 2 / ca.fmax(nrm, 1e-300), 0)
+                dist2 = ca.sumsqr(d) - along
+            rows = [(dist2 - X[k][nq], False),
                     ((X[k][1] - (a[0] + (b[0] - a[0]) * k * h)) ** 2 - X[k][nq + 1], False)]
             if penalty:
                 th, s = X[k][1:nq], U[k][2]
@@ -264,7 +277,8 @@ class MultipleShootingNLP:
         # only the first rung is compiled: the second's C (4-11 MB) takes 10-20 s and up to
         # 1.6 GB to compile, for a rung that runs rarely (and for about a second)
         first = ladder(n)[0]
-        self.native_ok = (intervals, substeps) == (first.intervals, first.substeps)
+        self.native_ok = ((intervals, substeps) == (first.intervals, first.substeps)
+                          and deviation == "line")  # (the budget's NLPs: not compiled)
         name = "shooting" if region == "hard" else "penalty"
         # how each solver is built, kept so that it can be built anew (see solver_call)
         self._factories: dict[str, Callable[[], Any]] = {}
@@ -442,16 +456,19 @@ def sensitivity_frobenius(s: Any, n: int) -> Any:
 @functools.lru_cache(maxsize=16)
 def multiple_shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
                           intervals: int, substeps: int,
-                          region: str = "hard") -> MultipleShootingNLP:
-    """The cached NLP of one robot, transcription and region mode (per process)."""
-    return MultipleShootingNLP(gains, exponents, fixed_phi, intervals, substeps, region)
+                          region: str = "hard", deviation: str = "line") -> MultipleShootingNLP:
+    """The cached NLP of one robot, transcription, region and deviation mode (per process)."""
+    return MultipleShootingNLP(gains, exponents, fixed_phi, intervals, substeps, region,
+                               deviation)
 
 
-def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard") -> MultipleShootingNLP:
+def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard",
+            deviation: str = "line") -> MultipleShootingNLP:
     """The cached NLP of ``req``'s robot under transcription ``tr``."""
     return multiple_shooting_nlp(tuple(float(k) for k in req.robot.gains),
                                  tuple(int(m) for m in req.robot.exponents),
-                                 req.phi_change is not None, tr.intervals, tr.substeps, region)
+                                 req.phi_change is not None, tr.intervals, tr.substeps, region,
+                                 deviation)
 
 
 def node_bounds(req: PlanRequest, limits: tuple[np.ndarray, np.ndarray],

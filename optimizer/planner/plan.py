@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import time
 
+from ..errors import InfeasibleError, NumericalError
 from ..problem import PlanRequest
 from ..results import Plan
 from .auto import plan_auto
+from .budget import check_budget_request, plan_with_budget
 from .context import Deadline, PlanContext
 from .registry import AUTO, get
-from ..errors import InfeasibleError
 from .nlp import ladder
 from .rules import check_endpoints, clear_request_caches, full_region, travel_reach_error
 
@@ -38,10 +39,22 @@ def plan(req: PlanRequest) -> Plan:
     clear_request_caches()
     check_endpoints(req, full_region(req))
     check_reach(req)
-    if req.method == AUTO:
-        result = plan_auto(req, ctx)
+    budget = req.max_reversals is not None or req.pareto
+    if budget:
+        check_budget_request(req)
+    try:
+        if req.method == AUTO:
+            result = plan_auto(req, ctx)
+        else:
+            result = get(req.method).plan(req, ctx)
+    except (InfeasibleError, NumericalError) as exc:
+        if not budget:
+            raise
+        # the budget's own candidates may still find a path (and say how few reversals)
+        result = plan_with_budget(req, ctx, None, exc)
     else:
-        result = get(req.method).plan(req, ctx)
+        if budget:
+            result = plan_with_budget(req, ctx, result, None)
     result.timing["total"] = time.perf_counter() - t0
     return result
 

@@ -9,6 +9,8 @@ route                          body                   figure (:mod:`service.figu
 ``/v1/figures/chained_state``  plan request           z2..z_{n+1} with the singular regions
 ``/v1/figures/sweep``          sweep request          d_a, t_p, ||J_R||_F against dphi
 ``/v1/figures/robustness``     robustness request     nominal path against perturbed runs
+``/v1/figures/pareto``         plan request           reversals against deviation of the
+                                                      trade-off (``pareto`` set to true)
 =============================  =====================  ==========================================
 
 and two that draw an answer the client already has, without computing it again (the plan
@@ -17,8 +19,9 @@ explorer uses them: one plan per click):
 =========================================  ===========================  ========================
 route                                      body                         figure
 =========================================  ===========================  ========================
-``/v1/figures/from_plan/{kind}``           a plan answer                joint_angles or
-                                                                        chained_state
+``/v1/figures/from_plan/{kind}``           a plan answer                joint_angles,
+                                                                        chained_state or
+                                                                        pareto
 ``/v1/figures/from_sweep``                 ``{"sweep": answer,          sweep, the planned dphi
                                            "planned_phi_change"}``      dashed
 =========================================  ===========================  ========================
@@ -130,6 +133,17 @@ def build_router(S: Schemas) -> APIRouter:
         check_plan(payload)
         return await _figure(request, "chained_state", payload, body.time_limit, format)
 
+    @router.post("/figures/pareto", response_class=Response, responses=IMAGE_RESPONSES,
+                 summary="Figure: the trade-off between reversals and deviation",
+                 description="Plans the request like `POST /v1/plans` with `pareto: true`, "
+                             "then draws each non-dominated plan's deviation (deg) against its "
+                             "actuator reversals, the main plan starred." + COMMON)
+    async def figure_pareto(body: S.PlanRequest, request: Request,  # type: ignore[name-defined]
+                            format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+        payload = {**body.to_library(), "pareto": True}
+        check_plan(payload)
+        return await _figure(request, "pareto", payload, body.time_limit, format)
+
     @router.post("/figures/sweep", response_class=Response, responses=IMAGE_RESPONSES,
                  summary="Figure: indicators against dphi",
                  description="Sweeps like `POST /v1/sweeps`, then draws d_a (deg), t_p and "
@@ -170,9 +184,11 @@ def build_router(S: Schemas) -> APIRouter:
                  responses=IMAGE_RESPONSES, summary="Figure of a plan answer you already have",
                  description="Draws the answer of `POST /v1/plans` (sent back unchanged) "
                              "without planning again: `joint_angles` (th1..thn and phi against "
-                             "time, deg) or `chained_state` (z2..z_{n+1} with the singular "
-                             "regions shaded). Angles are drawn in degrees (labelled).")
-    async def figure_from_plan(kind: Literal["joint_angles", "chained_state"],
+                             "time, deg), `chained_state` (z2..z_{n+1} with the singular "
+                             "regions shaded) or `pareto` (a `pareto: true` answer's members, "
+                             "deviation against reversals). Angles are drawn in degrees "
+                             "(labelled).")
+    async def figure_from_plan(kind: Literal["joint_angles", "chained_state", "pareto"],
                                body: PlanResponse, request: Request,
                                format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
         settings = request.app.state.settings

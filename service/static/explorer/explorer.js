@@ -237,6 +237,12 @@
     if ($("max-du").value.trim() !== "") {
       req.max_du1 = req.max_du2 = readNumber("max-du", "Rate change limit");
     }
+    if ($("max-reversals").value.trim() !== "") {
+      const k = readNumber("max-reversals", "Max reversals");
+      if (!Number.isInteger(k) || k < 0) throw new Error("Max reversals must be a whole number >= 0.");
+      req.max_reversals = k;
+    }
+    if ($("pareto").checked) req.pareto = true;
     if (req.objective === "weighted") {
       req.weights = {};
       for (const k of ["d_a", "sensitivity", "energy", "t_p"]) {
@@ -337,7 +343,8 @@
     $("plan-out").hidden = true;
     $("sweep-note").hidden = true;
     state.figures = {};
-    for (const kind of FIGURES) {
+    $("front-out").hidden = true;
+    for (const kind of FIGURES.concat(["pareto"])) {
       const img = $(`fig-${kind}`);
       img.removeAttribute("src");
       img.closest("figure").classList.remove("loaded", "failed");
@@ -459,8 +466,56 @@
       sweep: sweep,
     };
     setStatus("Rendering figures…", true);
-    await Promise.all(FIGURES.map((k) => showFigure(run, k, sources[k])));
+    await Promise.all(FIGURES.map((k) => showFigure(run, k, sources[k])).concat([showFront(run, plan)]));
     if (run === state.run) setStatus(`Planned in ${fmtNum((plan.timing || {}).total, 2)} s.`, false);
+  }
+
+  /** A front member as a plan answer the figure routes take (the main plan's robot). */
+  function memberAsPlan(member, plan) {
+    const out = Object.assign({}, member, {
+      status: "success", robot: plan.robot, feasible_phi_changes: [], timing: {}, diagnostics: {},
+    });
+    for (const k of ["origin", "max_reversals", "chosen"]) delete out[k];
+    return out;
+  }
+
+  /** The trade-off of a pareto answer: a row per member (Show draws it) and its figure. */
+  function showFront(run, plan) {
+    const members = plan.pareto || [];
+    $("front-out").hidden = members.length === 0;
+    const body = $("front-rows");
+    body.textContent = "";
+    if (!members.length) return Promise.resolve();
+    members.forEach((m) => {
+      const row = document.createElement("tr");
+      const ind = m.indicators || {};
+      for (const text of [String(m.max_reversals), fmtDeg(ind.deviation, 3), fmtNum(ind.energy, 3)]) {
+        const cell = document.createElement("td");
+        cell.textContent = text;
+        row.appendChild(cell);
+      }
+      const cell = document.createElement("td");
+      const button = document.createElement("button");
+      button.type = "button";
+      button.className = "link";
+      button.textContent = m.chosen ? "show (main plan)" : "show";
+      button.addEventListener("click", () => pickMember(m, plan));
+      cell.appendChild(button);
+      row.appendChild(cell);
+      body.appendChild(row);
+    });
+    return showFigure(run, "pareto", Promise.resolve({ path: "v1/figures/from_plan/pareto", body: plan }));
+  }
+
+  /** Show one member of the front: its numbers and its time figures. */
+  async function pickMember(member, plan) {
+    const run = ++state.run;
+    const shown = memberAsPlan(member, plan);
+    showPlan(shown, JSON.stringify(shown, null, 2));
+    setStatus(`Showing the plan with ${member.max_reversals} reversals (max_reversals = ${member.max_reversals} asks for it alone).`, true);
+    await Promise.all(["joint_angles", "chained_state"].map((k) =>
+      showFigure(run, k, Promise.resolve({ path: `v1/figures/from_plan/${k}`, body: shown }))));
+    if (run === state.run) setStatus(`Showing the plan with ${member.max_reversals} reversals.`, false);
   }
 
   async function downloadSVG(kind) {

@@ -1,0 +1,402 @@
+"""A reversal budget and the whole trade-off between actuator reversals and deviation.
+
+A user who allows ``max_reversals`` direction changes (of ``phi`` and ``th_1`` together, counted
+as the answer counts them: :attr:`~optimizer.indicators.Indicators.reversals`) asks for the
+straightest verified path with at most that many; ``pareto`` asks for the non-dominated set
+over ``(reversals, deviation)``. Both come from one set of candidates, each a verified plan of
+the ``shooting`` transcription (:mod:`.nlp`), finished by the one finishing path
+(:func:`~.nlp.finish_solution`: the Newton correction onto the goal, then the re-integration of
+the original model in the handed-out form):
+
+1. **the plan the objective picks** (the caller's: ``auto`` or the method asked for), under the
+   default objective the ladder's fewest-reversal plan;
+2. **the straightest**: the transcription with free rate signs on :data:`BUDGET_TRANSCRIPTION`
+   (30 intervals: more switching than the ladder's first rung allows), its deviation epigraph
+   bounding the squared distance of every node from the SEGMENT start -> goal (the answer's
+   ``deviation``; :data:`~.nlp.DEVIATION_MODES`), weighted :data:`FREE_DEVIATION_WEIGHT` (a
+   thousand times the default's: the energy then only makes the rates unique). Its plan has
+   the most reversals ``R_free`` and the smallest deviation found;
+3. **fewer reversals, bought back**: the straightest plan's sign pattern (per interval and
+   actuator) has runs; merging the run that travels least into its neighbours (it takes their
+   sign) removes one reversal (a run at an end) or two (inside), for the least loss of the
+   motion that bought straightness. The sign-held NLP (the rungs' machinery: every interval's
+   rates held to the pattern's signs, from the previous solution's nodes) gives the straightest
+   plan of that pattern; merging goes on until no run is left to merge or the count reaches
+   the first candidate's. When a pattern's NLP fails (the goal needs that run: ``th_1`` must
+   move its way, or ``phi`` must reverse) the next-smallest run is merged instead.
+
+Each candidate is kept only when it is verified; the front is the candidates sorted by
+reversals, each kept when its deviation is smaller than every one with fewer reversals (by more
+than :data:`DEVIATION_TOLERANCE`). ``max_reversals = k`` answers the front's member with the
+most reversals ``<= k`` (the straightest); none: :class:`~optimizer.errors.InfeasibleError`
+naming ``max_reversals`` and the fewest reversals found.
+
+Cost: one plan for the first candidate, then one NLP (IPOPT, 20-50 iterations) and one
+finishing per other candidate, and one NLP per failed merge: about 0.1 s per member for 3
+joints, several times ``K + 1`` default plans for ``K`` members (the bench measures it:
+:mod:`bench.budget`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import InfeasibleError, NumericalError, PlannerError, SolverTimeoutError
+from ..indicators import ACTUATOR_DEAD_BAND
+from ..problem import PlanRequest
+from ..results import Plan, ParetoMember
+from . import nlp as nlp_layer
+from .context import PlanContext
+from .correction import finish_solution
+from .nlp import D_A_WEIGHT, Transcription, nlp_for, node_bounds
+from .rungs import th1_reach_ok
+from .solvers import run_solver
+from .ranking import best
+from .rules import joint_limits, monotone_reach_ok, monotone_signs
+from .shooting import GUESS_PHI_TRAVEL, ShootingSolution
+
+#: Weight of the squared joint-space deviation (rad^2) against the input energy in the
+#: budget's NLPs (the default plan's is 30): 1 deg of deviation then costs about 9, the energy
+#: of a move of about 3 rad. On the 3-joint goal [10, 20, 30] -> [40, 25, 15] deg (50
+#: intervals) the straightest deviation was 20.0, 14.5 and 13.5 deg at weights 3e3, 3e4 and
+#: 3e5 (line distance), at 3e4 and 3e5 the same 7.3 deg (segment distance).
+FREE_DEVIATION_WEIGHT = 30000.0
+#: The transcription of the budget's NLPs: 30 intervals of one RK4 step, rates up to 20 rad
+#: per T (2/3 rad per interval, as the first rung's 0.5). Measured on 10 generated 3-joint
+#: goals against 50 intervals of two steps (the ladder's second rung): the straightest
+#: candidate within 0.3 deg of it on all 10 (closer to the min-max peer on 3, farther on 4),
+#: each NLP about a third of the time.
+BUDGET_TRANSCRIPTION = Transcription(30, 1, 20.0)
+#: A front member must be straighter than every member with fewer reversals by more than this
+#: (rad): smaller differences are numerical noise, not a trade.
+DEVIATION_TOLERANCE = 1e-6
+#: Merges tried at one step when the NLP of the smallest run's merge fails.
+MERGE_TRIES = 2
+#: No NLP starts once less than this is left of the deadline (s).
+MIN_SOLVE_TIME = 1e-3
+
+
+@dataclass
+class Candidate:
+    """A verified plan and where it came from (``objective``, ``straightest``, ``merged``)."""
+
+    plan: Plan
+    origin: str
+    signs: np.ndarray | None = None
+
+    @property
+    def key(self) -> tuple[int, float]:
+        return self.plan.indicators.reversals, self.plan.indicators.deviation
+
+
+@dataclass
+class Front:
+    """The candidates, the non-dominated ones and what was tried."""
+
+    candidates: list[Candidate]
+    members: list[Candidate]
+    tried: list[dict[str, Any]] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def fewest(self) -> int | None:
+        return min((c.key[0] for c in self.candidates), default=None)
+
+
+def check_budget_request(req: PlanRequest) -> None:
+    """A budget or a front needs a method that plans actuator rates (``auto``, ``shooting``)
+    and no constraint points (:class:`~optimizer.errors.InvalidRequestError` naming the field).
+    """
+    from ..errors import InvalidRequestError
+    field_name = "max_reversals" if req.max_reversals is not None else "pareto"
+    if req.method not in ("auto", "shooting"):
+        raise InvalidRequestError(
+            f"{field_name} needs method 'auto' or 'shooting' (paths of piecewise-constant "
+            f"actuator rates, which may reverse): not {req.method!r}", field=field_name)
+    if req.constraint_points:
+        raise InvalidRequestError(
+            f"{field_name} takes no constraint points (they are points of the paper's "
+            "polynomial inputs; the reversal budget plans actuator rates)", field=field_name)
+
+
+def _solve(req: PlanRequest, deadline: Any, tr: Transcription,
+           signs: np.ndarray | None, start_nodes: np.ndarray | None,
+           w_dev: float, phi_travel: float = GUESS_PHI_TRAVEL) -> ShootingSolution:
+    """The transcription ``tr`` with deviation weight ``w_dev`` and rates held to ``signs``
+    (per interval and actuator, 0: free), from ``start_nodes`` or else the straight line with
+    ``phi`` travelling ``phi_travel`` (rad), by IPOPT.
+
+    IPOPT alone: at this deviation weight (a thousand times the default's) fatrop reached its
+    iteration cap from nearly every start, where IPOPT converged in 20-90 iterations. No time
+    cap of its own (the answer would depend on the machine's load): patterns the rules rule
+    out are not solved (:func:`possible`), and at most :data:`MERGE_TRIES` fail per level.
+    """
+    nlp = nlp_for(req, tr, deviation="segment")
+    a, b = np.array(req.start), np.array(req.goal)
+    lo, hi = node_bounds(req, joint_limits(req))
+    lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi, signs)
+    p = nlp_layer.parameters(req, w_dev, 1.0, D_A_WEIGHT)
+    solvers = [s for s, _ in nlp.solvers if s == "ipopt"]
+    starts: list[tuple[str, np.ndarray]] = []
+    if start_nodes is not None:
+        starts.append(("the previous candidate's nodes",
+                       np.clip(nlp.guess_from_nodes(start_nodes, a, b), lbw, ubw)))
+    else:
+        travel = min(max(phi_travel, lo_phi), hi_phi)
+        starts.append((f"phi travel {travel:+.3g} rad",
+                       np.clip(nlp.guess(a, b, req.phi_start, travel), lbw, ubw)))
+    tried: list[dict[str, Any]] = []
+    for guess, x0 in starts:
+        for name in solvers:
+            if deadline.remaining <= MIN_SOLVE_TIME:
+                raise SolverTimeoutError(
+                    f"the reversal budget's NLPs did not finish within the time limit of "
+                    f"{deadline.seconds:g} s", field="time_limit",
+                    diagnostics={"stage": "budget NLP", "tried": tried})
+            out = run_solver(nlp, name, x0, p, lbw, ubw, deadline.remaining)
+            tried.append({"solver": name, "guess": guess, "status": out.status,
+                          "iterations": out.iterations})
+            if out.success and out.x is not None:
+                nodes, rates = nlp.unpack(out.x)
+                return ShootingSolution(nodes=nodes, rates=rates, status=f"{name}: {out.status}",
+                                        iterations=out.iterations, start=guess,
+                                        tried=tuple(tried))
+            if out.kind == "timeout":
+                raise SolverTimeoutError(
+                    f"the reversal budget's NLPs did not finish within the time limit of "
+                    f"{deadline.seconds:g} s", field="time_limit",
+                    diagnostics={"stage": "budget NLP", "tried": tried})
+    raise InfeasibleError("the budget's NLP found no path", diagnostics={"tried": tried})
+
+
+def _finish(req: PlanRequest, tr: Transcription, sol: ShootingSolution,
+            signs: np.ndarray | None, origin: str) -> Plan:
+    """The verified plan of an NLP answer (the one finishing path of ``shooting``)."""
+    timing = {"nlp": 0.0}
+    return finish_solution(req, "shooting", nlp_for(req, tr, deviation="segment"),
+                                     sol, tr, signs, [],
+                                     timing, {"budget": origin})
+
+
+def runs(signs: np.ndarray, rates: np.ndarray) -> list[tuple[float, int, int, int]]:
+    """The runs of one sign of each actuator in a sign pattern ``(N, 2)``: ``(travel, actuator,
+    first interval, end)``, travel the run's ``sum |U| / N`` under ``rates`` (N, 2)."""
+    N = signs.shape[0]
+    out: list[tuple[float, int, int, int]] = []
+    for c in (0, 1):
+        edges = np.flatnonzero(np.diff(signs[:, c])) + 1
+        starts, ends = np.r_[0, edges], np.r_[edges, N]
+        for s, e in zip(starts, ends):
+            out.append((float(np.sum(np.abs(rates[s:e, c]))) / N, c, int(s), int(e)))
+    return out
+
+
+def pattern(rates: np.ndarray) -> np.ndarray:
+    """The sign pattern ``(N, 2)`` of rates, with runs whose travel is within the reversal
+    dead band merged into their neighbours (they reverse nothing the answer counts; a zero rate
+    takes the sign before it)."""
+    N = rates.shape[0]
+    signs = np.sign(rates).astype(float)
+    for c in (0, 1):
+        col = signs[:, c]
+        nz = np.flatnonzero(col)
+        if nz.size == 0:
+            col[:] = 1.0
+            continue
+        last = np.maximum.accumulate(np.where(col != 0.0, np.arange(N), nz[0]))
+        signs[:, c] = col[last]
+    while True:
+        small = [r for r in runs(signs, rates) if r[0] <= ACTUATOR_DEAD_BAND
+                 and _count(signs[:, r[1]]) > 0]
+        if not small:
+            return signs
+        signs = merge(signs, min(small))
+
+
+def possible(req: PlanRequest, signs: np.ndarray) -> bool:
+    """False when rules of :mod:`.rules` show that no path has the sign pattern ``signs``
+    (an actuator of one sign the goal does not allow): the NLP need not be asked."""
+    phi_one, th1_one = _count(signs[:, 0]) == 0, _count(signs[:, 1]) == 0
+    if phi_one:
+        demanded = monotone_signs(req)  # None: the joints th2..thn demand a reversal of phi
+        if demanded is None or signs[0, 0] != demanded[0]:
+            return False
+        if not monotone_reach_ok(req, th1_one):
+            return False
+    if th1_one:
+        d1 = float(np.sign(req.goal[0] - req.start[0]))
+        if d1 != 0.0 and signs[0, 1] != d1:
+            return False
+        if not phi_one and not th1_reach_ok(req):
+            return False
+    return True
+
+
+def _count(col: np.ndarray) -> int:
+    return int(np.count_nonzero(np.diff(col)))
+
+
+def merge(signs: np.ndarray, run: tuple[float, int, int, int]) -> np.ndarray:
+    """``signs`` with ``run`` (of :func:`runs`) given its neighbours' sign."""
+    _, c, s, e = run
+    out = signs.copy()
+    N = signs.shape[0]
+    out[s:e, c] = signs[s - 1, c] if s > 0 else signs[e, c] if e < N else signs[s, c]
+    return out
+
+
+def _verified(req: PlanRequest, tr: Transcription, sol: ShootingSolution,
+              signs: np.ndarray | None, origin: str,
+              tried: list[dict[str, Any]]) -> Candidate | None:
+    t0 = time.perf_counter()
+    try:
+        plan = _finish(req, tr, sol, signs, origin)
+    except (InfeasibleError, NumericalError) as exc:
+        tried.append({"candidate": origin, "outcome": f"{exc.code}: {exc.message[:120]}",
+                      "seconds": round(time.perf_counter() - t0, 6)})
+        return None
+    tried.append({"candidate": origin, "outcome": "plan",
+                  "reversals": plan.indicators.reversals,
+                  "deviation_deg": math.degrees(plan.indicators.deviation),
+                  "seconds": round(time.perf_counter() - t0, 6)})
+    return Candidate(plan, origin, signs)
+
+
+def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front:
+    """The candidates of the module docstring and their non-dominated set.
+
+    ``first``: the plan the objective picked (None when none was found); its reversals end the
+    merging (fewer are not looked for).
+    """
+    t0 = time.perf_counter()
+    deadline = ctx.deadline
+    tried: list[dict[str, Any]] = []
+    cands: list[Candidate] = []
+    if first is not None:
+        cands.append(Candidate(first, "objective"))
+    floor = first.indicators.reversals if first is not None else 0
+    tr = BUDGET_TRANSCRIPTION
+    # the straightest from both of phi's directions (the NLP has local optima: on the bench's
+    # 3-joint goals the two differed by up to 0.7 deg), the straighter verified one kept
+    sol: ShootingSolution | None = None
+    top: Candidate | None = None
+    for sign in (1.0, -1.0):
+        try:
+            alt = _solve(req, deadline, tr, None, None, FREE_DEVIATION_WEIGHT,
+                         sign * GUESS_PHI_TRAVEL)
+        except InfeasibleError as exc:
+            tried.append({"candidate": "straightest", "outcome": f"infeasible: {exc.message}",
+                          "tried": exc.diagnostics.get("tried", [])})
+            continue
+        cand = _verified(req, tr, alt, None, "straightest", tried)
+        if cand is not None and (top is None or cand.key[1] < top.key[1]):
+            sol, top = alt, cand
+    if sol is not None and top is not None:
+        signs = pattern(sol.rates)
+        cands.append(top)
+        level = _count(signs[:, 0]) + _count(signs[:, 1])
+        prev = sol
+        while level > floor and deadline.remaining > MIN_SOLVE_TIME:
+            options = sorted(r for r in runs(signs, prev.rates) if _count(signs[:, r[1]]) > 0)
+            found = False
+            trials = [t for t in (merge(signs, run) for run in options) if possible(req, t)]
+            for trial in trials[:MERGE_TRIES]:
+                fewer = _count(trial[:, 0]) + _count(trial[:, 1])
+                try:
+                    alt = _solve(req, deadline, tr, trial, prev.nodes, FREE_DEVIATION_WEIGHT)
+                except InfeasibleError as exc:
+                    tried.append({"candidate": f"merged to {fewer}", "outcome": "infeasible",
+                                  "tried": exc.diagnostics.get("tried", [])})
+                    continue
+                tried.append({"candidate": f"merged to {fewer}", "status": alt.status,
+                              "iterations": alt.iterations})
+                cand = _verified(req, tr, alt, trial, f"merged to {fewer}", tried)
+                if cand is not None:
+                    cands.append(cand)
+                # the NLP may have emptied more runs (rates 0 where the sign allowed it):
+                # the next merge starts from the pattern it really has
+                signs = pattern(np.where(trial == 0.0, alt.rates, trial * np.abs(alt.rates)))
+                level, prev, found = _count(signs[:, 0]) + _count(signs[:, 1]), alt, True
+                break
+            if not found:
+                break
+    members = non_dominated(cands)
+    return Front(cands, members, tried, time.perf_counter() - t0)
+
+
+def non_dominated(cands: list[Candidate]) -> list[Candidate]:
+    """The candidates no other beats on both reversals and deviation, by reversals (each
+    straighter than every one with fewer by more than :data:`DEVIATION_TOLERANCE`; of equal
+    reversals the straightest, the earlier on a tie)."""
+    out: list[Candidate] = []
+    for c in sorted(cands, key=lambda c: c.key):  # stable: the earlier first on a tie
+        if not out or c.key[1] < out[-1].key[1] - DEVIATION_TOLERANCE:
+            if out and out[-1].key[0] == c.key[0]:
+                continue
+            out.append(c)
+    return out
+
+
+def within_budget(front: Front, k: int) -> Candidate | None:
+    """The straightest member with at most ``k`` reversals (None: none)."""
+    fit = [c for c in front.members if c.key[0] <= k]
+    return fit[-1] if fit else None
+
+
+def member(c: Candidate, main: Plan) -> ParetoMember:
+    """What the answer says of a front member."""
+    return ParetoMember(plan=c.plan, origin=c.origin, max_reversals=c.key[0],
+                        chosen=c.plan is main)
+
+
+def plan_with_budget(req: PlanRequest, ctx: PlanContext, first: Plan | None,
+                     first_error: PlannerError | None) -> Plan:
+    """The answer of a request with ``max_reversals`` or ``pareto`` (see the module docstring):
+    ``first`` is the plan the objective picked (None, with ``first_error``, when none was)."""
+    front = build_front(req, ctx, first)
+    k = req.max_reversals
+    main: Plan | None
+    if k is not None:
+        pick = within_budget(front, k)
+        if pick is None:
+            fewest = front.fewest
+            if fewest is None and first_error is not None:
+                raise first_error
+            raise InfeasibleError(
+                f"no verified path with at most max_reversals = {k} direction changes of phi "
+                f"and th1 was found: the fewest found is {fewest}; allow at least {fewest}"
+                if fewest is not None else
+                f"no verified path with at most max_reversals = {k} was found",
+                field="max_reversals",
+                diagnostics={"fewest_reversals": fewest, "max_reversals": k,
+                             "budget": {"tried": front.tried}})
+        main = pick.plan
+    else:
+        main = best([c.plan for c in front.candidates], req.objective, req.weights) or first
+        if main is None:
+            assert first_error is not None
+            raise first_error
+    main.diagnostics["budget"] = {
+        "max_reversals": k,
+        "candidates": [{"origin": c.origin, "reversals": c.key[0],
+                        "deviation_deg": math.degrees(c.key[1])} for c in front.candidates],
+        "front": [c.key[0] for c in front.members],
+        "seconds": front.seconds, "tried": front.tried}
+    if req.pareto:
+        main = _with_front(main, [member(c, main) for c in front.members], front.seconds)
+    return main
+
+
+def _with_front(main: Plan, members: list[ParetoMember], seconds: float) -> Plan:
+    import dataclasses
+    return dataclasses.replace(main, pareto=tuple(members),
+                               timing={**main.timing, "front": seconds})
+
+
+__all__ = ["Candidate", "Front", "FREE_DEVIATION_WEIGHT", "build_front", "check_budget_request",
+           "merge", "non_dominated", "pattern", "plan_with_budget", "runs", "within_budget"]

@@ -1,0 +1,199 @@
+"""The reversal budget (``max_reversals``) and the trade-off front (``pareto``), issue 26.
+
+Every plan is checked on what it hands out: ``path.u`` executed by its rule (linear between
+samples, a break's time twice) drives the ORIGINAL model, integrated here with scipy from the
+tests' own right-hand side (``tests/reference.py``); the reversals of ``phi`` and ``th_1`` are
+counted on that re-integrated path by this file's own hysteresis count (dead band 1e-4 rad, as
+the answer documents), and the deviation is measured there from the segment start -> goal.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from optimizer.errors import InfeasibleError, InvalidRequestError
+from optimizer.planner import budget
+from optimizer.planner.plan import plan
+from optimizer.problem import PlanRequest
+from reference import PROTOTYPE_K, PROTOTYPE_M, model_rhs
+
+DEG = math.pi / 180.0
+#: th2 rises and th3 falls: phi must reverse (every th_i, i >= 2, moves with phi while phi
+#: moves one way), so no path has 0 reversals.
+OPPOSED = ((10 * DEG, 20 * DEG, 30 * DEG), (40 * DEG, 25 * DEG, 15 * DEG))
+#: Every joint moves... where the budgets 0, 1 and 2 give different paths.
+SAME = ((50 * DEG, 20 * DEG, 30 * DEG), (30 * DEG, 40 * DEG, 50 * DEG))
+DEAD_BAND = 1e-4
+TERMINAL = 1e-6
+
+
+def turns(x: np.ndarray, band: float = DEAD_BAND) -> int:
+    """Direction changes of a sampled signal: one each time it comes back from its running
+    extreme by more than ``band`` (written here, not the library's)."""
+    count, direction, ext = 0, 0, float(x[0])
+    for v in map(float, x[1:]):
+        if direction == 0:
+            if abs(v - x[0]) > band:
+                direction, ext = (1 if v > x[0] else -1), v
+        elif direction * (v - ext) > 0:
+            ext = v
+        elif direction * (ext - v) > band:
+            count, direction, ext = count + 1, -direction, v
+    return count
+
+
+def replay(answer: dict) -> np.ndarray:
+    """The original model under the answer's ``path.u``, linear between samples (the rule it
+    states), from the start: the states at a dense grid of every sample interval."""
+    assert answer["path"]["rule"] == "linear"
+    t = np.asarray(answer["path"]["t"], float)
+    u = np.asarray(answer["path"]["u"], float)
+    q = np.asarray(answer["path"]["q"][0], float)
+    out = [q]
+    for k in range(t.size - 1):
+        t0, t1 = t[k], t[k + 1]
+        if t1 <= t0:
+            continue
+        u0, u1 = u[k], u[k + 1]
+
+        def rhs(s: float, x: np.ndarray, t0=t0, t1=t1, u0=u0, u1=u1) -> np.ndarray:
+            return model_rhs(x, u0 + (s - t0) / (t1 - t0) * (u1 - u0), PROTOTYPE_K, PROTOTYPE_M)
+
+        sol = solve_ivp(rhs, (t0, t1), q, method="DOP853", rtol=1e-11, atol=1e-12,
+                        t_eval=np.linspace(t0, t1, 6)[1:])
+        assert sol.success
+        out.extend(sol.y.T)
+        q = sol.y[:, -1]
+    return np.array(out)
+
+
+def measured(answer: dict, start, goal) -> tuple[int, float, float, float]:
+    """``(reversals, deviation, terminal error, margin)`` of the re-integrated path."""
+    Q = replay(answer)
+    a, b = np.array(start), np.array(goal)
+    th = Q[:, 1:]
+    d = b - a
+    s = np.clip((th - a) @ d / (d @ d), 0.0, 1.0)
+    deviation = float(np.max(np.linalg.norm(th - a - s[:, None] * d, axis=1)))
+    margin = float(np.min(np.minimum(th, math.pi / 2 - th)))
+    return (turns(Q[:, 0]) + turns(Q[:, 1]), deviation,
+            float(np.max(np.abs(th[-1] - b))), margin)
+
+
+def request(start, goal, **kw) -> PlanRequest:
+    return PlanRequest(start=start, goal=goal, samples=101, time_limit=120.0, **kw)
+
+
+def test_no_reversal_is_infeasible_where_phi_must_reverse() -> None:
+    with pytest.raises(InfeasibleError) as info:
+        plan(request(*OPPOSED, max_reversals=0))
+    err = info.value
+    assert err.field == "max_reversals"
+    fewest = err.diagnostics["fewest_reversals"]
+    assert isinstance(fewest, int) and fewest >= 1
+    assert "max_reversals" in err.message and str(fewest) in err.message
+
+
+@pytest.fixture(scope="module")
+def budgets() -> dict[int, tuple[dict, tuple[int, float, float, float]]]:
+    out = {}
+    for k in (0, 1, 2):
+        answer = plan(request(*SAME, max_reversals=k)).to_dict()
+        out[k] = (answer, measured(answer, *SAME))
+    return out
+
+
+@pytest.mark.parametrize("k", [0, 1, 2])
+def test_budget_is_kept_on_the_reintegrated_path(budgets, k: int) -> None:
+    answer, (reversals, deviation, terminal, margin) = budgets[k]
+    assert terminal <= TERMINAL
+    assert margin > 0.0
+    assert reversals <= k
+    # the answer counts and measures what the re-integration shows
+    ind = answer["indicators"]
+    assert ind["reversals"]["phi"] + ind["reversals"]["th1"] == reversals
+    assert ind["deviation"] == pytest.approx(deviation, abs=2e-4)
+
+
+def test_a_larger_budget_buys_a_straighter_path(budgets) -> None:
+    dev = {k: budgets[k][1][1] for k in budgets}
+    assert dev[1] <= dev[0] + 2e-4 and dev[2] <= dev[1] + 2e-4
+    # on this goal the budgets give different paths: two reversals are worth > 0.1 deg
+    assert dev[2] < dev[0] - 0.1 * DEG
+
+
+def test_pareto_members_are_verified_and_non_dominated() -> None:
+    p = plan(request(*SAME, pareto=True))
+    answer = p.to_dict()
+    members = answer["pareto"]
+    assert len(members) >= 2
+    keys = []
+    for m in members:
+        reversals, deviation, terminal, margin = measured(m, *SAME)
+        assert terminal <= TERMINAL and margin > 0.0
+        assert reversals == m["max_reversals"]
+        keys.append((reversals, deviation))
+    # fewest reversals first, each member straighter than every one with fewer reversals:
+    # no member is dominated by another (independent measurements)
+    for (r0, d0), (r1, d1) in zip(keys, keys[1:]):
+        assert r1 > r0 and d1 < d0 + 2e-4
+    # the main plan is the objective's pick (fewest reversals, then deviation): the first
+    chosen = [m for m in members if m["chosen"]]
+    assert len(chosen) == 1 and chosen[0] is members[0]
+    main = answer["indicators"]
+    assert main["reversals"]["phi"] + main["reversals"]["th1"] == keys[0][0]
+    assert "front" in answer["timing"]
+    # each member can be asked for alone: its max_reversals gives a path at least as straight
+    m = members[len(members) // 2]
+    alone = plan(request(*SAME, max_reversals=m["max_reversals"])).to_dict()
+    r, d, _, _ = measured(alone, *SAME)
+    assert r <= m["max_reversals"] and d <= keys[len(members) // 2][1] + 2e-4
+
+
+def test_non_dominated_keeps_the_straightest_of_equal_reversals() -> None:
+    class P:  # the indicators are all non_dominated reads
+        def __init__(self, r: int, d: float) -> None:
+            self.indicators = type("I", (), {"reversals": r, "deviation": d})()
+
+    cands = [budget.Candidate(P(r, d), str(i)) for i, (r, d) in  # type: ignore[arg-type]
+             enumerate([(3, 1.0), (1, 2.0), (3, 0.5), (2, 2.5), (4, 0.5), (0, 3.0)])]
+    front = budget.non_dominated(cands)
+    assert [c.key for c in front] == [(0, 3.0), (1, 2.0), (3, 0.5)]
+    f = budget.Front(cands, front)
+    assert budget.within_budget(f, 2).key == (1, 2.0)
+    assert budget.within_budget(f, 10).key == (3, 0.5)
+
+
+def test_merging_a_run_removes_its_reversals() -> None:
+    signs = np.array([[1, 1], [1, -1], [-1, -1], [1, -1], [1, 1], [1, 1]], float)
+    rates = signs * np.array([[1.0, 1.0], [1.0, 0.01], [0.2, 0.5], [1.0, 0.5], [1, 1], [1, 1]])
+    runs = budget.runs(signs, rates)
+    smallest = min(runs)
+    assert smallest[1:] == (0, 2, 3)  # phi's one interval backwards
+    merged = budget.merge(signs, smallest)
+    assert np.all(merged[:, 0] == 1.0) and np.all(merged[:, 1] == signs[:, 1])
+
+
+@pytest.mark.parametrize("kw, field", [
+    ({"max_reversals": -1}, "max_reversals"),
+    ({"max_reversals": 1.5}, "max_reversals"),
+    ({"max_reversals": True}, "max_reversals"),
+    ({"pareto": "yes"}, "pareto"),
+])
+def test_bad_values_name_the_field(kw: dict, field: str) -> None:
+    with pytest.raises(InvalidRequestError) as info:
+        request(*SAME, **kw)
+    assert info.value.field == field
+
+
+def test_a_budget_needs_a_method_of_actuator_rates() -> None:
+    with pytest.raises(InvalidRequestError) as info:
+        plan(request(*SAME, max_reversals=2, method="polynomial"))
+    assert info.value.field == "max_reversals"
+    with pytest.raises(InvalidRequestError) as info:
+        plan(request(*SAME, pareto=True, method="retimed"))
+    assert info.value.field == "pareto"
