@@ -6,7 +6,8 @@
 * A worker killed under a job: the job runs once more on another worker (200); killed twice,
   503 ``worker_lost`` with ``Retry-After``.
 * A stopped (SIGSTOP) idle worker is found by its ping and replaced before it holds a request.
-* Connections: an oversized header (431 problem document), a stalled body (408, within
+* Connections: an oversized header (431 problem document), a body trickled after an early
+  401/413 (cut off about ``body_timeout`` after the answer), a stalled body (408, within
   ``body_timeout``), a silent connection (closed within ``header_timeout``), a slow reader
   (dropped after ``send_timeout``; server memory bounded), the connection cap.
 * A shutdown that cannot drain: its queued requests are answered 503 ``shutting_down``.
@@ -399,6 +400,117 @@ def test_a_body_that_does_not_arrive_in_time_is_answered_408(bounded, trickle):
     assert status == 408 and body["code"] == "request_timeout", body
     assert b"connection: close" in raw.lower()
     assert 0.9 <= elapsed < 2.0, elapsed
+
+
+#: The head of a request answered 413 at once (its Content-Length is past the 1 MiB limit).
+_TOO_LONG = (b"POST /v1/plans HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+             b"Content-Length: 50000000\r\n\r\n{")
+#: A chunked body that passes the limit after a while (413 once the middleware has read 1 MiB).
+_CHUNKED_PAST = (b"POST /v1/plans HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                 b"Transfer-Encoding: chunked\r\n\r\n"
+                 + (b"10000\r\n" + b" " * 0x10000 + b"\r\n") * 17 + b"10000\r\n")
+
+
+def _trickle(socks: list[socket.socket], seconds: float,
+             until: Any = None) -> tuple[list[bytes], list[float | None]]:
+    """Send a byte every 0.25 s on each socket (a body trickled for ``seconds``, or until
+    ``until()`` is true), reading what comes back. Returns what each received and the time,
+    after the start, at which the server closed it (None: still open)."""
+    got = [b""] * len(socks)
+    closed: list[float | None] = [None] * len(socks)
+    for s in socks:
+        s.setblocking(False)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds and any(c is None for c in closed):
+        if until is not None and until():
+            break
+        for i, s in enumerate(socks):
+            if closed[i] is not None:
+                continue
+            try:
+                while chunk := s.recv(65536):
+                    got[i] += chunk
+                closed[i] = time.monotonic() - t0  # b"": the server closed it
+                continue
+            except BlockingIOError:
+                pass
+            except ConnectionResetError:
+                closed[i] = time.monotonic() - t0
+                continue
+            try:
+                s.send(b" ")
+            except BlockingIOError:
+                pass
+            except (BrokenPipeError, ConnectionResetError):
+                closed[i] = time.monotonic() - t0
+        time.sleep(0.25)
+    return got, closed
+
+
+@pytest.mark.parametrize("head", [_TOO_LONG, _CHUNKED_PAST], ids=["content_length", "chunked"])
+def test_a_body_trickled_after_a_413_is_cut_off(bounded, head):
+    """Answered 413 before its body is in, the connection is closed about ``body_timeout``
+    (1 s here) after the answer however slowly the rest trickles (it stayed open as long as
+    the trickle went on, locking out new clients once there were enough)."""
+    with _raw(_port(bounded)) as s:
+        s.sendall(head)
+        (got,), (closed,) = _trickle([s], 20.0)
+    status, body = _problem_of(got)
+    assert status == 413 and body["code"] == "invalid_request", body
+    assert closed is not None and closed < 8.0, closed
+
+
+@pytest.fixture(scope="module")
+def keyed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """A server with API keys and :data:`BOUNDS`."""
+    port = free_port()
+    log = tmp_path_factory.mktemp("faults_keyed") / "server.log"
+    env = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "1",
+           "PLANNER_LOG_LEVEL": "warning", "PLANNER_API_KEYS": "k1", **BOUNDS}
+    with server_process([sys.executable, "-m", "service"], env, port, log) as base:
+        yield base
+
+
+def test_trickled_bodies_after_a_401_cannot_lock_out_new_clients(keyed):
+    """As many keyless clients as the connection cap (40), each answered 401 before its body
+    and trickling the body on: once their answers are out they are cut off (about
+    ``body_timeout``, 1 s, later) and a new client is served. Before, they held every
+    connection for as long as they trickled, and every new client was refused 503."""
+    head = (b"POST /v1/plans HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+            b"Content-Length: 100000\r\n\r\n{")
+    socks = [_raw(_port(keyed)) for _ in range(40)]
+    try:
+        for s in socks:
+            s.sendall(head)
+        served: list[float] = []
+        t0 = time.monotonic()
+
+        def a_new_client_is_served() -> bool:
+            if time.monotonic() - t0 > 0.5 * (len(served) + 1):  # a probe every 0.5 s
+                try:
+                    r = httpx.get(keyed + "/healthz", timeout=5)
+                except httpx.TransportError:
+                    return False
+                served.append(time.monotonic() - t0)
+                return r.status_code == 200
+            return False
+
+        got, closed = _trickle(socks, 20.0, until=a_new_client_is_served)
+        waited = time.monotonic() - t0
+        got2, closed2 = _trickle(socks, 10.0)  # the rest are cut off too
+    finally:
+        for s in socks:
+            s.close()
+    answers = [a + b for a, b in zip(got, got2)]
+    print(f"\n40 trickled bodies after 401: a new client served {waited:.1f} s after they "
+          f"asked; all cut off by {max(c or 99 for c in closed2):.1f} s more")
+    assert waited < 10.0, waited
+    assert all(c is not None for c in closed2), closed2
+    for a in answers:
+        status, body = _problem_of(a)
+        assert status == 401 and body["code"] == "unauthorized"
+    metrics = httpx.get(keyed + "/metrics", timeout=10).text
+    assert _metric(metrics, 'planner_connections_closed_total{reason="unread_body"}') >= 40
 
 
 def test_connections_past_the_cap_are_answered_503_at_once(bounded):
