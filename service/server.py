@@ -50,6 +50,7 @@ import uvicorn
 from uvicorn.protocols.http.h11_impl import H11Protocol
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
+from . import memory
 from .encoding import finite_json
 from .problems import PROBLEM_MEDIA_TYPE, problem_body
 from .settings import Settings
@@ -307,6 +308,7 @@ def serve(settings: Settings) -> None:
     """Run the app (:data:`service.main.app`) until SIGTERM/SIGINT."""
     from .main import app
 
+    memory.fix_mmap_threshold()  # large answers' memory returns to the system when freed
     fd_limit = raise_fd_limit()
     cap = connection_cap(settings, fd_limit)
     metrics = app.state.metrics

@@ -535,36 +535,34 @@ def test_connections_past_the_cap_are_answered_503_at_once(bounded):
 
 
 def test_slow_readers_are_dropped_and_server_memory_stays_bounded(two_workers):
-    """8 clients ask for a 45 MB answer each and never read it. Bound: while they stall the
-    server holds at most about one answer per stalled client (asserted: 1.5 x); once
-    ``send_timeout`` (2 s) passes without progress they are dropped and the memory is back
-    within 100 MB of where it started (it stayed for good before)."""
+    """8 clients ask for a 5 MB answer each (a plan at 20001 samples) and never read it. Bound:
+    while they stall the server holds at most about one answer per stalled client (asserted:
+    1.5 x); once ``send_timeout`` (2 s) passes without progress each is dropped, and once all
+    are the server process is back within 25 MB of where it started: the answers' memory went
+    back to the system (:mod:`service.memory`; before, glibc kept 5 MB blocks in the heap and a
+    server that had dropped 200 such clients stayed at 1 GB).
+
+    Made for a loaded machine: the clients' answers may take long to be computed (a plan at
+    20001 samples took 2.5 s on two busy cores), so the test waits until the server has counted
+    every client dropped (up to 4 minutes), not a fixed time."""
     base, pid = two_workers
     port = _port(base)
-    body = json.dumps({"requests": [{**CHEAP, "samples": 20001}] * 9}).encode()
-    with httpx.Client(base_url=base, timeout=30) as client:
-        _wait_live(client, 2)
+    body = json.dumps({**CHEAP, "samples": 20001}).encode()
+    dropped_line = 'planner_connections_closed_total{reason="send_timeout"}'
+    with httpx.Client(base_url=base, timeout=120) as client:
+        _wait_live(client, 2, timeout=120)
         # one answer read in full first: the workers' own memory grows to what such an answer
         # takes once, whoever asks; what is measured below is what slow readers add
         for _ in range(2):
-            r = client.post("/v1/plans/batch", content=body,
+            r = client.post("/v1/plans", content=body,
                             headers={"Content-Type": "application/json"})
             assert r.status_code == 200
         answer_mb = len(r.content) / 1e6
+        dropped_before = _metric(client.get("/metrics").text, dropped_line)
     server = psutil.Process(pid)
 
     def rss_mb() -> float:
-        total = 0
-        for p in [server, *server.children(recursive=True)]:
-            try:
-                total += p.memory_info().rss
-            except psutil.NoSuchProcess:
-                pass
-        return total / 1e6
-
-    def open_clients() -> int:
-        return sum(1 for c in server.net_connections("tcp")
-                   if c.status == psutil.CONN_ESTABLISHED and c.laddr.port == port)
+        return server.memory_info().rss / 1e6
 
     before = rss_mb()
     n = 8
@@ -573,34 +571,34 @@ def test_slow_readers_are_dropped_and_server_memory_stays_bounded(two_workers):
         s = socket.socket()
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         s.connect(("127.0.0.1", port))
-        s.sendall(b"POST /v1/plans/batch HTTP/1.1\r\nHost: x\r\nContent-Type: application/json"
+        s.sendall(b"POST /v1/plans HTTP/1.1\r\nHost: x\r\nContent-Type: application/json"
                   b"\r\nContent-Length: %d\r\n\r\n" % len(body) + body)
         socks.append(s)
     try:
         peak = before
         t0 = time.monotonic()
-        while open_clients() and time.monotonic() - t0 < 40:
-            peak = max(peak, rss_mb())
-            time.sleep(0.2)
+        with httpx.Client(base_url=base, timeout=30) as client:
+            while True:
+                peak = max(peak, rss_mb())
+                dropped = _metric(client.get("/metrics").text, dropped_line) - dropped_before
+                if dropped >= n:
+                    break
+                assert time.monotonic() - t0 < 240, f"only {dropped} of {n} dropped"
+                time.sleep(0.2)
         dropped_after = time.monotonic() - t0
-        settle = time.monotonic() + 5.0  # the last answers' buffers are let go
-        while (after := rss_mb()) - before >= 100 and time.monotonic() < settle:
+        settle = time.monotonic() + 10.0  # the trim runs about 1 s after the last answer
+        while (after := rss_mb()) - before >= 25 and time.monotonic() < settle:
             time.sleep(0.2)
     finally:
         for s in socks:
             s.close()
-    print(f"\nslow readers: {n} x {answer_mb:.1f} MB answers; server tree RSS {before:.0f} MB "
+    print(f"\nslow readers: {n} x {answer_mb:.1f} MB answers; server RSS {before:.0f} MB "
           f"before, peak {peak:.0f}, {after:.0f} after; all dropped {dropped_after:.1f} s "
           f"after they asked")
-    assert open_clients() == 0
     assert peak - before < n * 1.5 * answer_mb, peak - before
-    assert after - before < 100, (before, after)
-    with httpx.Client(base_url=base, timeout=30) as client:
-        metrics = client.get("/metrics").text
-    line = next(li for li in metrics.splitlines()
-                if li.startswith('planner_connections_closed_total{reason="send_timeout"}'))
-    assert float(line.split()[-1]) >= n
-    assert 'route="/v1/plans/batch",status="499"}' in metrics  # counted as not answered
+    assert after - before < 25, (before, peak, after)
+    metrics = httpx.get(base + "/metrics", timeout=30).text
+    assert 'route="/v1/plans",status="499"}' in metrics  # counted as not answered
 
 
 def _metric(text: str, prefix: str) -> float:
