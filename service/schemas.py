@@ -144,7 +144,8 @@ class RobotInfo(BaseModel):
 class DefaultRobot(RobotInfo):
     """``GET /v1/robots/default``."""
 
-    note: Optional[str] = Field(None, description="Why the constants are an assumption.")
+    note: Optional[str] = Field(None, max_length=500,
+                                description="Why the constants are an assumption.")
 
 
 class Segment(BaseModel):
@@ -163,7 +164,7 @@ class Segment(BaseModel):
 class Coefficients(BaseModel):
     """The chained inputs of the plan (enough to regenerate it)."""
 
-    basis: str
+    basis: str = Field(..., max_length=64)
     segments: list[Segment]
 
 
@@ -237,7 +238,7 @@ class Validation(BaseModel):
                                                              "planned path (rad).")
     singular: bool = Field(..., description="True when the re-integration met a singularity.")
     final: list[Optional[float]] = Field(..., description="Final state [phi, th1..thn] (rad).")
-    integrator: str = Field(..., description="'cascade-chebyshev on the original model' (the "
+    integrator: str = Field(..., max_length=200, description="'cascade-chebyshev on the original model' (the "
                                              "model's triangular structure integrated joint by "
                                              "joint by adaptive Chebyshev quadrature) or 'DOP853 "
                                              "on the original model' (scipy, the fallback).")
@@ -271,7 +272,7 @@ class ExecutedValidation(BaseModel):
     corrections: int = Field(..., description="Correction steps taken.")
     error_estimate: Optional[float] = Field(None, description="Estimated error of the "
                                                               "integration (rad).")
-    integrator: str
+    integrator: str = Field(..., max_length=200)
     final: list[Optional[float]] = Field(..., description="Final state [phi, th1..thn] (rad).")
 
 
@@ -302,9 +303,10 @@ class JointTrajectory(BaseModel):
     ``trajectory_msgs/msg/JointTrajectory`` (no header): executed by cubic Hermite
     interpolation between consecutive points, as ``joint_trajectory_controller`` does."""
 
-    joint_names: list[str] = Field(..., description='["phi", "th1"].')
+    joint_names: list[Annotated[str, Field(max_length=64)]] = Field(
+        ..., description='["phi", "th1"].')
     points: list[JointTrajectoryPoint]
-    interpolation: str
+    interpolation: str = Field(..., max_length=64)
     time_scale: float = Field(
         1.0, ge=1.0,
         description="How much longer than the plan these points take: with max_u1/max_u2 the "
@@ -317,7 +319,7 @@ class PlanResponse(BaseModel):
     """A verified, singularity-free plan."""
 
     status: Literal["success"]
-    method: str = Field(..., description="Method that produced the plan.")
+    method: str = Field(..., max_length=64, description="Method that produced the plan.")
     robot: RobotInfo
     phi_change: float = Field(..., description="dphi = phi(T) - phi(0) (rad).")
     b0: Optional[float] = Field(None, description="Constant v1 = dphi / T (rad/s), null when "

@@ -171,3 +171,50 @@ def test_an_answer_that_cannot_be_drawn_is_invalid_request(client):
     body = assert_problem(client.post("/v1/figures/from_plan/chained_state", json=big), 422,
                           "invalid_request")
     assert body["field"] == "robot.n" and "[3, 8]" in body["detail"]
+
+
+def test_a_plan_answers_strings_are_bounded_before_a_worker_draws_them(client):
+    """The method (drawn in the title) and every other string of an answer sent back have a
+    length limit: an 80,000-character method took 6 s of a worker to draw, 100,000 a 504."""
+    plan = client.post("/v1/plans", json=BODIES["joint_angles"]).json()
+    for field, value in (("method", "m" * 80_000),
+                         ("coefficients.basis", "b" * 10_000),
+                         ("validation.integrator", "i" * 10_000)):
+        doc = {**plan}
+        head, _, last = field.rpartition(".")
+        if head:
+            doc[head] = {**plan[head], last: value}
+        else:
+            doc[last] = value
+        body = assert_problem(client.post("/v1/figures/from_plan/joint_angles", json=doc), 422,
+                              "invalid_request")
+        assert body["field"] == field and "at most" in body["detail"], body
+
+
+def _replaced(text: str, key: str, value: str) -> str:
+    """The JSON ``text`` with the first number after ``"key":`` (or ``"key": [``) replaced
+    by ``value``."""
+    import re
+    out, n = re.subn(r'("' + key + r'":\s*\[?)(-?[0-9][0-9.eE+-]*)',
+                     lambda m: m.group(1) + value, text, count=1)
+    assert n == 1, key
+    return out
+
+
+@pytest.mark.parametrize("value", ["NaN", "Infinity", "-Infinity", "1e309", '"0.5"'])
+def test_answers_sent_back_must_hold_finite_json_numbers(client, value):
+    """NaN, Infinity, 1e309 (read as infinite) and numbers as strings are refused with a 422
+    naming the field, as the service's own requests refuse them (all were drawn, 200)."""
+    import json
+    plan_text = client.post("/v1/plans", json=BODIES["joint_angles"]).text
+    for key, field in (("duration", "duration"), ("phi_change", "phi_change")):
+        r = client.post("/v1/figures/from_plan/joint_angles", content=_replaced(
+            plan_text, key, value), headers={"Content-Type": "application/json"})
+        body = assert_problem(r, 422, "invalid_request")
+        assert body["field"] == field, body
+    sweep = client.post("/v1/sweeps", json=BODIES["sweep"]).json()
+    text = json.dumps({"sweep": sweep})
+    r = client.post("/v1/figures/from_sweep", content=_replaced(text, "phi_change", value),
+                    headers={"Content-Type": "application/json"})
+    body = assert_problem(r, 422, "invalid_request")
+    assert body["field"] == "sweep.phi_change[0]", body
