@@ -795,3 +795,63 @@ def _wait_live(client: Any, n: int, timeout: float = 30.0) -> None:
             return
         assert time.monotonic() < deadline, ready
         time.sleep(0.05)
+
+
+def test_a_worker_stopped_between_pings_never_holds_a_request():
+    """Pings too rare to notice (60 s): a worker stopped while idle is found stopped when a
+    request takes it, replaced, and the request runs on the other worker at once (it waited
+    its whole time limit before: 504 after 10.5 s)."""
+    with running_app(workers=2, queue_size=8, worker_ping_interval=60,
+                     worker_ping_timeout=0.3) as client:
+        pool = client.app.state.pool
+        _wait_live(client, 2)
+        stopped = pool.pids()[0]
+        os.kill(stopped, signal.SIGSTOP)
+        try:
+            for _ in range(4):  # each worker is taken in turn: the stopped one among them
+                t0 = time.perf_counter()
+                r = client.post("/v1/plans", json={**CHEAP, "time_limit": 20})
+                assert r.status_code == 200, r.text
+                assert time.perf_counter() - t0 < 10.0
+            assert stopped not in pool.pids()
+            metrics = client.get("/metrics").text
+            assert 'planner_worker_restarts_total{reason="unresponsive"} 1.0' in metrics
+        finally:
+            try:
+                os.kill(stopped, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+def test_a_job_whose_worker_is_stopped_under_it_runs_on_another_worker():
+    """A worker stopped while it runs a job (~1 s of replays): the job is given to the other
+    worker within about ``worker_ping_timeout`` and answered 200, not 504 after its 20 s."""
+    with running_app(workers=2, queue_size=8, worker_ping_interval=60,
+                     worker_ping_timeout=0.3) as client:
+        pool = client.app.state.pool
+        _wait_live(client, 2)
+        before = set(pool.pids())
+        answer: list[Any] = []
+        t = threading.Thread(target=lambda: answer.append(
+            client.post("/v1/robustness", json={**SLOWISH, "time_limit": 20})))
+        t0 = time.perf_counter()
+        t.start()
+        deadline = time.monotonic() + 20
+        while pool.stats().idle > 1:  # a worker has the job
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        busy = [w.process.pid for w in pool._all if w.busy]
+        assert len(busy) == 1
+        os.kill(busy[0], signal.SIGSTOP)
+        try:
+            t.join(timeout=60)
+            elapsed = time.perf_counter() - t0
+            (r,) = answer
+            assert r.status_code == 200, r.text
+            assert elapsed < 15.0, elapsed
+            assert busy[0] not in pool.pids() and busy[0] in before
+        finally:
+            try:
+                os.kill(busy[0], signal.SIGKILL)
+            except ProcessLookupError:
+                pass
