@@ -7,6 +7,8 @@ body limit, metrics, access log), offline docs pages and the OpenAPI document.
 
 from __future__ import annotations
 
+import asyncio
+
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any, AsyncIterator
@@ -89,7 +91,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                           ping_timeout=settings.worker_ping_timeout)
         app.state.pool = pool
         metrics.bind_pool(pool.stats)
-        await pool.start()
+        # the OpenAPI document (about 1 s to build on a busy machine) while the workers warm
+        # up, not when the first reader opens /docs
+        await asyncio.gather(pool.start(), asyncio.to_thread(app.openapi))
         try:
             yield
         finally:
@@ -103,7 +107,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics = metrics
 
     schemas = build_schemas(settings.limits)
-    guard = [Depends(_api_key_guard(settings.api_keys))]
+    # the key is required (and documented in the OpenAPI document) only when keys are set
+    guard = [Depends(_api_key_guard(settings.api_keys))] if settings.api_keys else []
     # the paths of the OpenAPI document, known without building it (that takes 0.2 s)
     known = {"/docs", "/redoc", "/openapi.json"}
     for router in (plans.build_router(schemas), sweeps.build_router(schemas),
@@ -113,7 +118,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         known |= _schema_paths(router, "/v1")
     for router in (health.build_router(), explorer.build_router()):
         app.include_router(router)
-        known |= _schema_paths(router, "")
+        known |= _schema_paths(router, "", hidden=True)
     _add_docs(app)
     _add_error_handlers(app)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
@@ -131,10 +136,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     return app
 
 
-def _schema_paths(router: Any, prefix: str) -> set[str]:
-    """The paths ``router`` adds to the OpenAPI document under ``prefix``."""
+def _schema_paths(router: Any, prefix: str, hidden: bool = False) -> set[str]:
+    """The paths ``router`` adds to the OpenAPI document under ``prefix`` (with ``hidden``,
+    also those it leaves out of it: the explorer's ``/``). Templates (``{kind}``) stay so:
+    the metrics label a request by its template."""
     return {prefix + r.path for r in router.routes
-            if isinstance(r, APIRoute) and r.include_in_schema}
+            if isinstance(r, APIRoute) and (r.include_in_schema or hidden)}
 
 
 # ---------------------------------------------------------------------- auth

@@ -26,7 +26,7 @@ log, and a last-resort guard that turns any unhandled exception into a problem d
   FastAPI's routing and dependency machinery; any other request (and any invalid one) goes on
   to the app.
 * Metrics and the access log label a request by its route (``/v1/plans``): one of the app's
-  known paths, ``/static`` for docs assets, ``unmatched`` for anything else (so that scanning
+  known paths or path templates (``/v1/figures/from_plan/{kind}``), the explorer's ``/``, ``/static`` for docs assets, ``unmatched`` for anything else (so that scanning
   clients cannot inflate the metrics' cardinality). Bodies are never logged.
 """
 
@@ -40,6 +40,7 @@ import re
 import time
 from typing import Callable, Protocol, Sequence
 
+from starlette.routing import compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from . import memory
@@ -115,17 +116,23 @@ class RequestContextMiddleware:
         self.metrics = metrics
         self._known_paths = known_paths
         self._known: set[str] | None = None
+        self._templates: list[tuple[re.Pattern[str], str]] = []
         self._id_prefix = os.urandom(8).hex()
         self._id_counter = itertools.count(int.from_bytes(os.urandom(4), "big"))
 
     def route_label(self, path: str) -> str:
         """The metrics/log label of a request path."""
         if self._known is None:
-            self._known = set(self._known_paths())
+            known = set(self._known_paths())
+            self._templates = [(compile_path(p)[0], p) for p in sorted(known) if "{" in p]
+            self._known = known
         if path in self._known:
             return path
         if path.startswith("/static/"):
             return "/static"
+        for pattern, template in self._templates:  # /v1/figures/from_plan/{kind}
+            if pattern.match(path):
+                return template
         return "unmatched"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
