@@ -22,7 +22,8 @@ from pydantic import (BaseModel, ConfigDict, Field, Strict, ValidationInfo, fiel
 from pydantic_core import PydanticCustomError
 
 from optimizer.planner.registry import METHODS, method_names
-from optimizer.problem import DEFAULT_OBJECTIVE, OBJECTIVES
+from optimizer.problem import (DEFAULT_OBJECTIVE, OBJECTIVES, joint_angles_problem,
+                               joint_bounds_degrees_problem)
 
 from .settings import LIBRARY_MAX_JOINTS, LIBRARY_MIN_DURATION, LIBRARY_MIN_JOINTS, Limits
 
@@ -63,42 +64,17 @@ ANGLES_SCHEMA: dict[str, Any] = {
 }
 
 
-def _deg(x: float) -> str:
-    return f"{math.degrees(x):.1f} deg"
-
-
 def joint_angle_error(name: str, values: list[float]) -> PydanticCustomError | None:
-    """Why ``values`` (``start`` or ``goal``, rad) cannot be joint angles, or None.
-
-    Joints 1..n-1 must lie in (0, pi/2), where the chained form exists; the last joint is free
-    within [-2 pi, 2 pi]. The error names the first offending element (``ctx["field"]``) and
-    says what to send instead; values that all lie in (pi/2, 90] were almost certainly meant as
-    degrees, and the error says so.
-    """
-    n = len(values)
-    if n and all(PI / 2 < x <= 90.0 for x in values):
-        shown = ", ".join(f"{x:g}" for x in values)
-        fixed = ", ".join(f"{math.radians(x):.6g}" for x in values)
-        return PydanticCustomError(
-            "joint_angle_degrees",
-            "{field} = [{shown}] looks like degrees; angles are in radians: convert with "
-            "radians(), i.e. [{fixed}]",
-            {"field": name, "shown": shown, "fixed": fixed})
-    bad = [i for i, x in enumerate(values)
-           if not (0.0 < x < PI / 2 if i < n - 1 else -2 * PI <= x <= 2 * PI)]
-    if not bad:
+    """Why ``values`` (``start`` or ``goal``, rad) cannot be joint angles, or None: the
+    library's check (:func:`optimizer.problem.joint_angles_problem`, degrees detected), as a
+    pydantic error naming the offending element (``ctx["field"]``)."""
+    found = joint_angles_problem(name, values)
+    if found is None:
         return None
-    i, x = bad[0], values[bad[0]]
-    if i < n - 1:
-        where = "(0, pi/2) rad = (0, 90) deg"
-    else:
-        where = f"[-2 pi, 2 pi] rad = [-360, 360] deg (th{n}, the last joint, is free there)"
-    more = "" if len(bad) == 1 else " (also " + ", ".join(f"{name}[{j}]" for j in bad[1:]) + ")"
-    return PydanticCustomError(
-        "joint_angle_range",
-        "{field} = {value} rad ({degrees}) is outside {where}; angles are in radians{more}",
-        {"field": f"{name}[{i}]", "value": f"{x:g}", "degrees": _deg(x), "where": where,
-         "more": more})
+    kind = "joint_angle_degrees" if "looks like degrees" in found[1] else "joint_angle_range"
+    return PydanticCustomError(kind, "{message}", {"field": found[0], "message": found[1]})
+
+
 PhiAngle = num(-4 * PI, 4 * PI, description="Change of phi (rad).")
 Gain = num(hi=1e3, gt=0.0, description="Transmission gain K_i (> 0).")
 Exponent = Annotated[int, Strict(), Field(ge=1, le=12, description="Exponent m_i (1..12).")]
@@ -633,6 +609,16 @@ def build_schemas(limits: Limits) -> Schemas:
                 return self.samples
             duration = self.duration if self.duration is not None else 1.0
             return math.ceil(duration / self.controller_period * (1 - 1e-12)) + 1
+
+        @field_validator("joint_bounds", mode="before")
+        @classmethod
+        def _bounds_in_radians(cls, bounds: Any) -> Any:
+            # before the type's own bounds (|x| <= 2 pi), which would not say "degrees"
+            found = joint_bounds_degrees_problem(bounds)
+            if found is not None:
+                raise PydanticCustomError("joint_bounds_degrees", "{message}",
+                                          {"field": found[0], "message": found[1]})
+            return bounds
 
         @field_validator("start", "goal")
         @classmethod

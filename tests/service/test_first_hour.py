@@ -37,3 +37,52 @@ def test_the_served_openapi_requires_a_key_only_when_keys_are_set(client):
     with running_app(workers=1, queue_size=2, api_keys=["k1"]) as keyed:
         schemes, secured = _key_schemes(keyed.get("/openapi.json").json())
     assert "APIKeyHeader" in schemes and secured
+
+
+def test_joint_bounds_in_degrees_get_a_hint(client):
+    body = {**WORKED, "joint_bounds": [[5, 60], None, None]}
+    doc = assert_problem(client.post("/v1/plans", json=body), 422, "invalid_request")
+    assert doc["field"] == "joint_bounds[0]", doc
+    assert "looks like degrees" in doc["detail"] and "0.0872665, 1.0472" in doc["detail"], doc
+
+
+def test_a_bound_that_excludes_the_goal_names_the_bound_and_the_joint(client):
+    body = {**WORKED, "joint_bounds": [None, [5 * DEG, 25 * DEG], None]}  # goal th2 = 30 deg
+    doc = assert_problem(client.post("/v1/plans", json=body), 422, "invalid_request")
+    assert doc["field"] == "joint_bounds[1]", doc
+    assert "excludes the goal of joint th2" in doc["detail"] and "30.0 deg" in doc["detail"]
+
+
+def test_a_velocity_limit_too_tight_for_the_duration_names_its_field(client):
+    body = {**WORKED, "duration": 1.0, "max_u1": 0.01}
+    doc = client.post("/v1/plans", json=body).json()
+    assert doc["status"] == 422 and doc["field"] == "max_u1", doc
+    assert "raise max_u1 or the duration" in doc["detail"], doc
+    assert doc["diagnostics"]["shortest_duration"] > 1.0
+
+
+def test_the_library_detects_degrees_and_shape_problems_as_the_api_does(client):
+    """One check (optimizer.problem), three front doors: the library (and the CLI, which reads
+    the same JSON through PlanRequest.from_dict) says what the API says."""
+    import pytest
+
+    from optimizer.errors import InvalidRequestError
+    from optimizer.problem import PlanRequest
+
+    cases = [
+        ({**WORKED, "start": [10, 10, 10]}, "start"),
+        ({**WORKED, "goal": [0.5, 2.0, 0.5]}, "goal[1]"),
+        ({**WORKED, "start": [[0.1, 0.2, 0.3]]}, None),  # a nested list: no TypeError
+        ({**WORKED, "start": ["0.1", 0.2, 0.3]}, None),
+        ({**WORKED, "joint_bounds": [[5, 60], None, None]}, "joint_bounds[0]"),
+        ({**WORKED, "joint_bounds": [None, [5 * DEG, 25 * DEG], None]}, "joint_bounds[1]"),
+    ]
+    for body, field in cases:
+        with pytest.raises(InvalidRequestError) as err:
+            PlanRequest.from_dict(body)
+        api = client.post("/v1/plans", json=body).json()
+        assert api["status"] in (400, 422), api
+        if field is not None:
+            assert err.value.field == field == api["field"], (body, err.value, api)
+            assert str(err.value) in api["detail"] or api["detail"] in str(err.value), (
+                str(err.value), api["detail"])
