@@ -8,6 +8,9 @@ body limit, metrics, access log), offline docs pages and the OpenAPI document.
 from __future__ import annotations
 
 import asyncio
+import difflib
+import functools
+import typing
 
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -22,6 +25,7 @@ from fastapi.responses import HTMLResponse
 from fastapi.routing import APIRoute
 from fastapi.security import APIKeyHeader
 from fastapi.staticfiles import StaticFiles
+from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import Response
 
@@ -169,7 +173,8 @@ def _add_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def on_validation(request: Request, exc: RequestValidationError) -> Response:
-        errors = [_validation_error(e) for e in exc.errors()]
+        names = _body_field_names(request.scope.get("route"))
+        errors = [_validation_error(e, names) for e in exc.errors()]
         first = errors[0] if errors else {"field": None, "message": "invalid request"}
         detail = "; ".join(e["message"] if not e["field"] or e["message"].startswith(e["field"])
                            else f"{e['field']}: {e['message']}" for e in errors[:5])
@@ -197,8 +202,36 @@ def _add_error_handlers(app: FastAPI) -> None:
                               headers=dict(exc.headers or {})).response(request_id(request))
 
 
-def _validation_error(err: dict[str, Any]) -> dict[str, Any]:
-    """One pydantic error as ``field``/``message``/``type`` (never the offending input)."""
+def _body_field_names(route: Any) -> frozenset[str]:
+    """Every field name of the route's body model, nested models' included (for "did you
+    mean")."""
+    body_field = getattr(route, "body_field", None)
+    model = getattr(getattr(body_field, "field_info", None), "annotation", None)
+    return _model_field_names(model) if model is not None else frozenset()
+
+
+@functools.lru_cache(maxsize=64)
+def _model_field_names(annotation: Any) -> frozenset[str]:
+    names: set[str] = set()
+    pending, seen = [annotation], set()
+    while pending:
+        a = pending.pop()
+        if id(a) in seen:
+            continue
+        seen.add(id(a))
+        if isinstance(a, type) and issubclass(a, BaseModel):
+            for name, info in a.model_fields.items():
+                names.add(info.alias or name)
+                pending.append(info.annotation)
+        else:
+            pending.extend(typing.get_args(a))
+    return frozenset(names)
+
+
+def _validation_error(err: dict[str, Any], names: frozenset[str] = frozenset()
+                      ) -> dict[str, Any]:
+    """One pydantic error as ``field``/``message``/``type`` (never the offending input); an
+    unknown field gets the closest known name (``names``) as "did you mean"."""
     loc = [p for p in err.get("loc", ()) if p not in ("body", "query", "path", "header")]
     field = ""
     for part in loc:
@@ -217,6 +250,11 @@ def _validation_error(err: dict[str, Any]) -> dict[str, Any]:
             field = (field + "." if field else "") + named
     if err.get("type") == "extra_forbidden":
         msg = "unknown field"
+        given = loc[-1] if loc else None
+        close = difflib.get_close_matches(str(given), sorted(names), n=1, cutoff=0.6) \
+            if isinstance(given, str) else []
+        if close:
+            msg += f"; did you mean {close[0]!r}?"
     if err.get("type") == "json_invalid":  # the location is a character position, not a field
         reason = str((err.get("ctx") or {}).get("error", "malformed"))
         where = f" at character {loc[0]}" if loc and isinstance(loc[0], int) else ""

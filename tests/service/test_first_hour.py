@@ -86,3 +86,15 @@ def test_the_library_detects_degrees_and_shape_problems_as_the_api_does(client):
             assert err.value.field == field == api["field"], (body, err.value, api)
             assert str(err.value) in api["detail"] or api["detail"] in str(err.value), (
                 str(err.value), api["detail"])
+
+
+def test_a_misspelt_field_gets_did_you_mean(client):
+    for body, field, meant in (({**WORKED, "phi_chnage": 0.5}, "phi_chnage", "phi_change"),
+                               ({**WORKED, "sample": 21}, "sample", "samples"),
+                               ({**WORKED, "robot": {"gain": [1, 1]}}, "robot.gain", "gains")):
+        doc = assert_problem(client.post("/v1/plans", json=body), 422, "invalid_request")
+        assert doc["field"] == field, doc
+        assert f"did you mean '{meant}'?" in doc["detail"], doc
+    doc = assert_problem(client.post("/v1/plans", json={**WORKED, "zzzz": 1}), 422,
+                         "invalid_request")
+    assert "did you mean" not in doc["detail"]
