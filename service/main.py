@@ -19,6 +19,7 @@ from typing import Any, AsyncIterator
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.middleware.gzip import GZipMiddleware
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import HTMLResponse
@@ -42,6 +43,8 @@ from .settings import Settings
 from .workers import WorkerPool
 
 STATIC_DIR = Path(__file__).parent / "static"
+#: Answers shorter than this are sent as they are (one TCP segment: gzip would not pay).
+GZIP_MINIMUM_BYTES = 1400
 TITLE = "Chained-form motion planner"
 DESCRIPTION = """\
 Singularity-free motion planning for an underactuated n-joint manipulator whose kinematics
@@ -131,6 +134,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        metrics=metrics, known_paths=lambda: known, api_keys=settings.api_keys,
                        fast_routes=[FastPlanRoute(app.state, schemas)],
                        body_timeout=settings.body_timeout, send_timeout=settings.send_timeout)
+    # gzip for clients that accept it (a plan at the default 201 samples: 62 KB of JSON), outside
+    # the request middleware so that its own answers (the fast path, 401, 413) are compressed
+    # too; its answers pass through in the same chunks, each still under send_timeout. Level 1:
+    # the event loop compresses, and JSON of floats shrinks almost as much as at level 9
+    app.add_middleware(GZipMiddleware, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=1)
     if settings.cors_origins:  # outermost: its headers are on every answer, a 401 or 413 too
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST"],

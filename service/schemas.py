@@ -200,8 +200,13 @@ class PlanPath(BaseModel):
     t: list[float] = Field(..., description="Times (s); nondecreasing, a jump's time twice "
                                             "(rule linear).")
     q: list[list[Optional[float]]] = Field(..., description="Rows [phi, th1..thn] (rad).")
+    q_names: Optional[list[Annotated[str, Field(max_length=8)]]] = Field(
+        None, max_length=16, description='The columns of q: ["phi", "th1", ..., "thn"].')
     z: list[list[Optional[float]]] = Field(..., description="Chained state rows [z1..z_{n+1}].")
     u: list[list[Optional[float]]] = Field(..., description="Actuator rates [u1, u2] (rad/s).")
+    u_names: Optional[list[Annotated[str, Field(max_length=8)]]] = Field(
+        None, max_length=2, description='The columns of u: ["u1", "u2"] (u1 = dphi/dt, '
+                                        'u2 = dth1/dt).')
     v: list[list[Optional[float]]] = Field(..., description="Chained inputs [v1, v2].")
 
 
