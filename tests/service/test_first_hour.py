@@ -98,3 +98,29 @@ def test_a_misspelt_field_gets_did_you_mean(client):
     doc = assert_problem(client.post("/v1/plans", json={**WORKED, "zzzz": 1}), 422,
                          "invalid_request")
     assert "did you mean" not in doc["detail"]
+
+
+def test_dependencies_and_the_cli_name():
+    """pyyaml only for the tests (nothing at run time reads YAML); locust in the bench extra
+    (bench/load_test.py uses it); the CLI's --help names the installed command; cvxpy stays a
+    runtime dependency."""
+    import contextlib
+    import io
+    import tomllib
+
+    from optimizer.__main__ import main
+    from svc_support import ROOT
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    runtime = " ".join(project["dependencies"])
+    extras = project["optional-dependencies"]
+    assert "pyyaml" not in runtime and any(d.startswith("pyyaml") for d in extras["test"])
+    assert "cvxpy" in runtime
+    assert any(d.startswith("locust") for d in extras["bench"])
+    for tree in ("optimizer", "service"):
+        for path in (ROOT / tree).rglob("*.py"):
+            assert "import yaml" not in path.read_text(encoding="utf-8"), path
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
+        main(["--help"])
+    assert out.getvalue().startswith("usage: chained-planner")
