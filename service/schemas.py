@@ -500,7 +500,7 @@ def build_schemas(limits: Limits) -> Schemas:
         """A constraint point: the chained state ``z_state`` takes ``value`` at ``time``."""
 
         time: num(0.0, L.max_duration, description="Time (s), inside (0, duration).") = Field(  # type: ignore[valid-type]
-            ..., examples=[5.0])
+            ..., examples=[0.5])  # inside the default duration (1 s)
         state: StrictInt = Field(..., ge=2, le=L.max_joints + 1,
                                  description="Chained state index k of z_k, 2..n+1.")
         value: num(-1e6, 1e6, description="Value of z_state at time.") = Field(...)  # type: ignore[valid-type]

@@ -124,3 +124,9 @@ def test_dependencies_and_the_cli_name():
     with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
         main(["--help"])
     assert out.getvalue().startswith("usage: chained-planner")
+
+
+def test_openapi_examples_of_constraint_times_lie_inside_the_default_duration(client):
+    doc = client.get("/openapi.json").json()
+    point = doc["components"]["schemas"]["ConstraintPoint"]["properties"]["time"]
+    assert point["examples"] and all(0 < t < 1.0 for t in point["examples"]), point
