@@ -26,7 +26,8 @@ BODIES = {
 LABELS = {
     "joint_angles": ["joint angle [deg]", "phi [deg]", "time t [s]"],
     "chained_state": ["z2 [-]", "time t [s]"],
-    "sweep": ["d_a [deg]", "t_p [-]", "phi change dphi [deg]"],
+    "sweep": ["deviation d_a [deg]", "reversals t_p [-]", "sensitivity ||J_R(T)||_F [-]",
+              "phi change dphi [deg]"],
     "robustness": ["joint angle [deg]", "time t [s]"],
 }
 INFEASIBLE = {**WORKED, "start": [10 * DEG, 20 * DEG, 30 * DEG],
@@ -76,7 +77,7 @@ def test_accept_header_chooses_the_format(client):
     svg = client.post("/v1/figures/chained_state", json=WORKED,
                       headers={"Accept": "image/svg+xml"})
     assert svg.status_code == 200 and svg.headers["content-type"].startswith("image/svg+xml")
-    assert svg.headers["vary"] == "Accept"
+    assert "Accept" in [v.strip() for v in svg.headers["vary"].split(",")]
     png = client.post("/v1/figures/chained_state", json=WORKED)  # default: png
     assert png.headers["content-type"] == "image/png"
     # the query parameter wins over Accept
@@ -218,3 +219,31 @@ def test_answers_sent_back_must_hold_finite_json_numbers(client, value):
                     headers={"Content-Type": "application/json"})
     body = assert_problem(r, 422, "invalid_request")
     assert body["field"] == "sweep.phi_change[0]", body
+
+
+def test_figure_titles_fit_inside_the_figure(client, monkeypatch):
+    """Every text of the figures of a plan (method, dphi, d_a, t_p, T in the title) lies inside
+    the figure: the chained-state title ran past both edges."""
+    from service import figures
+
+    plan = client.post("/v1/plans", json={**BODIES["chained_state"], "method": "auto"}).json()
+    drawn: list = []
+    real = figures._save
+
+    def keep(fig, fmt):
+        out = real(fig, fmt)  # (drawn: the layout is done)
+        drawn.append(fig)
+        return out
+
+    monkeypatch.setattr(figures, "_save", keep)
+    for kind in ("joint_angles", "chained_state"):
+        figures.render(kind, plan, "png")
+        fig = drawn[-1]
+        renderer = fig.canvas.get_renderer()
+        box = fig.bbox
+        for ax in fig.axes:
+            title = ax.title
+            if not title.get_text():
+                continue
+            ext = title.get_window_extent(renderer)
+            assert box.x0 - 1 <= ext.x0 and ext.x1 <= box.x1 + 1, (kind, title.get_text())
