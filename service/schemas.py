@@ -140,7 +140,7 @@ class Segment(BaseModel):
 class Coefficients(BaseModel):
     """The chained inputs of the plan (enough to regenerate it)."""
 
-    basis: str = Field(..., max_length=64)
+    basis: str = Field(..., max_length=500)
     segments: list[Segment]
 
 
@@ -219,10 +219,11 @@ class Validation(BaseModel):
                                                              "planned path (rad).")
     singular: bool = Field(..., description="True when the re-integration met a singularity.")
     final: list[Optional[float]] = Field(..., description="Final state [phi, th1..thn] (rad).")
-    integrator: str = Field(..., max_length=200, description="'cascade-chebyshev on the original model' (the "
-                                             "model's triangular structure integrated joint by "
-                                             "joint by adaptive Chebyshev quadrature) or 'DOP853 "
-                                             "on the original model' (scipy, the fallback).")
+    integrator: str = Field(..., max_length=500,
+                            description="'cascade-chebyshev on the original model' (the "
+                                        "model's triangular structure integrated joint by "
+                                        "joint by adaptive Chebyshev quadrature) or 'DOP853 "
+                                        "on the original model' (scipy, the fallback).")
     error_estimate: Optional[float] = Field(None, description="Estimated error of the "
                                                               "re-integration (rad); null for "
                                                               "DOP853.")
@@ -253,7 +254,7 @@ class ExecutedValidation(BaseModel):
     corrections: int = Field(..., description="Correction steps taken.")
     error_estimate: Optional[float] = Field(None, description="Estimated error of the "
                                                               "integration (rad).")
-    integrator: str = Field(..., max_length=200)
+    integrator: str = Field(..., max_length=500)
     final: list[Optional[float]] = Field(..., description="Final state [phi, th1..thn] (rad).")
 
 

@@ -247,3 +247,16 @@ def test_figure_titles_fit_inside_the_figure(client, monkeypatch):
                 continue
             ext = title.get_window_extent(renderer)
             assert box.x0 - 1 <= ext.x0 and ext.x1 <= box.x1 + 1, (kind, title.get_text())
+
+
+@pytest.mark.parametrize("method", ["auto", "shooting", "penalty", "retimed"])
+def test_every_methods_answer_is_drawn_as_sent_back(client, method):
+    """The strict check of an answer sent back accepts what the service itself answers, for
+    every kind of plan (a shooting plan's basis text is longer than a polynomial's)."""
+    body = {key: WORKED[key] for key in ("start", "goal")}
+    r = client.post("/v1/plans", json={**body, "method": method, "samples": 41})
+    if r.status_code != 200:
+        pytest.skip(f"{method} gives no plan here: {r.json()['code']}")
+    drawn = client.post("/v1/figures/from_plan/joint_angles", params={"format": "svg"},
+                        json=r.json())
+    assert drawn.status_code == 200, drawn.text

@@ -130,3 +130,25 @@ def test_openapi_examples_of_constraint_times_lie_inside_the_default_duration(cl
     doc = client.get("/openapi.json").json()
     point = doc["components"]["schemas"]["ConstraintPoint"]["properties"]["time"]
     assert point["examples"] and all(0 < t < 1.0 for t in point["examples"]), point
+
+
+def test_the_explorer_offers_what_the_api_has_and_starts_on_its_defaults(client):
+    """The page's method and objective choices come from the planner (registry, objectives),
+    the API's defaults selected, so that the page's first plan is the API's default plan."""
+    import re
+
+    from optimizer.planner.registry import method_names
+    from optimizer.problem import DEFAULT_OBJECTIVE, OBJECTIVES
+
+    page = client.get("/").text
+
+    def options(select: str) -> list[tuple[str, bool]]:
+        block = re.search(r'<select id="' + select + r'".*?</select>', page, re.S).group(0)
+        return [(v, bool(sel)) for v, sel in
+                re.findall(r'<option value="([^"]+)"( selected)?', block)]
+
+    assert [v for v, _ in options("method")] == list(method_names())
+    assert [v for v, sel in options("method") if sel] == ["auto"]
+    assert [v for v, _ in options("objective")] == list(OBJECTIVES)
+    assert [v for v, sel in options("objective") if sel] == [DEFAULT_OBJECTIVE]
+    assert "best of polynomial, retimed, penalty" not in page  # the stale label
