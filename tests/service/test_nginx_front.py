@@ -297,13 +297,13 @@ def test_nginx_refusals_are_problem_documents(front_of_nothing, raw, status):
 
 
 # ---------------------------------------------------------------------- several replicas
-#: A stand-in replica: answers 503 ``overloaded`` (Retry-After: 1) until the epoch time given
-#: as its second argument, 200 afterwards; the body names the replica (its first argument).
+#: A stand-in replica: answers 503 ``overloaded`` (Retry-After: 1) while the file given as its
+#: second argument exists, 200 otherwise; the body names the replica (its first argument).
 FAKE_REPLICA = r"""
-import json, sys, time
+import json, os, sys
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
-name, busy_until, port = sys.argv[1], float(sys.argv[2]), int(sys.argv[3])
+name, busy_flag, port = sys.argv[1], sys.argv[2], int(sys.argv[3])
 
 class Replica(BaseHTTPRequestHandler):
     protocol_version = "HTTP/1.1"
@@ -311,7 +311,7 @@ class Replica(BaseHTTPRequestHandler):
     def answer(self):
         length = int(self.headers.get("Content-Length") or 0)
         self.rfile.read(length)
-        if time.time() < busy_until:
+        if os.path.exists(busy_flag):
             status, body = 503, {"type": "https://chained-planner.invalid/problems/overloaded",
                                  "title": "Service overloaded", "status": 503,
                                  "code": "overloaded", "detail": "busy " + name, "field": None,
@@ -339,14 +339,15 @@ ThreadingHTTPServer(("127.0.0.1", port), Replica).serve_forever()
 
 
 @contextlib.contextmanager
-def fake_replicas(busy_until: float, count: int = 2) -> Iterator[list[subprocess.Popen[bytes]]]:
-    """``count`` stand-in replicas (:data:`FAKE_REPLICA`) listening; yields (port, process)."""
+def fake_replicas(busy_flag: Path, count: int = 2) -> Iterator[list[subprocess.Popen[bytes]]]:
+    """``count`` stand-in replicas (:data:`FAKE_REPLICA`) listening, busy while ``busy_flag``
+    exists; yields (port, process) pairs."""
     procs, ports = [], []
     try:
         for i in range(count):
             port = free_port()
             procs.append(subprocess.Popen([sys.executable, "-c", FAKE_REPLICA, f"r{i}",
-                                           str(busy_until), str(port)]))
+                                           str(busy_flag), str(port)]))
             ports.append(port)
         for port, proc in zip(ports, procs):
             deadline = time.monotonic() + 30
@@ -367,24 +368,24 @@ def fake_replicas(busy_until: float, count: int = 2) -> Iterator[list[subprocess
 
 
 def test_a_burst_of_503s_does_not_take_healthy_replicas_out(tmp_path):
-    """Two replicas answer 503 ``overloaded`` to a burst (busy for 2 s), then 200. Their 503s
-    reach the client as they are (Retry-After kept), and right after the burst every request is
-    answered 200: no replica was marked failed. Before, each 503 marked its replica failed
-    (``proxy_next_upstream http_503`` with the default ``max_fails=1``): 502 to everyone for
-    the next 10 s while both replicas were healthy."""
-    busy_until = time.time() + 2.0
-    with fake_replicas(busy_until) as replicas, \
+    """Two replicas answer 503 ``overloaded`` to a burst of 60 requests (busy), then 200 (no
+    longer busy). Their 503s reach the client as they are (Retry-After kept), and right after
+    the burst every request is answered 200: no replica was marked failed. Before, each 503
+    marked its replica failed (``proxy_next_upstream http_503`` with the default
+    ``max_fails=1``): 502 to everyone for the next 10 s while both replicas were healthy."""
+    busy = tmp_path / "busy"
+    busy.touch()
+    with fake_replicas(busy) as replicas, \
             nginx_front(tmp_path / "nginx-503", [p for p, _ in replicas]) as port:
         during = []
-        while time.time() < busy_until - 0.3:
+        for _ in range(60):
             status, headers, raw = request(port, "POST", "/v1/plans", b"{}",
                                            {"Content-Type": "application/json"})
             during.append(status)
             if status == 503:
                 problem(status, headers, raw, 503, "overloaded")
                 assert headers.get("retry-after") == "1"
-        while time.time() < busy_until + 0.2:
-            time.sleep(0.05)
+        busy.unlink()
         after = [request(port, "POST", "/v1/plans", b"{}",
                          {"Content-Type": "application/json"}) for _ in range(20)]
     print(f"\n503 burst through nginx: {len(during)} requests during it, statuses "
@@ -401,7 +402,7 @@ def test_a_stopped_replica_is_avoided_and_its_requests_go_elsewhere(tmp_path):
     after ``proxy_read_timeout`` (shortened to 2 s here; 100 s as committed) instead of
     timing out. Before, every other request went to the stopped replica and waited the whole
     read timeout (180 s), then 504."""
-    with fake_replicas(0.0) as replicas, \
+    with fake_replicas(tmp_path / "never") as replicas, \
             nginx_front(tmp_path / "nginx-stopped", [p for p, _ in replicas], "2s") as port:
         os.kill(replicas[1][1].pid, signal.SIGSTOP)
         stuck: list[tuple[int, bytes, float]] = []
