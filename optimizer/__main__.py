@@ -33,7 +33,7 @@ def problem(exc: PlannerError) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m optimizer",
+    parser = argparse.ArgumentParser(prog="chained-planner",
                                      description="Singularity-free motion planning (radians, seconds).")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("plan", help="plan one request (JSON as for POST /v1/plans)")

@@ -126,7 +126,7 @@ class PlanRequest:
     def __post_init__(self) -> None:
         n = self.robot.n
         for name in ("start", "goal"):
-            val = tuple(float(x) for x in getattr(self, name))
+            val = angles_of(getattr(self, name), name)
             if len(val) != n:
                 raise InvalidRequestError(f"{name} has {len(val)} joint angles but the robot has "
                                           f"n = {n} joints", field=name)
@@ -134,6 +134,9 @@ class PlanRequest:
                 if not math.isfinite(x):
                     raise InvalidRequestError(f"{name}[{i}] must be a finite number (rad)",
                                               field=f"{name}[{i}]")
+            found = joint_angles_problem(name, val)
+            if found is not None:
+                raise InvalidRequestError(found[1], field=found[0])
             object.__setattr__(self, name, val)
         _finite(self.phi_start, "phi_start")
         if self.phi_change is not None:
@@ -195,6 +198,13 @@ class PlanRequest:
         if self.constraint_points:
             validate_constraint_points(self.constraint_points, n, self.duration_or_default)
         if self.joint_bounds is not None:
+            found = joint_bounds_problem(self.joint_bounds, self.start, self.goal)
+            if found is not None:
+                i = int(found[0].split("[")[1].rstrip("]"))
+                raise InvalidRequestError(found[1], field=found[0], diagnostics={
+                    "joint": f"th{i + 1}", "bound": list(self.joint_bounds[i] or ()),
+                    "start": self.start[i] if i < len(self.start) else None,
+                    "goal": self.goal[i] if i < len(self.goal) else None})
             from .region import Region  # validates shape and that bounds lie in the region
             Region(self.robot, "full", self.joint_bounds)
         if self.controller_period is not None:
@@ -271,10 +281,15 @@ class PlanRequest:
         if self.duration is None:
             return max(need, MIN_DURATION)
         if self.duration < need * (1 - 1e-12):
+            # the limit that binds: the one whose peak rate needs the longest duration
+            binding = max((float(peak) / float(lim), name) for peak, lim, name in
+                          zip(peaks, limits, ("max_u1", "max_u2")) if lim is not None)[1]
             raise InfeasibleError(
-                f"duration {self.duration:g} s is too short for the actuator limits: the "
-                f"shortest duration that respects them is {need:.6g} s",
-                diagnostics={"shortest_duration": need})
+                f"duration {self.duration:g} s is too short for the actuator limits: with "
+                f"{binding} = {getattr(self, binding):g} rad/s the shortest duration is "
+                f"{need:.6g} s; raise {binding} or the duration (or omit the duration: the "
+                f"shortest one is then chosen)", field=binding,
+                diagnostics={"shortest_duration": need, "duration": self.duration})
         return float(self.duration)
 
     def q_start(self) -> np.ndarray:
@@ -324,6 +339,98 @@ class PlanRequest:
 
 #: The request's limits of the rates and their derivatives.
 LIMIT_FIELDS = ("max_u1", "max_u2", "max_du1", "max_du2", "max_ddu1", "max_ddu2")
+
+
+def angles_of(values: Any, name: str) -> tuple[float, ...]:
+    """``values`` as a tuple of floats: one number (rad) per joint, else
+    :class:`InvalidRequestError` naming ``name`` (a nested list, a string, a mapping...)."""
+    if isinstance(values, (str, bytes, Mapping)) or not isinstance(values, Sequence) and \
+            not isinstance(values, np.ndarray):
+        raise InvalidRequestError(f"{name} must be a list of joint angles (rad), one number per "
+                                  f"joint, not {type(values).__name__}", field=name)
+    out = []
+    for i, x in enumerate(values):
+        if isinstance(x, (bool, str, bytes)) or not isinstance(x, (int, float, np.number)):
+            raise InvalidRequestError(
+                f"{name}[{i}] must be a number (rad), not {type(x).__name__}: {name} is a flat "
+                f"list, one angle per joint", field=f"{name}[{i}]")
+        out.append(float(x))
+    return tuple(out)
+
+
+def _deg(x: float) -> str:
+    return f"{math.degrees(x):.1f} deg"
+
+
+def joint_angles_problem(name: str, values: Sequence[float]) -> tuple[str, str] | None:
+    """Why ``values`` (``start`` or ``goal``, rad) cannot be joint angles, as ``(field,
+    message)``, or None. Shared by the library, the CLI and the service (whose 422 says the
+    same).
+
+    Joints 1..n-1 must lie in (0, pi/2), where the chained form exists; the last joint is free
+    within [-2 pi, 2 pi]. The message names the first offending element and says what to send
+    instead; values that all lie in (pi/2, 90] were almost certainly meant as degrees, and the
+    message says so.
+    """
+    n = len(values)
+    if n and all(math.pi / 2 < x <= 90.0 for x in values):
+        shown = ", ".join(f"{x:g}" for x in values)
+        fixed = ", ".join(f"{math.radians(x):.6g}" for x in values)
+        return name, (f"{name} = [{shown}] looks like degrees; angles are in radians: convert "
+                      f"with radians(), i.e. [{fixed}]")
+    bad = [i for i, x in enumerate(values)
+           if not (0.0 < x < math.pi / 2 if i < n - 1 else -2 * math.pi <= x <= 2 * math.pi)]
+    if not bad:
+        return None
+    i, x = bad[0], values[bad[0]]
+    if i < n - 1:
+        where = "(0, pi/2) rad = (0, 90) deg"
+    else:
+        where = f"[-2 pi, 2 pi] rad = [-360, 360] deg (th{n}, the last joint, is free there)"
+    more = "" if len(bad) == 1 else " (also " + ", ".join(f"{name}[{j}]" for j in bad[1:]) + ")"
+    return f"{name}[{i}]", (f"{name}[{i}] = {x:g} rad ({_deg(x)}) is outside {where}; angles "
+                            f"are in radians{more}")
+
+
+def joint_bounds_degrees_problem(bounds: Any) -> tuple[str, str] | None:
+    """``(field, message)`` when ``joint_bounds`` look like degrees (a value beyond 2 pi, none
+    beyond 360), else None (the other checks are :func:`joint_bounds_problem`'s and the
+    region's)."""
+    if not isinstance(bounds, Sequence) or isinstance(bounds, str):
+        return None
+    for i, b in enumerate(bounds):
+        if not isinstance(b, Sequence) or isinstance(b, str) or len(b) != 2 or not all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                for x in b):
+            continue
+        if any(abs(x) > 2 * math.pi for x in b) and all(abs(x) <= 360.0 for x in b):
+            lo, hi = (float(x) for x in b)
+            return f"joint_bounds[{i}]", (
+                f"joint_bounds[{i}] = [{lo:g}, {hi:g}] looks like degrees; bounds are in "
+                f"radians: use [{math.radians(lo):.6g}, {math.radians(hi):.6g}]")
+    return None
+
+
+def joint_bounds_problem(bounds: Sequence[Any], start: Sequence[float] | None = None,
+                         goal: Sequence[float] | None = None) -> tuple[str, str] | None:
+    """``(field, message)`` when ``joint_bounds`` look like degrees, or exclude the start or
+    the goal of their joint, else None."""
+    found = joint_bounds_degrees_problem(bounds)
+    if found is not None:
+        return found
+    for i, b in enumerate(bounds):
+        if b is None:
+            continue
+        lo, hi = float(b[0]), float(b[1])
+        for name, q in (("goal", goal), ("start", start)):
+            if q is None or i >= len(q) or lo <= q[i] <= hi:
+                continue
+            return f"joint_bounds[{i}]", (
+                f"joint_bounds[{i}] = [{lo:g}, {hi:g}] rad ([{math.degrees(lo):.1f}, "
+                f"{math.degrees(hi):.1f}] deg) excludes the {name} of joint th{i + 1}: "
+                f"{name}[{i}] = {q[i]:g} rad ({_deg(q[i])}); widen the bound to include it, "
+                f"or move the {name}")
+    return None
 
 
 def _finite(x: float, name: str) -> None:

@@ -397,7 +397,8 @@ def chained_state(plan: Mapping[str, Any], fmt: str = "png",
             _mark_breaks(ax, p.breaks)
         axes[-1].set_xlabel("time t [s]")
         axes[-1].set_xlim(p.t[0], p.t[-1])
-        axes[0].set_title("Chained-form state z(t) \u2014 " + p.title())
+        # two lines: in one, the plan's title ran past the figure's edges (clipped)
+        axes[0].set_title("Chained-form state z(t)\n" + p.title())
         handles: list[Any] = [Line2D([], [], color="0.3", ls="none", marker="o", ms=4,
                                      label="start / goal")]
         if forbidden_shown:
@@ -584,17 +585,17 @@ def sweep(sweep: Mapping[str, Any], fmt: str = "png", planned: float | None = No
                     ax.axvspan(math.degrees(a), math.degrees(b), **_FEASIBLE)
         ms = 3.5 if ds.size <= 150 else (2.0 if ds.size <= 600 else 0.0)
         ax_da.plot(x, _deg(d_a), "o-", color="tab:blue", ms=ms)
-        ax_da.set_ylabel("d_a [deg]")
+        ax_da.set_ylabel("deviation d_a [deg]")
         ax_da.margins(y=0.12)
         ax_tp.plot(x, t_p, "s", color="tab:purple", ms=max(ms, 1.5))
         ax_tp.yaxis.set_major_locator(MaxNLocator(integer=True))
         if np.isfinite(t_p).any():
             ax_tp.set_ylim(min(-0.3, np.nanmin(t_p) - 0.5), np.nanmax(t_p) + 0.5)
-        ax_tp.set_ylabel("t_p [-]")
+        ax_tp.set_ylabel("reversals t_p [-]")
         ax_s.plot(x, sens, "-", color="0.5", lw=1.2)
         ax_s.plot(np.where(ok, x, np.nan), np.where(ok, sens, np.nan), "-", color="tab:red",
                   lw=2.0)
-        ax_s.set_ylabel("||J_R(T)||_F [-]")
+        ax_s.set_ylabel("sensitivity ||J_R(T)||_F [-]")
         ax_s.set_xlabel("phi change dphi [deg]   (= b0 \u00b7 T)")
         ax_s.set_xlim(x.min(), x.max())
         if planned is not None:
@@ -619,7 +620,7 @@ def sweep(sweep: Mapping[str, Any], fmt: str = "png", planned: float | None = No
         handles = [Patch(label="singularity-free\ndphi interval",
                          **{k: v for k, v in _FEASIBLE.items() if k != "zorder"}),
                    Line2D([], [], color="tab:blue", marker="o", ms=3.5,
-                          label="d_a (joint 1)")]
+                          label="deviation d_a\n(of joint 1)")]
         if best is not None:
             handles.append(Line2D([], [], marker="*", color="tab:orange", mec="black", mew=0.6,
                                   ms=12, ls="none",
@@ -632,9 +633,9 @@ def sweep(sweep: Mapping[str, Any], fmt: str = "png", planned: float | None = No
         _legend_right(ax_tp, [Line2D([], [], marker="s", color="tab:purple", ms=4, ls="none",
                                      label="t_p (reversals\nof joint 1)")])
         _legend_right(ax_s, [Line2D([], [], color="tab:red", lw=2.0,
-                                    label="||J_R(T)||_F,\nsingularity-free"),
+                                    label="sensitivity ||J_R(T)||_F,\nsingularity-free"),
                              Line2D([], [], color="0.5", lw=1.2,
-                                    label="||J_R(T)||_F,\nother dphi")])
+                                    label="sensitivity ||J_R(T)||_F,\nother dphi")])
         return fig
 
     return _draw(build, fmt)

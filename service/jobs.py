@@ -68,7 +68,18 @@ def job_plan(payload: Payload) -> dict[str, Any]:
     The answer keeps its numpy arrays: :func:`service.encoding.finite_json` writes them (and
     any non-finite number as ``null``) without a conversion to Python lists first.
     """
-    return plan(PlanRequest.from_dict(payload)).to_dict(plain=False)
+    return with_column_names(plan(PlanRequest.from_dict(payload)).to_dict(plain=False))
+
+
+def with_column_names(answer: dict[str, Any]) -> dict[str, Any]:
+    """``answer`` (a plan's dict) with its path's columns named: ``path.q_names``
+    (``phi, th1..thn``) and ``path.u_names`` (``u1``, ``u2``: the rates of phi and th1)."""
+    path = answer.get("path")
+    if isinstance(path, dict):
+        n = int(answer["robot"]["n"])
+        path["q_names"] = ["phi", *(f"th{i}" for i in range(1, n + 1))]
+        path["u_names"] = ["u1", "u2"]
+    return answer
 
 
 def job_sweep(payload: Payload) -> dict[str, Any]:
@@ -208,7 +219,7 @@ def job_figure(payload: Payload) -> bytes:
             runs["closed_loop"] = analysis.closed_loop_robustness(
                 nominal, np.asarray(starts, float), float(loop["gain_error"]),
                 float(loop["period"]), float(loop["noise"]), int(loop["seed"]), paths=True)
-        data = {"plan": nominal.to_dict(), "robustness": json_safe(runs)}
+        data = {"plan": with_column_names(nominal.to_dict()), "robustness": json_safe(runs)}
     else:
         raise ValueError(f"unknown figure kind {kind!r}")
     image, _media_type = _figures.render(kind, data, fmt)

@@ -7,6 +7,11 @@ body limit, metrics, access log), offline docs pages and the OpenAPI document.
 
 from __future__ import annotations
 
+import asyncio
+import difflib
+import functools
+import typing
+
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any, AsyncIterator
@@ -14,12 +19,14 @@ from typing import Any, AsyncIterator
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.middleware.gzip import GZipMiddleware
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import HTMLResponse
 from fastapi.routing import APIRoute
 from fastapi.security import APIKeyHeader
 from fastapi.staticfiles import StaticFiles
+from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import Response
 
@@ -37,6 +44,8 @@ from .settings import Settings
 from .workers import WorkerPool
 
 STATIC_DIR = Path(__file__).parent / "static"
+#: Answers shorter than this are sent as they are (one TCP segment: gzip would not pay).
+GZIP_MINIMUM_BYTES = 1400
 TITLE = "Chained-form motion planner"
 DESCRIPTION = """\
 Singularity-free motion planning for an underactuated n-joint manipulator whose kinematics
@@ -90,7 +99,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                           ping_timeout=settings.worker_ping_timeout)
         app.state.pool = pool
         metrics.bind_pool(pool.stats)
-        await pool.start()
+        # the OpenAPI document (about 1 s to build on a busy machine) while the workers warm
+        # up, not when the first reader opens /docs
+        await asyncio.gather(pool.start(), asyncio.to_thread(app.openapi))
         try:
             yield
         finally:
@@ -104,7 +115,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics = metrics
 
     schemas = build_schemas(settings.limits)
-    guard = [Depends(_api_key_guard(settings.api_keys))]
+    # the key is required (and documented in the OpenAPI document) only when keys are set
+    guard = [Depends(_api_key_guard(settings.api_keys))] if settings.api_keys else []
     # the paths of the OpenAPI document, known without building it (that takes 0.2 s)
     known = {"/docs", "/redoc", "/openapi.json"}
     for router in (plans.build_router(schemas), replans.build_router(),
@@ -115,7 +127,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         known |= _schema_paths(router, "/v1")
     for router in (health.build_router(), explorer.build_router()):
         app.include_router(router)
-        known |= _schema_paths(router, "")
+        known |= _schema_paths(router, "", hidden=True)
     _add_docs(app)
     _add_error_handlers(app)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
@@ -124,6 +136,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        metrics=metrics, known_paths=lambda: known, api_keys=settings.api_keys,
                        fast_routes=[FastPlanRoute(app.state, schemas)],
                        body_timeout=settings.body_timeout, send_timeout=settings.send_timeout)
+    # gzip for clients that accept it (a plan at the default 201 samples: 62 KB of JSON), outside
+    # the request middleware so that its own answers (the fast path, 401, 413) are compressed
+    # too; its answers pass through in the same chunks, each still under send_timeout. Level 1:
+    # the event loop compresses, and JSON of floats shrinks almost as much as at level 9
+    app.add_middleware(GZipMiddleware, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=1)
     if settings.cors_origins:  # outermost: its headers are on every answer, a 401 or 413 too
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST"],
@@ -133,10 +150,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     return app
 
 
-def _schema_paths(router: Any, prefix: str) -> set[str]:
-    """The paths ``router`` adds to the OpenAPI document under ``prefix``."""
+def _schema_paths(router: Any, prefix: str, hidden: bool = False) -> set[str]:
+    """The paths ``router`` adds to the OpenAPI document under ``prefix`` (with ``hidden``,
+    also those it leaves out of it: the explorer's ``/``). Templates (``{kind}``) stay so:
+    the metrics label a request by its template."""
     return {prefix + r.path for r in router.routes
-            if isinstance(r, APIRoute) and r.include_in_schema}
+            if isinstance(r, APIRoute) and (r.include_in_schema or hidden)}
 
 
 # ---------------------------------------------------------------------- auth
@@ -164,7 +183,8 @@ def _add_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def on_validation(request: Request, exc: RequestValidationError) -> Response:
-        errors = [_validation_error(e) for e in exc.errors()]
+        names = _body_field_names(request.scope.get("route"))
+        errors = [_validation_error(e, names) for e in exc.errors()]
         first = errors[0] if errors else {"field": None, "message": "invalid request"}
         detail = "; ".join(e["message"] if not e["field"] or e["message"].startswith(e["field"])
                            else f"{e['field']}: {e['message']}" for e in errors[:5])
@@ -192,8 +212,36 @@ def _add_error_handlers(app: FastAPI) -> None:
                               headers=dict(exc.headers or {})).response(request_id(request))
 
 
-def _validation_error(err: dict[str, Any]) -> dict[str, Any]:
-    """One pydantic error as ``field``/``message``/``type`` (never the offending input)."""
+def _body_field_names(route: Any) -> frozenset[str]:
+    """Every field name of the route's body model, nested models' included (for "did you
+    mean")."""
+    body_field = getattr(route, "body_field", None)
+    model = getattr(getattr(body_field, "field_info", None), "annotation", None)
+    return _model_field_names(model) if model is not None else frozenset()
+
+
+@functools.lru_cache(maxsize=64)
+def _model_field_names(annotation: Any) -> frozenset[str]:
+    names: set[str] = set()
+    pending, seen = [annotation], set()
+    while pending:
+        a = pending.pop()
+        if id(a) in seen:
+            continue
+        seen.add(id(a))
+        if isinstance(a, type) and issubclass(a, BaseModel):
+            for name, info in a.model_fields.items():
+                names.add(info.alias or name)
+                pending.append(info.annotation)
+        else:
+            pending.extend(typing.get_args(a))
+    return frozenset(names)
+
+
+def _validation_error(err: dict[str, Any], names: frozenset[str] = frozenset()
+                      ) -> dict[str, Any]:
+    """One pydantic error as ``field``/``message``/``type`` (never the offending input); an
+    unknown field gets the closest known name (``names``) as "did you mean"."""
     loc = [p for p in err.get("loc", ()) if p not in ("body", "query", "path", "header")]
     field = ""
     for part in loc:
@@ -212,6 +260,11 @@ def _validation_error(err: dict[str, Any]) -> dict[str, Any]:
             field = (field + "." if field else "") + named
     if err.get("type") == "extra_forbidden":
         msg = "unknown field"
+        given = loc[-1] if loc else None
+        close = difflib.get_close_matches(str(given), sorted(names), n=1, cutoff=0.6) \
+            if isinstance(given, str) else []
+        if close:
+            msg += f"; did you mean {close[0]!r}?"
     if err.get("type") == "json_invalid":  # the location is a character position, not a field
         reason = str((err.get("ctx") or {}).get("error", "malformed"))
         where = f" at character {loc[0]}" if loc and isinstance(loc[0], int) else ""

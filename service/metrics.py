@@ -52,7 +52,8 @@ class Metrics:
                              registry=self.registry)
         self.connections_closed = Counter(
             "planner_connections_closed", "Client connections refused or closed by the server, "
-            "by reason (limit, header_timeout, bad_request, body_timeout, send_timeout).",
+            "by reason (limit, header_timeout, bad_request, body_timeout, unread_body, "
+            "send_timeout).",
             ["reason"], registry=self.registry)
         self.cancelled = Counter("planner_requests_cancelled", "Requests given up before "
                                  "their answer, by reason.", ["reason"], registry=self.registry)

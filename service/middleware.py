@@ -18,14 +18,15 @@ log, and a last-resort guard that turns any unhandled exception into a problem d
 * Answers: a large body is sent in chunks of :data:`SEND_CHUNK` bytes, each (and each message of
   a streamed answer) given ``send_timeout`` to leave; a client that stops reading is then
   dropped (the server's ``abort`` from the scope, :mod:`service.server`) instead of holding the
-  whole answer in memory for ever.
+  whole answer in memory for ever. After an answer of 1 MiB or more (sent or dropped) the
+  allocator's free memory is handed back to the system (:mod:`service.memory`).
 * Cancelled by the server's shutdown (what the worker pool's drain did not answer): 503
   ``shutting_down``, logged and counted, never a 500.
 * Fast routes (:mod:`service.fastpath`): a valid ``POST /v1/plans`` is answered here, without
   FastAPI's routing and dependency machinery; any other request (and any invalid one) goes on
   to the app.
 * Metrics and the access log label a request by its route (``/v1/plans``): one of the app's
-  known paths, ``/static`` for docs assets, ``unmatched`` for anything else (so that scanning
+  known paths or path templates (``/v1/figures/from_plan/{kind}``), the explorer's ``/``, ``/static`` for docs assets, ``unmatched`` for anything else (so that scanning
   clients cannot inflate the metrics' cardinality). Bodies are never logged.
 """
 
@@ -39,8 +40,10 @@ import re
 import time
 from typing import Callable, Protocol, Sequence
 
+from starlette.routing import compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from . import memory
 from .auth import (CHALLENGE, CONFLICTING, UNAUTHORIZED_DETAIL, authorized, encode_keys,
                    protected)
 from .metrics import Metrics
@@ -113,17 +116,23 @@ class RequestContextMiddleware:
         self.metrics = metrics
         self._known_paths = known_paths
         self._known: set[str] | None = None
+        self._templates: list[tuple[re.Pattern[str], str]] = []
         self._id_prefix = os.urandom(8).hex()
         self._id_counter = itertools.count(int.from_bytes(os.urandom(4), "big"))
 
     def route_label(self, path: str) -> str:
         """The metrics/log label of a request path."""
         if self._known is None:
-            self._known = set(self._known_paths())
+            known = set(self._known_paths())
+            self._templates = [(compile_path(p)[0], p) for p in sorted(known) if "{" in p]
+            self._known = known
         if path in self._known:
             return path
         if path.startswith("/static/"):
             return "/static"
+        for pattern, template in self._templates:  # /v1/figures/from_plan/{kind}
+            if pattern.match(path):
+                return template
         return "unmatched"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -150,6 +159,7 @@ class RequestContextMiddleware:
         status: list[int] = []
         streamed: list[bool] = []  # the answer comes in several messages
         outcome: list[int] = []  # the status for the metrics when no whole answer was sent
+        answer_bytes: list[int] = [0]
 
         async def send_with_id(message: Message) -> None:
             if message["type"] == "http.response.start":
@@ -159,6 +169,7 @@ class RequestContextMiddleware:
                 return
             body = message.get("body", b"")
             more = message.get("more_body", False)
+            answer_bytes[0] += len(body)
             if message["type"] != "http.response.body" or len(body) <= SEND_CHUNK:
                 if more or streamed:
                     streamed.append(True)
@@ -245,6 +256,9 @@ class RequestContextMiddleware:
         except _ClientStalled:
             outcome.append(CLIENT_GONE)
             self._closed("send_timeout")
+            # the connection's loss is handled before this returns (else uvicorn logs an
+            # error: "ASGI callable returned without completing response")
+            await asyncio.sleep(0)
         except Exception:  # noqa: BLE001 - last resort: never a 500 nor a stack trace
             error_log.exception("unhandled error", extra={"request_id": request_id})
             if not status:
@@ -254,6 +268,8 @@ class RequestContextMiddleware:
         finally:
             if watch is not None and not watch.done():
                 watch.cancel()
+            if answer_bytes[0] >= memory.MMAP_THRESHOLD:
+                memory.release_soon()  # the answer's memory goes back to the system
             path = scope.get("path", "")
             method = scope.get("method", "")
             template = self.route_label(path)

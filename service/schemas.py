@@ -22,7 +22,9 @@ from pydantic import (BaseModel, ConfigDict, Field, Strict, ValidationInfo, fiel
 from pydantic_core import PydanticCustomError
 
 from optimizer.planner.registry import METHODS, method_names
-from optimizer.problem import DEFAULT_OBJECTIVE, MAX_REVERSALS, OBJECTIVES
+from optimizer.problem import (DEFAULT_OBJECTIVE, MAX_REVERSALS, OBJECTIVES,
+                               joint_angles_problem,
+                               joint_bounds_degrees_problem)
 
 from .settings import LIBRARY_MAX_JOINTS, LIBRARY_MIN_DURATION, LIBRARY_MIN_JOINTS, Limits
 
@@ -63,42 +65,17 @@ ANGLES_SCHEMA: dict[str, Any] = {
 }
 
 
-def _deg(x: float) -> str:
-    return f"{math.degrees(x):.1f} deg"
-
-
 def joint_angle_error(name: str, values: list[float]) -> PydanticCustomError | None:
-    """Why ``values`` (``start`` or ``goal``, rad) cannot be joint angles, or None.
-
-    Joints 1..n-1 must lie in (0, pi/2), where the chained form exists; the last joint is free
-    within [-2 pi, 2 pi]. The error names the first offending element (``ctx["field"]``) and
-    says what to send instead; values that all lie in (pi/2, 90] were almost certainly meant as
-    degrees, and the error says so.
-    """
-    n = len(values)
-    if n and all(PI / 2 < x <= 90.0 for x in values):
-        shown = ", ".join(f"{x:g}" for x in values)
-        fixed = ", ".join(f"{math.radians(x):.6g}" for x in values)
-        return PydanticCustomError(
-            "joint_angle_degrees",
-            "{field} = [{shown}] looks like degrees; angles are in radians: convert with "
-            "radians(), i.e. [{fixed}]",
-            {"field": name, "shown": shown, "fixed": fixed})
-    bad = [i for i, x in enumerate(values)
-           if not (0.0 < x < PI / 2 if i < n - 1 else -2 * PI <= x <= 2 * PI)]
-    if not bad:
+    """Why ``values`` (``start`` or ``goal``, rad) cannot be joint angles, or None: the
+    library's check (:func:`optimizer.problem.joint_angles_problem`, degrees detected), as a
+    pydantic error naming the offending element (``ctx["field"]``)."""
+    found = joint_angles_problem(name, values)
+    if found is None:
         return None
-    i, x = bad[0], values[bad[0]]
-    if i < n - 1:
-        where = "(0, pi/2) rad = (0, 90) deg"
-    else:
-        where = f"[-2 pi, 2 pi] rad = [-360, 360] deg (th{n}, the last joint, is free there)"
-    more = "" if len(bad) == 1 else " (also " + ", ".join(f"{name}[{j}]" for j in bad[1:]) + ")"
-    return PydanticCustomError(
-        "joint_angle_range",
-        "{field} = {value} rad ({degrees}) is outside {where}; angles are in radians{more}",
-        {"field": f"{name}[{i}]", "value": f"{x:g}", "degrees": _deg(x), "where": where,
-         "more": more})
+    kind = "joint_angle_degrees" if "looks like degrees" in found[1] else "joint_angle_range"
+    return PydanticCustomError(kind, "{message}", {"field": found[0], "message": found[1]})
+
+
 PhiAngle = num(-4 * PI, 4 * PI, description="Change of phi (rad).")
 Gain = num(hi=1e3, gt=0.0, description="Transmission gain K_i (> 0).")
 Exponent = Annotated[int, Strict(), Field(ge=1, le=12, description="Exponent m_i (1..12).")]
@@ -144,7 +121,8 @@ class RobotInfo(BaseModel):
 class DefaultRobot(RobotInfo):
     """``GET /v1/robots/default``."""
 
-    note: Optional[str] = Field(None, description="Why the constants are an assumption.")
+    note: Optional[str] = Field(None, max_length=500,
+                                description="Why the constants are an assumption.")
 
 
 class Segment(BaseModel):
@@ -163,7 +141,7 @@ class Segment(BaseModel):
 class Coefficients(BaseModel):
     """The chained inputs of the plan (enough to regenerate it)."""
 
-    basis: str
+    basis: str = Field(..., max_length=500)
     segments: list[Segment]
 
 
@@ -222,8 +200,13 @@ class PlanPath(BaseModel):
         None, description="How u is executed between samples: linear or zoh.")
     t: list[float] = Field(..., description="Times (s); increasing.")
     q: list[list[Optional[float]]] = Field(..., description="Rows [phi, th1..thn] (rad).")
+    q_names: Optional[list[Annotated[str, Field(max_length=8)]]] = Field(
+        None, max_length=16, description='The columns of q: ["phi", "th1", ..., "thn"].')
     z: list[list[Optional[float]]] = Field(..., description="Chained state rows [z1..z_{n+1}].")
     u: list[list[Optional[float]]] = Field(..., description="Actuator rates [u1, u2] (rad/s).")
+    u_names: Optional[list[Annotated[str, Field(max_length=8)]]] = Field(
+        None, max_length=2, description='The columns of u: ["u1", "u2"] (u1 = dphi/dt, '
+                                        'u2 = dth1/dt).')
     v: list[list[Optional[float]]] = Field(..., description="Chained inputs [v1, v2].")
 
 
@@ -236,10 +219,11 @@ class Validation(BaseModel):
                                                              "planned path (rad).")
     singular: bool = Field(..., description="True when the re-integration met a singularity.")
     final: list[Optional[float]] = Field(..., description="Final state [phi, th1..thn] (rad).")
-    integrator: str = Field(..., description="'cascade-chebyshev on the original model' (the "
-                                             "model's triangular structure integrated joint by "
-                                             "joint by adaptive Chebyshev quadrature) or 'DOP853 "
-                                             "on the original model' (scipy, the fallback).")
+    integrator: str = Field(..., max_length=500,
+                            description="'cascade-chebyshev on the original model' (the "
+                                        "model's triangular structure integrated joint by "
+                                        "joint by adaptive Chebyshev quadrature) or 'DOP853 "
+                                        "on the original model' (scipy, the fallback).")
     error_estimate: Optional[float] = Field(None, description="Estimated error of the "
                                                               "re-integration (rad); null for "
                                                               "DOP853.")
@@ -270,7 +254,7 @@ class ExecutedValidation(BaseModel):
     corrections: int = Field(..., description="Correction steps taken.")
     error_estimate: Optional[float] = Field(None, description="Estimated error of the "
                                                               "integration (rad).")
-    integrator: str
+    integrator: str = Field(..., max_length=500)
     final: list[Optional[float]] = Field(..., description="Final state [phi, th1..thn] (rad).")
     reversals: Optional[Reversals] = Field(
         None, description="Direction changes of phi and th1 on this form's execution (its "
@@ -310,9 +294,10 @@ class JointTrajectory(BaseModel):
     ``trajectory_msgs/msg/JointTrajectory`` (no header): executed by cubic Hermite
     interpolation between consecutive points, as ``joint_trajectory_controller`` does."""
 
-    joint_names: list[str] = Field(..., description='["phi", "th1"].')
+    joint_names: list[Annotated[str, Field(max_length=64)]] = Field(
+        ..., description='["phi", "th1"].')
     points: list[JointTrajectoryPoint]
-    interpolation: str
+    interpolation: str = Field(..., max_length=64)
     time_scale: float = Field(
         1.0, ge=1.0,
         description="How much longer than the plan these points take: when the cubic "
@@ -349,7 +334,7 @@ class PlanResponse(BaseModel):
     """A verified, singularity-free plan."""
 
     status: Literal["success"]
-    method: str = Field(..., description="Method that produced the plan.")
+    method: str = Field(..., max_length=64, description="Method that produced the plan.")
     robot: RobotInfo
     phi_change: float = Field(..., description="dphi = phi(T) - phi(0) (rad).")
     b0: Optional[float] = Field(None, description="Constant v1 = dphi / T (rad/s), null when "
@@ -636,7 +621,7 @@ def build_schemas(limits: Limits) -> Schemas:
         """A constraint point: the chained state ``z_state`` takes ``value`` at ``time``."""
 
         time: num(0.0, L.max_duration, description="Time (s), inside (0, duration).") = Field(  # type: ignore[valid-type]
-            ..., examples=[5.0])
+            ..., examples=[0.5])  # inside the default duration (1 s)
         state: StrictInt = Field(..., ge=2, le=L.max_joints + 1,
                                  description="Chained state index k of z_k, 2..n+1.")
         value: num(-1e6, 1e6, description="Value of z_state at time.") = Field(...)  # type: ignore[valid-type]
@@ -777,6 +762,16 @@ def build_schemas(limits: Limits) -> Schemas:
                 return self.samples
             duration = self.duration if self.duration is not None else 1.0
             return math.ceil(duration / self.controller_period * (1 - 1e-12)) + 1
+
+        @field_validator("joint_bounds", mode="before")
+        @classmethod
+        def _bounds_in_radians(cls, bounds: Any) -> Any:
+            # before the type's own bounds (|x| <= 2 pi), which would not say "degrees"
+            found = joint_bounds_degrees_problem(bounds)
+            if found is not None:
+                raise PydanticCustomError("joint_bounds_degrees", "{message}",
+                                          {"field": found[0], "message": found[1]})
+            return bounds
 
         @field_validator("start", "goal")
         @classmethod

@@ -17,6 +17,13 @@ per request than h11) or h11 (``PLANNER_HTTP``), in as little code as it takes
 * **a header timeout** (``header_timeout``): a connection that has not sent a complete request
   line and headers that long after it opened, or after the first byte of a later request, is
   closed (uvicorn only times out idle keep-alive connections);
+* **a bound on an unread body** (:data:`LINGER`, at most ``body_timeout``): a request answered
+  before its body arrived (401 before the body is read, 413 past ``max_body_bytes``) leaves the
+  rest of its body on the connection. uvicorn reads and drops it for as long as it comes, each
+  byte re-arming nothing (its keep-alive timer waits for an idle connection), so a body trickled
+  a byte at a time held the connection open for ever. The rest is still read and dropped, so
+  that the client, still sending, gets the answer instead of a reset, but only for ``LINGER``
+  seconds after the answer; then the connection is closed;
 * **a problem document** for malformed HTTP (400; uvicorn's is text/plain);
 * the connection's ``abort`` in the request scope (``scope["extensions"]["planner.abort"]``),
   so that the request middleware can drop a client that stops reading its answer
@@ -43,6 +50,7 @@ import uvicorn
 from uvicorn.protocols.http.h11_impl import H11Protocol
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
+from . import memory
 from .encoding import finite_json
 from .problems import PROBLEM_MEDIA_TYPE, problem_body
 from .settings import Settings
@@ -54,6 +62,10 @@ log = logging.getLogger("service.server")
 RESERVED_FDS = 64
 #: Descriptors kept per worker process (its pipe, the process sentinel, a replacement's).
 FDS_PER_WORKER = 4
+#: Seconds the rest of a body is read (and dropped) after its request was answered early (401,
+#: 413) before the connection is closed (at most ``body_timeout``): long enough for a client
+#: still sending to read the answer, short enough that trickled bodies cannot hold connections.
+LINGER = 2.0
 
 
 def raise_fd_limit() -> int:
@@ -104,18 +116,31 @@ class _Bounded(asyncio.Protocol):
     max_connections = 1000
     header_timeout = 10.0
     max_header_bytes = 16384
+    linger = LINGER
     refusal = b""
     too_large = b""
     malformed = b""
     on_closed: Callable[[str], None] | None = None
 
     _header_timer: asyncio.TimerHandle | None = None
+    _linger_timer: asyncio.TimerHandle | None = None
     _head_bytes = 0     # of the request line and headers being received
     _tail = b""         # the last bytes of them (their end may straddle two reads)
 
     def _in_head(self) -> bool:
         """Whether the connection waits for (the rest of) a request line and headers."""
         raise NotImplementedError
+
+    def _in_body(self) -> bool:
+        """Whether the connection waits for (the rest of) a request's body."""
+        raise NotImplementedError
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()  # type: ignore[misc]
+        # answered before its body arrived (401, 413): what still comes is read and dropped
+        # for ``linger`` seconds at most, however slowly it trickles
+        if self._in_body() and not self.transport.is_closing() and self._linger_timer is None:
+            self._linger_timer = self.loop.call_later(self.linger, self._linger_expired)
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         super().connection_made(transport)
@@ -146,10 +171,23 @@ class _Bounded(asyncio.Protocol):
         else:
             self._disarm()
             self._head_bytes, self._tail = 0, b""
+        if self._linger_timer is not None and not self._in_body():
+            # the unread body ended in time: the connection goes on as usual
+            self._linger_timer.cancel()
+            self._linger_timer = None
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
+        if self._linger_timer is not None:
+            self._linger_timer.cancel()
+            self._linger_timer = None
         super().connection_lost(exc)
+
+    def _linger_expired(self) -> None:
+        self._linger_timer = None
+        if self._in_body() and not self.transport.is_closing():
+            self.transport.abort()
+            self._closed("unread_body")
 
     def send_400_response(self, msg: str) -> None:
         """A malformed request (uvicorn's own answer is text/plain)."""
@@ -188,6 +226,9 @@ class _BoundedH11(_Bounded, H11Protocol):
     def _in_head(self) -> bool:
         return self.conn.their_state is h11.IDLE
 
+    def _in_body(self) -> bool:
+        return self.conn.their_state is h11.SEND_BODY
+
     def handle_events(self) -> None:
         super().handle_events()
         self._expose_abort(self.scope)
@@ -199,6 +240,9 @@ class _BoundedHttpTools(_Bounded, HttpToolsProtocol):
     def _in_head(self) -> bool:
         # (a request fully received is still in progress until its answer is complete)
         return self._head and (self.cycle is None or self.cycle.response_complete)
+
+    def _in_body(self) -> bool:
+        return not self._head
 
     def on_headers_complete(self) -> None:
         self._head = False
@@ -214,8 +258,8 @@ def protocol_class(settings: Settings, max_connections: int,
                    on_closed: Callable[[str], None] | None = None) -> type[asyncio.Protocol]:
     """uvicorn's HTTP protocol (``settings.http``) with the bounds of the module docstring.
 
-    ``on_closed`` is called with ``"limit"``, ``"header_timeout"`` or ``"bad_request"`` for
-    every connection the protocol refuses or closes (for the metrics).
+    ``on_closed`` is called with ``"limit"``, ``"header_timeout"``, ``"bad_request"`` or
+    ``"unread_body"`` for every connection the protocol refuses or closes (for the metrics).
     """
     limit = settings.max_header_bytes
     base: type[_Bounded] = _BoundedH11 if settings.http == "h11" else _BoundedHttpTools
@@ -223,6 +267,7 @@ def protocol_class(settings: Settings, max_connections: int,
         "max_connections": max_connections,
         "header_timeout": settings.header_timeout,
         "max_header_bytes": limit,
+        "linger": min(LINGER, settings.body_timeout),
         "refusal": _raw_problem(503, b"Service Unavailable", "overloaded",
                                 f"more than {max_connections} open connections; retry later",
                                 {"max_connections": max_connections,
@@ -263,6 +308,7 @@ def serve(settings: Settings) -> None:
     """Run the app (:data:`service.main.app`) until SIGTERM/SIGINT."""
     from .main import app
 
+    memory.fix_mmap_threshold()  # large answers' memory returns to the system when freed
     fd_limit = raise_fd_limit()
     cap = connection_cap(settings, fd_limit)
     metrics = app.state.metrics

@@ -33,7 +33,10 @@ runs in a separate *process*, and a solve that overruns must be killed. A
   descriptors, a failed fork) is retried with a growing pause (:data:`RESTART_BACKOFF`) for as
   long as the pool is open, so a slot is never given up. Idle workers are pinged every
   ``ping_interval`` s; one that does not answer within ``ping_timeout`` (stopped, wedged) is
-  killed and replaced. :attr:`WorkerPool.ready` and :meth:`WorkerPool.live` count the workers
+  killed and replaced. Between pings, a worker found stopped (:mod:`service.procstate`) when a
+  request takes it is replaced and the request takes another; one stopped under a job (looked
+  at every ``ping_timeout`` s) is replaced and its job runs on another worker, as for a worker
+  that died. :attr:`WorkerPool.ready` and :meth:`WorkerPool.live` count the workers
   that are warmed up and not known dead: ``/readyz`` is 503 while none is.
 * **Bounded queue**: at most ``queue_size`` requests may wait for a worker; the next one is
   refused at once with :class:`Overloaded` (503 ``overloaded`` with ``Retry-After``), and one
@@ -65,6 +68,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any, Callable
+
+from .procstate import is_stopped
 
 log = logging.getLogger("service.workers")
 
@@ -262,6 +267,7 @@ class _Worker:
         self.up = False        # it said ready
         self.dead = False      # its pipe closed
         self.retired = False   # taken out of the pool (killed or stopped)
+        self.unresponsive = False  # found stopped (SIGSTOP)
         self.on_idle_lost: Callable[[_Worker], None] | None = None
         self._future: asyncio.Future[Any] | None = None
         self._timer: asyncio.TimerHandle | None = None
@@ -576,7 +582,7 @@ class WorkerPool:
         message = (kind, payload, request_id)
         try:
             worker = await self._take()
-            return await self._await(worker, worker.begin(message, limit, self._finished))
+            return await self._watched(worker, worker.begin(message, limit, self._finished))
         except WorkerLost as exc:
             if self._closing:
                 raise
@@ -587,7 +593,31 @@ class WorkerPool:
             # whatever killed the first may have killed this one too, its pipe's end not yet
             # read: a process that has ended is left to its replacement
             if worker.process.is_alive():
-                return await self._await(worker, worker.begin(message, limit, self._finished))
+                return await self._watched(worker, worker.begin(message, limit, self._finished))
+
+    async def _watched(self, worker: _Worker, answer: asyncio.Future[Any]) -> dict[str, Any]:
+        """:meth:`_await`, looking every ``ping_timeout`` s whether the worker has been
+        stopped meanwhile: a stopped worker's job is ended :class:`WorkerLost` (so that
+        :meth:`run` gives it to another worker) instead of waiting out its time limit."""
+        loop = asyncio.get_running_loop()
+        timer: list[asyncio.TimerHandle] = []
+
+        def look() -> None:
+            if answer.done() or worker.dead or worker.retired:
+                return
+            if is_stopped(worker.process.pid):
+                log.warning("worker %s is stopped under a job", worker.ident)
+                worker.unresponsive = True
+                worker.retire()
+                worker.abandon(WorkerLost(f"worker {worker.ident} stopped under the job"))
+                return
+            timer[:] = [loop.call_later(self.ping_timeout, look)]
+
+        timer.append(loop.call_later(self.ping_timeout, look))
+        try:
+            return await self._await(worker, answer)
+        finally:
+            timer[0].cancel()
 
     @staticmethod
     async def _await(worker: _Worker, answer: asyncio.Future[Any]) -> dict[str, Any]:
@@ -627,8 +657,15 @@ class WorkerPool:
                     self._waiting -= 1
             else:
                 worker = idle.get_nowait()
-            if not (worker.dead or worker.retired):
-                return worker  # (a worker that died idle is being replaced: take the next)
+            if worker.dead or worker.retired:
+                continue  # (a worker that died idle is being replaced: take the next)
+            if is_stopped(worker.process.pid):
+                # stopped while idle, before its ping noticed: it would hold this request
+                # for its whole time limit
+                worker.unresponsive = True
+                self._replace_worker(worker, "unresponsive")
+                continue
+            return worker
 
     def admit(self, reserve: int = 0) -> None:
         """Raise :class:`Overloaded` when a new request would exceed the queue bound.
@@ -667,6 +704,8 @@ class WorkerPool:
             return
         if isinstance(exc, JobTimeout):
             self._replace_worker(worker, timeout_reason)
+        elif worker.unresponsive:
+            self._replace_worker(worker, "unresponsive")
         elif isinstance(exc, WorkerLost) or worker.dead or worker.retired:
             self._replace_worker(worker, "lost")
         else:

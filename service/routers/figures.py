@@ -33,9 +33,12 @@ header (``image/svg+xml`` or ``image/png``), else PNG. Failures are the same pro
 as the JSON routes (``infeasible`` 422, ``timeout`` 504, ...).
 """
 
+import math
 from typing import Any, Literal, Optional
 
 from fastapi import APIRouter, Query, Request
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, ValidationError
 from starlette.responses import Response
 
 from ..dispatch import check_plan, run_job
@@ -65,6 +68,41 @@ FORMAT_QUERY = Query(None, description="Image format. Omitted: from the `Accept`
 
 COMMON = (" The job's `time_limit` bounds the computation; drawing may take up to "
           f"{RENDER_SECONDS:g} s more. Angles are drawn in degrees (labelled).")
+
+
+def strict_answer(model: type[BaseModel], raw: bytes) -> None:
+    """Check an answer sent back to be drawn as strictly as the service's own requests are:
+    numbers as JSON numbers (not strings), all finite (no ``NaN``, ``Infinity`` or ``1e309``,
+    which JSON parsers read as infinite). The answer models are the service's response models,
+    lax as such; FastAPI has already parsed the body leniently. A 422 names the field."""
+    try:
+        checked = model.model_validate_json(raw, strict=True)
+    except ValidationError as exc:
+        raise RequestValidationError([{**e, "loc": ("body", *e["loc"])}
+                                      for e in exc.errors(include_input=False)]) from None
+    where = _non_finite(checked.model_dump())
+    if where is not None:
+        raise RequestValidationError([{
+            "loc": ("body", *where), "type": "finite_number",
+            "msg": "Input should be a finite number (NaN, Infinity and numbers too large for a "
+                   "double, like 1e309, are not)"}])
+
+
+def _non_finite(value: Any, path: tuple[Any, ...] = ()) -> tuple[Any, ...] | None:
+    """The location of the first non-finite float in ``value`` (None: there is none)."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else path
+    if isinstance(value, dict):
+        items: Any = value.items()
+    elif isinstance(value, (list, tuple)):
+        items = enumerate(value)
+    else:
+        return None
+    for key, item in items:
+        found = _non_finite(item, (*path, key))
+        if found is not None:
+            return found
+    return None
 
 
 def negotiate(fmt: Optional[str], accept: Optional[str]) -> str:
@@ -191,6 +229,7 @@ def build_router(S: Schemas) -> APIRouter:
     async def figure_from_plan(kind: Literal["joint_angles", "chained_state", "pareto"],
                                body: PlanResponse, request: Request,
                                format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+        strict_answer(PlanResponse, await request.body())
         settings = request.app.state.settings
         # bounds of the drawing's cost: the answers the service itself gives stay within them
         n, rows = body.robot.n, len(body.path.t)
@@ -211,6 +250,7 @@ def build_router(S: Schemas) -> APIRouter:
                              "dashed.")
     async def figure_from_sweep(body: SweepFigureRequest, request: Request,
                                 format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+        strict_answer(SweepFigureRequest, await request.body())
         points = len(body.sweep.phi_change)
         most = request.app.state.settings.max_sweep_points
         if not 2 <= points <= most:

@@ -45,4 +45,10 @@ def build_router() -> APIRouter:
         m = request.app.state.metrics
         return Response(m.render(), media_type=m.content_type)
 
+    # HEAD too (load balancers and uptime checks probe with it; it was 405): the same routes,
+    # one operation each in the OpenAPI document
+    router.add_api_route("/healthz", healthz, methods=["HEAD"], include_in_schema=False,
+                         name="healthz_head")
+    router.add_api_route("/readyz", readyz, methods=["HEAD"], include_in_schema=False,
+                         name="readyz_head")
     return router

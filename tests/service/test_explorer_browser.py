@@ -164,6 +164,7 @@ class Page:
             p.fill(f"#start-{i}", "10")
             p.fill(f"#goal-{i}", "30")
         p.select_option("#method", "polynomial")
+        p.select_option("#objective", "tp_then_da")  # the paper's example and objective
 
     def plan(self) -> None:
         self.page.click("#plan-button")
@@ -198,7 +199,9 @@ def test_worked_example_in_the_browser(browser_context, explorer_server, tmp_pat
     assert p.get_attribute("#plan-form", "data-defaults") == "loaded"
     assert float(p.input_value("#gain-2")) == pytest.approx(0.88658)
     assert p.input_value("#exponent-3") == "3"
-    assert p.input_value("#objective") == "tp_then_da"
+    # the page starts on the API's defaults (its first plan is the API's default plan)
+    assert p.input_value("#objective") == "reversals_then_deviation"
+    assert p.input_value("#method") == "auto"
 
     tab.fill_worked_example()
     tab.api_calls.clear()
@@ -277,6 +280,11 @@ def test_the_default_method_plans_once_and_finds_the_windows_by_sweeping(browser
     assert "t_p = 1" in tab.text("#sweep-best") and tab.text("#ind-t_p") == "1"
     low, high = (number(x) for x in tab.text("#sweep-range").split("..")[:2])
     assert low < 33.20 and high > 35.26 and high - low < 10, tab.text("#sweep-range")
+    # another number of joints: the plan on screen is not its plan any more
+    p.fill("#n", "4")
+    p.dispatch_event("#n", "change")
+    p.wait_for_selector("#plan-out", state="hidden", timeout=10_000)
+    assert not p.is_visible("#sweep-note")
     assert tab.errors == []
     tab.close()
 

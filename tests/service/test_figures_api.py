@@ -26,7 +26,8 @@ BODIES = {
 LABELS = {
     "joint_angles": ["joint angle [deg]", "phi [deg]", "time t [s]"],
     "chained_state": ["z2 [-]", "time t [s]"],
-    "sweep": ["d_a [deg]", "t_p [-]", "phi change dphi [deg]"],
+    "sweep": ["deviation d_a [deg]", "reversals t_p [-]", "sensitivity ||J_R(T)||_F [-]",
+              "phi change dphi [deg]"],
     "robustness": ["joint angle [deg]", "time t [s]"],
 }
 INFEASIBLE = {**WORKED, "start": [10 * DEG, 20 * DEG, 30 * DEG],
@@ -76,7 +77,7 @@ def test_accept_header_chooses_the_format(client):
     svg = client.post("/v1/figures/chained_state", json=WORKED,
                       headers={"Accept": "image/svg+xml"})
     assert svg.status_code == 200 and svg.headers["content-type"].startswith("image/svg+xml")
-    assert svg.headers["vary"] == "Accept"
+    assert "Accept" in [v.strip() for v in svg.headers["vary"].split(",")]
     png = client.post("/v1/figures/chained_state", json=WORKED)  # default: png
     assert png.headers["content-type"] == "image/png"
     # the query parameter wins over Accept
@@ -171,3 +172,91 @@ def test_an_answer_that_cannot_be_drawn_is_invalid_request(client):
     body = assert_problem(client.post("/v1/figures/from_plan/chained_state", json=big), 422,
                           "invalid_request")
     assert body["field"] == "robot.n" and "[3, 8]" in body["detail"]
+
+
+def test_a_plan_answers_strings_are_bounded_before_a_worker_draws_them(client):
+    """The method (drawn in the title) and every other string of an answer sent back have a
+    length limit: an 80,000-character method took 6 s of a worker to draw, 100,000 a 504."""
+    plan = client.post("/v1/plans", json=BODIES["joint_angles"]).json()
+    for field, value in (("method", "m" * 80_000),
+                         ("coefficients.basis", "b" * 10_000),
+                         ("validation.integrator", "i" * 10_000)):
+        doc = {**plan}
+        head, _, last = field.rpartition(".")
+        if head:
+            doc[head] = {**plan[head], last: value}
+        else:
+            doc[last] = value
+        body = assert_problem(client.post("/v1/figures/from_plan/joint_angles", json=doc), 422,
+                              "invalid_request")
+        assert body["field"] == field and "at most" in body["detail"], body
+
+
+def _replaced(text: str, key: str, value: str) -> str:
+    """The JSON ``text`` with the first number after ``"key":`` (or ``"key": [``) replaced
+    by ``value``."""
+    import re
+    out, n = re.subn(r'("' + key + r'":\s*\[?)(-?[0-9][0-9.eE+-]*)',
+                     lambda m: m.group(1) + value, text, count=1)
+    assert n == 1, key
+    return out
+
+
+@pytest.mark.parametrize("value", ["NaN", "Infinity", "-Infinity", "1e309", '"0.5"'])
+def test_answers_sent_back_must_hold_finite_json_numbers(client, value):
+    """NaN, Infinity, 1e309 (read as infinite) and numbers as strings are refused with a 422
+    naming the field, as the service's own requests refuse them (all were drawn, 200)."""
+    import json
+    plan_text = client.post("/v1/plans", json=BODIES["joint_angles"]).text
+    for key, field in (("duration", "duration"), ("phi_change", "phi_change")):
+        r = client.post("/v1/figures/from_plan/joint_angles", content=_replaced(
+            plan_text, key, value), headers={"Content-Type": "application/json"})
+        body = assert_problem(r, 422, "invalid_request")
+        assert body["field"] == field, body
+    sweep = client.post("/v1/sweeps", json=BODIES["sweep"]).json()
+    text = json.dumps({"sweep": sweep})
+    r = client.post("/v1/figures/from_sweep", content=_replaced(text, "phi_change", value),
+                    headers={"Content-Type": "application/json"})
+    body = assert_problem(r, 422, "invalid_request")
+    assert body["field"] == "sweep.phi_change[0]", body
+
+
+def test_figure_titles_fit_inside_the_figure(client, monkeypatch):
+    """Every text of the figures of a plan (method, dphi, d_a, t_p, T in the title) lies inside
+    the figure: the chained-state title ran past both edges."""
+    from service import figures
+
+    plan = client.post("/v1/plans", json={**BODIES["chained_state"], "method": "auto"}).json()
+    drawn: list = []
+    real = figures._save
+
+    def keep(fig, fmt):
+        out = real(fig, fmt)  # (drawn: the layout is done)
+        drawn.append(fig)
+        return out
+
+    monkeypatch.setattr(figures, "_save", keep)
+    for kind in ("joint_angles", "chained_state"):
+        figures.render(kind, plan, "png")
+        fig = drawn[-1]
+        renderer = fig.canvas.get_renderer()
+        box = fig.bbox
+        for ax in fig.axes:
+            title = ax.title
+            if not title.get_text():
+                continue
+            ext = title.get_window_extent(renderer)
+            assert box.x0 - 1 <= ext.x0 and ext.x1 <= box.x1 + 1, (kind, title.get_text())
+
+
+@pytest.mark.parametrize("method", ["auto", "shooting", "penalty", "retimed"])
+def test_every_methods_answer_is_drawn_as_sent_back(client, method):
+    """The strict check of an answer sent back accepts what the service itself answers, for
+    every kind of plan (a shooting plan's basis text is longer than a polynomial's)."""
+    body = {key: WORKED[key] for key in ("start", "goal")}
+    r = client.post("/v1/plans", json={**body, "method": method, "samples": 41})
+    if r.status_code != 200:
+        pytest.skip(f"{method} gives no plan here: {r.json()['code']}")
+    drawn = client.post("/v1/figures/from_plan/joint_angles", params={"format": "svg"},
+                        json=r.json())
+    assert drawn.status_code == 200, drawn.text

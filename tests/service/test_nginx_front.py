@@ -12,6 +12,7 @@ it cannot be had, the tests fail in CI (``CI`` set) and are skipped elsewhere.
 from __future__ import annotations
 
 import contextlib
+import signal
 import http.client
 import json
 import os
@@ -19,6 +20,7 @@ import re
 import shutil
 import socket
 import subprocess
+import threading
 import sys
 import time
 from pathlib import Path
@@ -69,24 +71,29 @@ def nginx_path() -> str:
     return str(found)
 
 
-def site_config(upstream_port: int, listen_port: int, read_timeout: str | None = None) -> str:
-    """The committed server config with the upstream and the listen address for this machine
-    (and, to provoke a 504 quickly, a shorter upstream read timeout)."""
+def site_config(upstream_ports: int | list[int], listen_port: int,
+                read_timeout: str | None = None) -> str:
+    """The committed server config with the upstream(s) and the listen address for this machine
+    (and, to provoke a 504 quickly, a shorter upstream read timeout). Each upstream port gets the
+    committed ``server`` line with its parameters (as Docker's DNS gives one per replica)."""
     text = CONF.read_text(encoding="utf-8")
+    ports = [upstream_ports] if isinstance(upstream_ports, int) else upstream_ports
     if read_timeout is not None:
         text, n = re.subn(r"proxy_read_timeout \d+s;", f"proxy_read_timeout {read_timeout};", text)
         assert n == 1, "deploy/nginx.conf changed shape: adapt the test"
-    text, upstreams = re.subn(r"server planner:8000;", f"server 127.0.0.1:{upstream_port};",
-                              text)
+    text, upstreams = re.subn(
+        r"server planner:8000( [^;]*)?;",
+        lambda m: "\n    ".join(f"server 127.0.0.1:{p}{m.group(1) or ''};" for p in ports), text)
     text, listens = re.subn(r"listen 80;", f"listen 127.0.0.1:{listen_port};", text)
     assert upstreams == 1 and listens == 1, "deploy/nginx.conf changed shape: adapt the test"
     return text
 
 
 @contextlib.contextmanager
-def nginx_front(directory: Path, upstream_port: int,
+def nginx_front(directory: Path, upstream_port: int | list[int],
                 read_timeout: str | None = None) -> Iterator[int]:
-    """nginx (foreground) with the site config in front of 127.0.0.1:``upstream_port``."""
+    """nginx (foreground) with the site config in front of 127.0.0.1:``upstream_port`` (each
+    of them, for a list)."""
     exe = nginx_path()
     port = free_port()
     directory.mkdir(parents=True, exist_ok=True)
@@ -234,16 +241,22 @@ def test_an_upstream_too_slow_is_a_504_problem(tmp_path):
         with nginx_front(tmp_path / "nginx-slow", silent.getsockname()[1], "1s") as port:
             status, headers, raw = request(port, "GET", "/v1/robots/default")
     doc = problem(status, headers, raw, 504, "timeout")
-    assert "180 s" in doc["detail"]  # the committed timeout, which the test shortened
+    assert "100 s" in doc["detail"]  # the committed timeout, which the test shortened
     no_version(headers)
 
 
 def test_every_error_nginx_makes_has_a_problem_page():
     text = CONF.read_text(encoding="utf-8")
-    pages = dict(re.findall(r"error_page (\d+) (@\w+);", text))
-    assert set(pages) == {"413", "502", "503", "504"}
+    pages = {status: name
+             for statuses, name in re.findall(r"error_page ([\d ]+) (@\w+|/[\w./]+);", text)
+             for status in statuses.split()}
+    assert set(pages) == {"400", "494", "404", "405", "408", "413", "414", "501", "502", "503",
+                          "504", "505"}
     for status, name in pages.items():
-        block = re.search(r"location " + name + r" \{(.*?)\n    \}", text, re.S)
+        if status == "494":  # nginx's own code for headers too large, answered as 400
+            status = "400"
+        where = name if name.startswith("@") else "= " + re.escape(name)
+        block = re.search(r"location " + where + r" \{(.*?)\n    \}", text, re.S)
         assert block, name
         assert "default_type application/problem+json;" in block.group(1)
         returned = re.search(r"return (\d+) '(.*)\\n';", block.group(1))
@@ -251,3 +264,173 @@ def test_every_error_nginx_makes_has_a_problem_page():
         doc = json.loads(returned.group(2).replace("$planner_request_id", "id"))
         assert set(doc) == PROBLEM_KEYS and doc["status"] == int(status)
     assert re.search(r"^server_tokens off;", text, re.M)
+
+
+# ---------------------------------------------------------------------- nginx's own refusals
+@pytest.mark.parametrize("raw, status", [
+    (b"NOT HTTP AT ALL\r\n\r\n", 400),
+    (b"GET /healthz HTTP/1.1\r\n\r\n", 400),  # no Host
+    (b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 20000 + b"\r\n\r\n", 400),
+    (b"GET /" + b"a" * 20000 + b" HTTP/1.1\r\nHost: x\r\n\r\n", 414),
+    (b"TRACE / HTTP/1.1\r\nHost: x\r\n\r\n", 405),
+    (b"POST /v1/plans HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: gzip\r\n\r\n", 501),
+    (b"GET /healthz HTTP/2.5\r\nHost: x\r\n\r\n", 505),
+    (b"GET /.problem/400 HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", 404),  # internal pages stay so
+], ids=["garbage", "no_host", "header_too_large", "uri_too_long", "trace", "transfer_coding",
+        "version", "internal_page"])
+def test_nginx_refusals_are_problem_documents(front_of_nothing, raw, status):
+    """What nginx refuses itself, before any replica, is a problem document (it was HTML)."""
+    with socket.create_connection(("127.0.0.1", front_of_nothing), timeout=30) as s:
+        s.sendall(raw)
+        got = b""
+        try:
+            while chunk := s.recv(65536):
+                got += chunk
+        except ConnectionResetError:
+            pass
+    head, _, body = got.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    headers = {k.lower(): v.strip() for k, _, v in (li.partition(":") for li in lines[1:])}
+    code = {404: "not_found", 405: "method_not_allowed"}.get(status, "invalid_request")
+    problem(int(lines[0].split()[1]), headers, body, status, code)
+    no_version(headers)
+
+
+# ---------------------------------------------------------------------- several replicas
+#: A stand-in replica: answers 503 ``overloaded`` (Retry-After: 1) while the file given as its
+#: second argument exists, 200 otherwise; the body names the replica (its first argument).
+FAKE_REPLICA = r"""
+import json, os, sys
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+name, busy_flag, port = sys.argv[1], sys.argv[2], int(sys.argv[3])
+
+class Replica(BaseHTTPRequestHandler):
+    protocol_version = "HTTP/1.1"
+
+    def answer(self):
+        length = int(self.headers.get("Content-Length") or 0)
+        self.rfile.read(length)
+        if os.path.exists(busy_flag):
+            status, body = 503, {"type": "https://chained-planner.invalid/problems/overloaded",
+                                 "title": "Service overloaded", "status": 503,
+                                 "code": "overloaded", "detail": "busy " + name, "field": None,
+                                 "diagnostics": {"retry_after": 1}, "request_id": "x"}
+            kind = "application/problem+json"
+        else:
+            status, body, kind = 200, {"replica": name}, "application/json"
+        data = json.dumps(body).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", kind)
+        self.send_header("Content-Length", str(len(data)))
+        if status == 503:
+            self.send_header("Retry-After", "1")
+        self.end_headers()
+        self.wfile.write(data)
+
+    do_GET = do_POST = answer
+
+    def log_message(self, *args):
+        pass
+
+ThreadingHTTPServer.daemon_threads = True
+ThreadingHTTPServer(("127.0.0.1", port), Replica).serve_forever()
+"""
+
+
+@contextlib.contextmanager
+def fake_replicas(busy_flag: Path, count: int = 2) -> Iterator[list[subprocess.Popen[bytes]]]:
+    """``count`` stand-in replicas (:data:`FAKE_REPLICA`) listening, busy while ``busy_flag``
+    exists; yields (port, process) pairs."""
+    procs, ports = [], []
+    try:
+        for i in range(count):
+            port = free_port()
+            procs.append(subprocess.Popen([sys.executable, "-c", FAKE_REPLICA, f"r{i}",
+                                           str(busy_flag), str(port)]))
+            ports.append(port)
+        for port, proc in zip(ports, procs):
+            deadline = time.monotonic() + 30
+            while True:
+                try:
+                    socket.create_connection(("127.0.0.1", port), timeout=2).close()
+                    break
+                except OSError:
+                    assert proc.poll() is None and time.monotonic() < deadline
+                    time.sleep(0.05)
+        yield list(zip(ports, procs))  # type: ignore[misc]
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGCONT)
+                proc.kill()
+                proc.wait(timeout=10)
+
+
+def test_a_burst_of_503s_does_not_take_healthy_replicas_out(tmp_path):
+    """Two replicas answer 503 ``overloaded`` to a burst of 60 requests (busy), then 200 (no
+    longer busy). Their 503s reach the client as they are (Retry-After kept), and right after
+    the burst every request is answered 200: no replica was marked failed. Before, each 503
+    marked its replica failed (``proxy_next_upstream http_503`` with the default
+    ``max_fails=1``): 502 to everyone for the next 10 s while both replicas were healthy."""
+    busy = tmp_path / "busy"
+    busy.touch()
+    with fake_replicas(busy) as replicas, \
+            nginx_front(tmp_path / "nginx-503", [p for p, _ in replicas]) as port:
+        during = []
+        for _ in range(60):
+            status, headers, raw = request(port, "POST", "/v1/plans", b"{}",
+                                           {"Content-Type": "application/json"})
+            during.append(status)
+            if status == 503:
+                problem(status, headers, raw, 503, "overloaded")
+                assert headers.get("retry-after") == "1"
+        busy.unlink()
+        after = [request(port, "POST", "/v1/plans", b"{}",
+                         {"Content-Type": "application/json"}) for _ in range(20)]
+    print(f"\n503 burst through nginx: {len(during)} requests during it, statuses "
+          f"{sorted(set(during))}; after it {[a[0] for a in after].count(200)} of 20 answered 200")
+    assert during and set(during) == {503}, during
+    assert [a[0] for a in after] == [200] * 20, [(a[0], a[2][:80]) for a in after]
+    assert {json.loads(a[2])["replica"] for a in after} == {"r0", "r1"}  # both in use
+
+
+def test_a_stopped_replica_is_avoided_and_its_requests_go_elsewhere(tmp_path):
+    """One of two replicas is stopped (SIGSTOP: its connections are accepted by the kernel,
+    nothing answers). Requests sent meanwhile are answered by the other one at once (fewest
+    requests in progress), and those that reached the stopped one are passed to the other
+    after ``proxy_read_timeout`` (shortened to 2 s here; 100 s as committed) instead of
+    timing out. Before, every other request went to the stopped replica and waited the whole
+    read timeout (180 s), then 504."""
+    with fake_replicas(tmp_path / "never") as replicas, \
+            nginx_front(tmp_path / "nginx-stopped", [p for p, _ in replicas], "2s") as port:
+        os.kill(replicas[1][1].pid, signal.SIGSTOP)
+        stuck: list[tuple[int, bytes, float]] = []
+
+        def send() -> None:
+            t0 = time.monotonic()
+            status, _, raw = request(port, "POST", "/v1/plans", b"{}",
+                                     {"Content-Type": "application/json"})
+            stuck.append((status, raw, time.monotonic() - t0))
+
+        first = [threading.Thread(target=send) for _ in range(4)]
+        for t in first:
+            t.start()
+        time.sleep(0.5)  # some of them wait on the stopped replica
+        later = []
+        for _ in range(10):
+            with contextlib.closing(http.client.HTTPConnection("127.0.0.1", port,
+                                                               timeout=1.5)) as c:
+                try:
+                    c.request("GET", "/v1/robots/default")
+                    r = c.getresponse()
+                    later.append((r.status, json.loads(r.read())["replica"]))
+                except (TimeoutError, OSError) as exc:
+                    later.append((0, repr(exc)))
+        for t in first:
+            t.join(timeout=60)
+    print(f"\nstopped replica behind nginx: later requests {later}; the first four "
+          f"{[(s, round(t, 1)) for s, _, t in stuck]}")
+    assert later == [(200, "r0")] * 10, later
+    assert len(stuck) == 4 and all(s == 200 and json.loads(raw)["replica"] == "r0"
+                                   for s, raw, _ in stuck), stuck

@@ -74,6 +74,25 @@ def test_docker_waits_longer_than_the_graceful_shutdown():
     assert _seconds(planner["stop_grace_period"]) >= timeout + 5
 
 
+def test_the_load_balancer_waits_for_the_longest_request():
+    """nginx waits for a replica's answer (``proxy_read_timeout``) at least as long as the
+    longest request a replica may take (waiting for a worker, the largest time limit, the
+    grace), and Docker lets nginx's graceful stop last longer than that."""
+    from service.settings import Settings
+
+    doc = compose()
+    env = doc["services"]["planner"]["environment"]
+
+    def setting(name: str) -> float:
+        return float(env.get("PLANNER_" + name.upper(), Settings.model_fields[name].default))
+
+    longest = setting("queue_timeout") + setting("max_time_limit") + setting("timeout_grace")
+    conf = (ROOT / "deploy" / "nginx.conf").read_text(encoding="utf-8")
+    (read_timeout,) = re.findall(r"proxy_read_timeout (\d+)s;", conf)
+    assert longest < float(read_timeout) <= longest + 30, (longest, read_timeout)
+    assert _seconds(doc["services"]["lb"]["stop_grace_period"]) >= float(read_timeout) + 5
+
+
 def test_compose_runs_replicas_behind_a_load_balancer():
     doc = compose()
     planner, lb = doc["services"]["planner"], doc["services"]["lb"]
@@ -87,7 +106,7 @@ def test_compose_runs_replicas_behind_a_load_balancer():
     (mount,) = lb["volumes"]
     source = mount.split(":")[0]
     conf = (ROOT / source).read_text(encoding="utf-8")
-    assert re.search(r"server\s+planner:8000;", conf)
+    assert re.search(r"server\s+planner:8000[ ;]", conf)
     assert "proxy_pass http://planner_replicas;" in conf
     port = planner["environment"]["PLANNER_PORT"]
     assert f"planner:{port}" in conf

@@ -105,7 +105,8 @@ def test_library_validation_is_invalid_request(client):
     # a start outside the singularity-free region is refused by the planner itself
     r = client.post("/v1/plans", json={**WORKED, "joint_bounds": [[0.3, 1.0], None, None]})
     body = assert_problem(r, 422, "invalid_request")
-    assert body["field"] is not None and body["field"].startswith("start")
+    # (named by the bound that excludes the start, with its joint)
+    assert body["field"] == "joint_bounds[0]" and "start of joint th1" in body["detail"]
 
 
 def test_tiny_time_limit_with_a_big_search_is_a_504(client):

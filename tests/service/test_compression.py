@@ -1,0 +1,53 @@
+"""Large answers are compressed for clients that accept gzip, and the path's columns are named
+(issue 28, item 7)."""
+
+from __future__ import annotations
+
+import gzip
+import json
+
+import httpx
+
+from svc_support import DEG, WORKED
+
+
+def test_a_plan_is_gzipped_when_the_client_accepts_it_and_not_otherwise(live_server):
+    body = {**WORKED, "phi_change": 34 * DEG, "samples": 201}
+    with httpx.Client(base_url=live_server, timeout=60) as client:
+        # the fast path (POST /v1/plans answered by the middleware) and the app's routes alike
+        for path, payload in (("/v1/plans", body), ("/v1/plans/batch", {"requests": [body]})):
+            plain = client.post(path, json=payload, headers={"Accept-Encoding": "identity"})
+            assert plain.status_code == 200 and "content-encoding" not in plain.headers
+            with client.stream("POST", path, json=payload,
+                               headers={"Accept-Encoding": "gzip"}) as r:
+                raw = b"".join(r.iter_raw())
+            assert r.status_code == 200 and r.headers["content-encoding"] == "gzip"
+            assert "Accept-Encoding" in r.headers.get("vary", "")
+            # (timing: the only thing two solves may differ in)
+            assert _untimed(json.loads(gzip.decompress(raw))) == _untimed(plain.json())
+            print(f"\n{path} at 201 samples: {len(plain.content)} bytes, gzip {len(raw)}")
+            assert len(raw) < 0.6 * len(plain.content)
+        small = client.get("/healthz", headers={"Accept-Encoding": "gzip"})
+        assert "content-encoding" not in small.headers  # too small to pay
+
+
+def _untimed(doc: object) -> object:
+    if isinstance(doc, dict):
+        return {k: _untimed(v) for k, v in doc.items() if k != "timing"}
+    if isinstance(doc, list):
+        return [_untimed(v) for v in doc]
+    return doc
+
+
+def test_the_path_columns_are_named(client):
+    plan = client.post("/v1/plans", json={**WORKED, "samples": 11}).json()
+    path = plan["path"]
+    assert path["q_names"] == ["phi", "th1", "th2", "th3"]
+    assert path["u_names"] == ["u1", "u2"]
+    assert all(len(row) == len(path["q_names"]) for row in path["q"])
+    assert all(len(row) == len(path["u_names"]) for row in path["u"])
+    # the named columns are what they say: phi and th1 at the start are the request's
+    assert abs(path["q"][0][path["q_names"].index("th1")] - WORKED["start"][0]) < 1e-9
+    # an answer with its names is drawn as it is (sent back unchanged)
+    r = client.post("/v1/figures/from_plan/joint_angles", params={"format": "svg"}, json=plan)
+    assert r.status_code == 200, r.text
