@@ -98,8 +98,9 @@ def test_a_failed_plan_is_a_row_with_its_status(monkeypatch: pytest.MonkeyPatch)
         raise RuntimeError("solver segfault simulated")
     monkeypatch.setattr(studies, "plan", boom)
     rows2 = studies.run_study(poly, workers=0).rows
-    assert [r["status"] for r in rows2] == ["error"] * 3
-    assert "RuntimeError: solver segfault simulated" in rows2[0]["detail"]
+    # (the start outside the region is refused by the request's own check, before planning)
+    assert [r["status"] for r in rows2] == ["invalid_request", "error", "error"]
+    assert "RuntimeError: solver segfault simulated" in rows2[1]["detail"]
 
 
 def test_resume_keeps_written_rows_and_replans_a_cut_line(tmp_path: Path) -> None:

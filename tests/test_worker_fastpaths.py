@@ -170,32 +170,35 @@ def test_verify_plan_initial_width_matches_reference(start_deg):
     inputs = PlannedInputs(chained_form(p.robot), p.chained)
     assert inputs.breaks.size > 2
     K, m = p.robot.gains, p.robot.exponents
+    # the answer runs the plan along its time law: the plan's own time of every sample
+    ts = np.asarray(p.time_law.plan_time(p.path.t), float)
+    T_plan = float(inputs.breaks[-1])
 
     def rhs(t, x):
         u = inputs.u_scalar(t)
         return np.concatenate([model_rhs(x[:-1], u, K, m), [u[0] ** 2 + u[1] ** 2]])
 
     x = np.concatenate([req.q_start(), [0.0]])
-    samples = np.full((p.path.t.size, x.size), np.nan)
+    samples = np.full((ts.size, x.size), np.nan)
     for a, b in itertools.pairwise(inputs.breaks):
         sol = solve_ivp(rhs, (a, b), x, method="DOP853", rtol=1e-12, atol=1e-14,
                         dense_output=True)
-        sel = (p.path.t >= a) & (p.path.t <= b)
-        samples[sel] = sol.sol(p.path.t[sel]).T
+        sel = (ts >= a) & (ts <= b)
+        samples[sel] = sol.sol(ts[sel]).T
         x = sol.y[:, -1]
     ver = verify_plan(p.robot, inputs, req.q_start(), np.array(req.goal),
-                      req.phi_start + p.phi_change, p.path.t, p.path.q)
+                      req.phi_start + p.phi_change, ts, p.path.q)
     assert ver.integrator == CASCADE_NAME and ver.error_estimate <= 1e-11
     np.testing.assert_allclose(ver.final, x[:-1], rtol=0, atol=1e-10)
     assert ver.energy == pytest.approx(x[-1], rel=1e-9)
     assert ver.max_deviation == pytest.approx(np.max(np.abs(samples[:, :-1] - p.path.q)),
                                               abs=1e-9)
     # the mesh: the fewest panels at most T/6 wide per piece, no refinement
-    rep = integrate_cascade(p.robot, inputs.u, req.q_start(), p.duration, p.path.t,
+    rep = integrate_cascade(p.robot, inputs.u, req.q_start(), T_plan, ts,
                             inputs.breaks, initial_width=CASCADE_INITIAL_WIDTH)
     widths = np.diff(inputs.breaks)
-    assert rep.panels == int(np.sum(np.maximum(np.ceil(widths / (p.duration / 6) - 1e-9), 1)))
-    old = integrate_cascade(p.robot, inputs.u, req.q_start(), p.duration, p.path.t,
+    assert rep.panels == int(np.sum(np.maximum(np.ceil(widths / (T_plan / 6) - 1e-9), 1)))
+    old = integrate_cascade(p.robot, inputs.u, req.q_start(), T_plan, ts,
                             inputs.breaks)
     assert old.panels == 3 * widths.size
     np.testing.assert_allclose(rep.final, old.final, rtol=0, atol=1e-13)

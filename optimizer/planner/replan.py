@@ -58,7 +58,7 @@ import numpy as np
 
 from ..chained_form import chained_form
 from ..dynamics import rk4_step, vector_field
-from ..errors import InfeasibleError, NumericalError, PlannerError
+from ..errors import InvalidRequestError, InfeasibleError, NumericalError, PlannerError
 from ..forms import EXECUTION_TOLERANCE, REPLAY_NODES, correct, linear_form
 from ..indicators import compute_indicators
 from ..model import Robot
@@ -216,9 +216,17 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
     T_end = ps.end_time if duration is None else float(duration)
     if not math.isfinite(T_end) or T_end <= t:
         raise invalid(f"duration = {duration!r} s must end after time = {t:.6g} s", "duration")
-    req = PlanRequest(start=tuple(q_m[1:]), goal=tuple(ps.goal), robot=ps.robot,
-                      phi_start=float(q_m[0]), duration=T_end - t, samples=ps.samples,
-                      joint_bounds=ps.joint_bounds, time_limit=float(time_limit))
+    try:
+        req = PlanRequest(start=tuple(q_m[1:]), goal=tuple(ps.goal), robot=ps.robot,
+                          phi_start=float(q_m[0]), duration=T_end - t, samples=ps.samples,
+                          joint_bounds=ps.joint_bounds, time_limit=float(time_limit))
+    except InvalidRequestError as exc:
+        # the request's start is the measured state without phi: name the state's element
+        field = exc.field or ""
+        if field.startswith("start["):
+            i = int(field[len("start["):-1])
+            raise invalid(str(exc).replace(field, f"state[{i + 1}]"), f"state[{i + 1}]") from exc
+        raise
     lo, hi = joint_limits(req)
     for i, (x, a, b) in enumerate(zip(q_m[1:], lo, hi)):
         if not a < x < b:
