@@ -2,8 +2,8 @@
 process planned before, in whatever order, and in a fresh process.
 
 The answers are compared whole (every field of ``to_dict()``) except what measures the run
-rather than the plan: ``timing``, every ``seconds``, and ``compiled`` (whether the NLP's
-functions ran compiled or on CasADi's virtual machine).
+rather than the plan: ``timing``, every ``seconds``, ``compiled`` (whether the NLP's
+functions ran compiled or on CasADi's virtual machine) and, over HTTP, ``request_id``.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
 
 ROOT = Path(__file__).resolve().parents[1]
-RUN_KEYS = {"timing", "seconds", "compiled"}
+RUN_KEYS = {"timing", "seconds", "compiled", "request_id"}
 
 #: The README's example, a hard request that once left fatrop's memory dirty (the example
 #: after it came back with 2 + 1 reversals instead of 0 + 1), goals whose joints move both

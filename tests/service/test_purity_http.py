@@ -7,25 +7,15 @@ what measures the run (``timing``, every ``seconds``, ``compiled``) and the requ
 
 from __future__ import annotations
 
-from typing import Any
-
 import pytest
 
 from svc_support import DEG
+from test_purity import _strip  # what measures the run, left out of the comparison
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
-RUN_KEYS = {"timing", "seconds", "compiled", "request_id"}
 EXAMPLE = {"start": [10 * DEG] * 3, "goal": [30 * DEG] * 3, "samples": 31, "time_limit": 60}
 HARD = {"start": [0.2, 0.2, -6.0], "goal": [0.21, 0.21, 6.0], "samples": 31, "time_limit": 60}
-
-
-def _strip(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {k: _strip(v) for k, v in obj.items() if k not in RUN_KEYS}
-    if isinstance(obj, list):
-        return [_strip(v) for v in obj]
-    return obj
 
 
 @pytest.mark.slow
