@@ -294,16 +294,20 @@ def test_correction_reaches_the_exact_goal_from_the_rk4_rates():
 @pytest.mark.parametrize("rows_apart", [1.0, 1e-9])
 def test_the_newton_step_is_the_least_norm_solution(rows_apart):
     """The correction's step against numpy's SVD least squares: on a well-conditioned
-    Jacobian, and on one whose rows are nearly parallel (J J^T singular in double precision),
-    where the normal equations must give way to the SVD."""
-    from optimizer.planner.correction import minimum_norm_step
+    Jacobian the least-norm solution; on one whose rows are nearly parallel (J J^T singular
+    in double precision, the exact solution's entries about 1e7) the SVD's, truncated below
+    STEP_RCOND of the largest singular value, so that the weak direction is left out."""
+    from optimizer.planner.correction import STEP_RCOND, minimum_norm_step
 
     rng = np.random.default_rng(11)
     J = rng.normal(size=(5, 24))
     J[2] = J[1] + rows_apart * rng.normal(size=24)
-    r = rng.normal(size=5)
-    ref = np.linalg.lstsq(J, r, rcond=None)[0]
+    r = 0.01 * rng.normal(size=5)
+    ref = np.linalg.lstsq(J, r, rcond=None if rows_apart == 1.0 else STEP_RCOND)[0]
     x = minimum_norm_step(J, r)
+    if rows_apart != 1.0:
+        assert np.max(np.abs(np.linalg.lstsq(J, r, rcond=None)[0])) > 1e5
+        assert np.max(np.abs(x)) < 1.0
     assert np.all(np.isfinite(x))
     np.testing.assert_allclose(x, ref, rtol=1e-6, atol=1e-9 * np.max(np.abs(ref)))
     if rows_apart == 1.0:

@@ -57,6 +57,15 @@ def finish_solution(req: PlanRequest, method: str, nlp: MultipleShootingNLP, sol
 
 #: Relative residual ``|J x - r| / |r|`` below which the normal equations' step is kept.
 STEP_RESIDUAL = 1e-9
+#: Largest change of a rate (per unit of normalised time) a step of the normal equations may
+#: make; larger steps come from directions the rates barely move the end in, and are taken
+#: from the truncated SVD instead.
+STEP_LIMIT = 0.05
+#: Singular values of the end map's Jacobian below this fraction of the largest are left out
+#: of a step: from 6 joints the Jacobian's singular values span 0.35 to 1e-11 (the highest
+#: Lie brackets), and cancelling a 1e-8 rad miss along the weakest would move the rates by
+#: hundreds (the NLP's elastic goal leaves almost nothing there, see ``ELASTIC_MISS``).
+STEP_RCOND = 1e-7
 
 
 def minimum_norm_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -76,9 +85,10 @@ def minimum_norm_step(J: np.ndarray, r: np.ndarray) -> np.ndarray:
     if x is not None:
         res = J @ x - r
         scale = float(r @ r)
-        if math.isfinite(float(x @ x)) and float(res @ res) <= STEP_RESIDUAL ** 2 * scale:
+        if (math.isfinite(float(x @ x)) and float(res @ res) <= STEP_RESIDUAL ** 2 * scale
+                and float(np.max(np.abs(x))) <= STEP_LIMIT):
             return x
-    return np.linalg.lstsq(J, r, rcond=None)[0]
+    return np.linalg.lstsq(J, r, rcond=STEP_RCOND)[0]
 
 
 def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,

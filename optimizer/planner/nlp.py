@@ -115,6 +115,19 @@ REGION_MODES = ("hard", "penalty")
 #: budget's straightest candidates, :mod:`.budget`: the answer's ``deviation``; the squared
 #: distance from a convex set is continuously differentiable, so the solvers do not mind).
 DEVIATION_MODES = ("line", "segment")
+#: How the goal enters: as equality rows ("hard"), or "elastic": ``|th_N - goal|_inf <= E``
+#: with ``ELASTIC_WEIGHT * E`` in the objective, an exact penalty (the answer ends on the goal
+#: whenever the weight exceeds the goal rows' multipliers; the Newton correction removes what
+#: is left). With the goal as equalities the KKT systems of 6- to 8-joint NLPs are singular
+#: wherever the iterate's end map loses rank in a bracket direction (IPOPT: "Error in step
+#: computation", fatrop: "constraint Jacobian not full rank"): on 5 generated 7-joint goals
+#: IPOPT converged from 5 of 10 guesses in 23-500 iterations; elastic, from 10 of 10 in
+#: 15-24, and on 6-joint and 8-joint goals from 24 of 24 in 18-35.
+TERMINAL_MODES = ("hard", "elastic")
+#: Weight of the goal's exact penalty (rad^-1; the energy of a 1 rad move is about 1).
+ELASTIC_WEIGHT = 1e5
+#: From this many joints the goal is elastic by default.
+ELASTIC_FROM_JOINTS = 6
 #: Distance (rad) kept from the region's bounds at the nodes (0.5 deg).
 MARGIN = math.radians(0.5)
 #: RK4 steps of the correction's end map per RK4 step of the NLP. On the bench's goals (rates
@@ -161,32 +174,37 @@ class MultipleShootingNLP:
 
     def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
                  intervals: int, substeps: int, region: str = "hard",
-                 deviation: str = "line") -> None:
+                 deviation: str = "line", terminal: str = "hard") -> None:
         if region not in REGION_MODES:
             raise ValueError(f"region must be one of {REGION_MODES}, not {region!r}")
         if deviation not in DEVIATION_MODES:
             raise ValueError(f"deviation must be one of {DEVIATION_MODES}, not {deviation!r}")
+        if terminal not in TERMINAL_MODES:
+            raise ValueError(f"terminal must be one of {TERMINAL_MODES}, not {terminal!r}")
         t0 = time.perf_counter()
         n = self.n = len(gains) + 1
         N = self.N = intervals
         self.region = region
+        self.terminal = terminal
         penalty = region == "penalty"
+        elastic = terminal == "elastic"
         nq = n + 1
-        nx = self.nx = nq + 2
+        # (q, S, S1) and, elastic, E: the epigraphs (and E) are constant along the path
+        nx = self.nx = nq + (3 if elastic else 2)
         nu = self.nu = 3 if penalty else 2
         h = 1.0 / N
 
         def field(y: Any, rates: Any) -> Any:
             # the epigraph states are constant along the path
             return ca.vertcat(*vector_field(gains, exponents, y, rates[0], rates[1], ca.cos),
-                              0, 0)
+                              *([0] * (nx - nq)))
 
         x, u = ca.SX.sym("x", nx), ca.SX.sym("u", 2)
         step = ca.Function("rk4", [x, u], [rk4_step(field, x, u, h, substeps)])
         # the NLP model's end state as a function of the start and all rates (single shooting)
         # and its Jacobian: the Newton correction (correct_rates) uses them
         q0s, Us = ca.SX.sym("q0", nq), ca.SX.sym("U", 2 * N)
-        xe = ca.vertcat(q0s, 0, 0)
+        xe = ca.vertcat(q0s, *([0] * (nx - nq)))
         for k in range(N):
             xe = step(xe, Us[2 * k:2 * k + 2])
         self.end_jacobian = ca.Function("end_jacobian", [q0s, Us],
@@ -228,7 +246,11 @@ class MultipleShootingNLP:
             if k == 0:
                 return [(X[0][:nq] - ca.vertcat(phi0, a), True)]
             if k == N:
-                rows = [(X[N][1:nq] - b, True)]
+                if elastic:
+                    miss = X[N][1:nq] - b
+                    rows = [(miss - X[N][nq + 2], False), (-miss - X[N][nq + 2], False)]
+                else:
+                    rows = [(X[N][1:nq] - b, True)]
                 if fixed_phi:
                     rows.append((X[N][0] - phi0 - dphi, True))
                 return rows
@@ -261,6 +283,8 @@ class MultipleShootingNLP:
                 eq += [is_eq] * int(expr.shape[0])
             ng.append(sum(int(e.shape[0]) for e, _ in rows))
         f += w_dev * X[N][nq] + w_da * X[N][nq + 1]
+        if elastic:
+            f += ELASTIC_WEIGHT * X[N][nq + 2]
         if penalty:
             f += w_sens * sensitivity_frobenius(X[N][0] - phi0, n)
         nlp = {"x": ca.vertcat(*w), "p": P, "f": f, "g": ca.vertcat(*g)}
@@ -278,7 +302,7 @@ class MultipleShootingNLP:
         # 1.6 GB to compile, for a rung that runs rarely (and for about a second)
         first = ladder(n)[0]
         self.native_ok = ((intervals, substeps) == (first.intervals, first.substeps)
-                          and deviation == "line")  # (the budget's NLPs: not compiled)
+                          and deviation == "line" and terminal == default_terminal(n))  # (the budget's NLPs: not compiled)
         name = "shooting" if region == "hard" else "penalty"
         # how each solver is built, kept so that it can be built anew (see solver_call)
         self._factories: dict[str, Callable[[], Any]] = {}
@@ -386,7 +410,7 @@ class MultipleShootingNLP:
         n = self.n
         lb = np.full((self.N + 1, self.stride), -np.inf)
         ub = np.full((self.N + 1, self.stride), np.inf)
-        lb[:, n + 1:n + 3] = 0.0
+        lb[:, n + 1:self.nx] = 0.0
         if self.region == "penalty":
             lb[:, self.nx + 2] = 0.0
             ub[0, self.nx + 2] = 0.0
@@ -428,13 +452,34 @@ class MultipleShootingNLP:
         W[:, :n + 1] = Q
         W[:, n + 1] = S
         W[:, n + 2] = S1
-        W[:N, n + 3:n + 5] = rates
+        if self.terminal == "elastic":  # the straight line's guess ends on the goal
+            W[:, n + 3] = 1e-4
+        W[:N, self.nx:self.nx + 2] = rates
         return self.flat(W)
 
     def unpack(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Node states ``(N+1, n+1)`` and rates ``(N, 2)`` of a solution vector."""
         W = np.concatenate([w, np.zeros(self.nu)]).reshape(self.N + 1, self.stride)
         return W[:, :self.n + 1].copy(), W[:self.N, self.nx:self.nx + 2].copy()
+
+    def goal_miss(self, w: np.ndarray, p: np.ndarray) -> float:
+        """``max |th_N - goal|`` of a solution vector: 0 for a hard goal, which the solver
+        meets to its tolerance, else the elastic goal's miss (see :data:`TERMINAL_MODES`)."""
+        if self.terminal != "elastic":
+            return 0.0
+        n = self.n
+        end = np.asarray(w, float)[self.N * self.stride + 1:self.N * self.stride + n + 1]
+        return float(np.max(np.abs(end - np.asarray(p, float)[1 + n:1 + 2 * n])))
+
+    def tightened(self, p: np.ndarray, factor: float) -> np.ndarray:
+        """``p`` with the objective's weights divided by ``factor``: the elastic goal's
+        penalty (fixed in the NLP) then weighs ``factor`` times more against them."""
+        q = np.array(p, float)
+        n = self.n
+        q[1 + 2 * n:4 + 2 * n] /= factor
+        if self.region == "penalty":  # the sensitivity's weight and the region's penalty
+            q[5 + 2 * n:7 + 2 * n] /= factor
+        return q
 
     def slacks(self, w: np.ndarray) -> np.ndarray:
         """The penalty's slacks ``s_0..s_{N-1}`` of a solution vector (zeros when hard)."""
@@ -453,13 +498,20 @@ def sensitivity_frobenius(s: Any, n: int) -> Any:
     return ca.sqrt(tot)
 
 
+def default_terminal(n: int) -> str:
+    """The terminal mode of an ``n``-joint robot's NLPs (see :data:`TERMINAL_MODES`)."""
+    return "elastic" if n >= ELASTIC_FROM_JOINTS else "hard"
+
+
 @functools.lru_cache(maxsize=16)
 def multiple_shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
                           intervals: int, substeps: int,
-                          region: str = "hard", deviation: str = "line") -> MultipleShootingNLP:
-    """The cached NLP of one robot, transcription, region and deviation mode (per process)."""
+                          region: str = "hard", deviation: str = "line",
+                          terminal: str | None = None) -> MultipleShootingNLP:
+    """The cached NLP of one robot, transcription, region, deviation and terminal mode (per
+    process; ``terminal`` None: :func:`default_terminal`)."""
     return MultipleShootingNLP(gains, exponents, fixed_phi, intervals, substeps, region,
-                               deviation)
+                               deviation, terminal or default_terminal(len(gains) + 1))
 
 
 def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard",
