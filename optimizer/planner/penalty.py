@@ -67,7 +67,7 @@ from ..verify import integrate_cascade
 from . import nlp as nlp_layer
 from .correction import finish_solution
 from .nlp import MultipleShootingNLP, Transcription, nlp_for, node_bounds
-from .rungs import IPOPT_FIRST_JOINTS, solve_rungs
+from .rungs import ipopt_first, solve_rungs
 from .solvers import run_solver
 from .base import Capabilities, Method
 from .context import PlanContext
@@ -233,7 +233,7 @@ def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription | None = No
         starts = [("previous_solution", "the previous solution's nodes (its rates' signs "
                    "held: see nlp.solve_rungs)",
                    np.clip(nlp.guess_from_nodes(start_nodes, a, b), lbw, ubw))]
-    elif req.n >= IPOPT_FIRST_JOINTS:
+    elif ipopt_first(req.n):
         solvers = [s for s in solvers if s == "ipopt"] or solvers
     tried: list[dict[str, Any]] = []
     for solver in solvers:

@@ -87,7 +87,7 @@ from .correction import CORRECTION_TARGET, correct_rates, finish_solution
 from .nlp import (D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, LADDER_3_JOINTS, MARGIN,
                   MultipleShootingNLP, Transcription, ladder, multiple_shooting_nlp, nlp_for,
                   node_bounds, objective_weights)
-from .rungs import IPOPT_FIRST_JOINTS, solve_rungs
+from .rungs import ipopt_first, solve_rungs
 from .solvers import run_solver
 from .base import Capabilities, Method
 from .context import PlanContext
@@ -147,7 +147,7 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
     lo, hi = node_bounds(req, joint_limits(req))
     lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi, monotone)
     attempts = ATTEMPTS
-    if req.n >= IPOPT_FIRST_JOINTS:
+    if ipopt_first(req.n):
         attempts = tuple(at for at in ATTEMPTS if at[0] == "ipopt")
     if monotone is not None:
         # rates of fixed signs (see rules.monotone_signs): one guess travelling that way (phi

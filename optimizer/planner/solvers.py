@@ -49,7 +49,7 @@ class SolvableNLP(Protocol):
 #: the goal's penalty :data:`ELASTIC_STEP` times heavier, at most :data:`ELASTIC_ROUNDS` times.
 #: The Newton correction cannot remove a miss along the end map's weak directions (at 7
 #: joints its singular values span 0.35 to 1e-11), so the NLP itself must end on the goal.
-ELASTIC_MISS = 1e-8
+ELASTIC_MISS = 3e-7
 ELASTIC_STEP = 100.0
 ELASTIC_ROUNDS = 2
 #: A converged elastic solution that misses its goal by more than this (rad) in two rounds
@@ -57,7 +57,7 @@ ELASTIC_ROUNDS = 2
 #: (rates of fixed signs, joint bounds): no third round.
 ELASTIC_GIVE_UP = 1e-4
 #: ... and a solution that, after those rounds, still misses by more than this (rad) is none.
-ELASTIC_ACCEPT = 1e-7
+ELASTIC_ACCEPT = 3e-7
 
 
 #: Iteration cap of fatrop (it converged in 15-38 iterations on the bench's goals; a failing run
