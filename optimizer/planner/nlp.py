@@ -302,7 +302,8 @@ class MultipleShootingNLP:
         # 1.6 GB to compile, for a rung that runs rarely (and for about a second)
         first = ladder(n)[0]
         self.native_ok = ((intervals, substeps) == (first.intervals, first.substeps)
-                          and deviation == "line" and terminal == default_terminal(n))  # (the budget's NLPs: not compiled)
+                          and deviation == "line" and terminal == default_terminal(n))
+        # (the budget's NLPs are not compiled)
         name = "shooting" if region == "hard" else "penalty"
         # how each solver is built, kept so that it can be built anew (see solver_call)
         self._factories: dict[str, Callable[[], Any]] = {}

@@ -67,7 +67,7 @@ from ..verify import integrate_cascade
 from . import nlp as nlp_layer
 from .correction import finish_solution
 from .nlp import MultipleShootingNLP, Transcription, nlp_for, node_bounds
-from .rungs import ipopt_first, solve_rungs
+from .rungs import LIGHT_SHARE, ipopt_first, solve_rungs
 from .solvers import run_solver
 from .base import Capabilities, Method
 from .context import PlanContext
@@ -195,12 +195,14 @@ def violation(nodes: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
 def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription | None = None, *,
                   warm_start: ActuatorSchedule | InputSchedule | None = None,
                   rate_signs: tuple[float, float] | np.ndarray | None = None,
-                  start_nodes: np.ndarray | None = None) -> PenaltySolution:
+                  start_nodes: np.ndarray | None = None, light: bool = False
+                  ) -> PenaltySolution:
     """Solve the penalty NLP of transcription ``tr`` for ``req`` (normalised time), raising
     ``rho`` while the solution violates the region; raise a typed error when it fails.
 
     ``rate_signs``: one sign per actuator, or per interval and actuator (0: either);
-    ``start_nodes``: node states ``(N+1, n+1)`` to start from instead of the usual starts.
+    ``start_nodes``: node states ``(N+1, n+1)`` to start from instead of the usual starts;
+    ``light``: the deviation weights times :data:`~.rungs.LIGHT_SHARE` (as ``shooting``).
 
     Raises
     ------
@@ -215,6 +217,8 @@ def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription | None = No
     lo, hi = node_bounds(req, joint_limits(req))
     lbw, ubw, phi_range = nlp_layer.variable_bounds(req, nlp, tr, rate_signs=rate_signs)
     w_dev, w_en, w_da = nlp_layer.objective_weights(req, "penalty")
+    if light:
+        w_dev, w_da = w_dev * LIGHT_SHARE, w_da * LIGHT_SHARE
     w_sens = sensitivity_weight(req)
     starts = _starts(req, nlp, lbw, ubw, phi_range, warm_start)
     nlp.load_native()
@@ -310,8 +314,9 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     sol, tr, signs, tried = solve_rungs(
-        req, lambda tr, rate_signs, start=None: solve_penalty(
-            req, deadline, tr, warm_start=warm_start, rate_signs=rate_signs, start_nodes=start))
+        req, lambda tr, rate_signs, start=None, light=False: solve_penalty(
+            req, deadline, tr, warm_start=warm_start, rate_signs=rate_signs, start_nodes=start,
+            **({"light": True} if light else {})), light_first=True)
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the penalty NLP")
     region = penalised_region(req)

@@ -87,7 +87,7 @@ from .correction import CORRECTION_TARGET, correct_rates, finish_solution
 from .nlp import (D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, LADDER_3_JOINTS, MARGIN,
                   MultipleShootingNLP, Transcription, ladder, multiple_shooting_nlp, nlp_for,
                   node_bounds, objective_weights)
-from .rungs import ipopt_first, solve_rungs
+from .rungs import LIGHT_SHARE, ipopt_first, solve_rungs
 from .solvers import run_solver
 from .base import Capabilities, Method
 from .context import PlanContext
@@ -130,7 +130,8 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
 
 def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = None,
                    monotone: tuple[float, float] | np.ndarray | None = None,
-                   start_nodes: np.ndarray | None = None) -> ShootingSolution:
+                   start_nodes: np.ndarray | None = None, light: bool = False
+                   ) -> ShootingSolution:
     """Solve the NLP of transcription ``tr`` (default: the first rung of
     :func:`~.nlp.ladder`) for ``req`` (normalised time); raise a typed error when it fails.
 
@@ -158,7 +159,10 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
         first = float(np.asarray(monotone, float).reshape(-1, 2)[0, 0])
         sign = first or float(np.sign(req.goal[1] - req.start[1])) or 1.0
         attempts = (("fatrop", sign),)
-    p = nlp_layer.parameters(req, *objective_weights(req, "shooting"))
+    w_dev, w_energy, w_da = objective_weights(req, "shooting")
+    if light:  # nearly the minimum-energy plan (see rungs.LIGHT_FROM_JOINTS)
+        w_dev, w_da = w_dev * LIGHT_SHARE, w_da * LIGHT_SHARE
+    p = nlp_layer.parameters(req, w_dev, w_energy, w_da)
     nlp.load_native()
     solvers = dict(nlp.solvers)
     tried: list[dict[str, Any]] = []
@@ -207,7 +211,9 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     # the rungs (nlp.rungs): under the default objective rates of fixed signs first (a plan
     # in which no actuator reverses wins whatever its deviation), then free
     sol, tr, mono, tried = solve_rungs(
-        req, lambda tr, signs, start=None: solve_shooting(req, deadline, tr, signs, start))
+        req, lambda tr, signs, start=None, light=False: (
+            solve_shooting(req, deadline, tr, signs, start, light=True) if light
+            else solve_shooting(req, deadline, tr, signs, start)), light_first=True)
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
     return finish_solution(req, "shooting", nlp_for(req, tr), sol, tr, mono, tried,

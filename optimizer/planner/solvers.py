@@ -45,7 +45,8 @@ class SolvableNLP(Protocol):
 
 #: An elastic goal (see :data:`optimizer.planner.nlp.TERMINAL_MODES`) is accepted when its
 #: solution ends this close to it (rad: a tenth of the plan's terminal tolerance; the Newton
-#: correction removes the model's error, and the quadrature proves what is left); else the NLP is solved again from that solution with
+#: correction removes the model's error, and the quadrature proves what is left); else the
+#: NLP is solved again from that solution with
 #: the goal's penalty :data:`ELASTIC_STEP` times heavier, at most :data:`ELASTIC_ROUNDS` times.
 #: The Newton correction cannot remove a miss along the end map's weak directions (at 7
 #: joints its singular values span 0.35 to 1e-11), so the NLP itself must end on the goal.
