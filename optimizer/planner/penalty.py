@@ -233,6 +233,8 @@ def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription | None = No
         keep = [st for st in straight if (sign > 0) == ("+" in st[0])] or straight[:1]
         starts = [st for st in starts if st[0] == "warm_start"] + keep
     if start_nodes is not None:
+        if rate_signs is not None and ipopt_first(req.n):
+            solvers = [s for s in SOLVERS if s == "ipopt"] or solvers  # (as shooting's polish)
         a, b = np.array(req.start), np.array(req.goal)
         starts = [("previous_solution", "the previous solution's nodes (its rates' signs "
                    "held: see nlp.solve_rungs)",

@@ -159,6 +159,10 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
         first = float(np.asarray(monotone, float).reshape(-1, 2)[0, 0])
         sign = first or float(np.sign(req.goal[1] - req.start[1])) or 1.0
         attempts = (("fatrop", sign),)
+        if start_nodes is not None and ipopt_first(req.n):
+            # a polish from a solution's nodes (rungs.LIGHT_FROM_JOINTS) where fatrop fails
+            # on most NLPs (the goal's rows hard): IPOPT from those nodes
+            attempts = (("ipopt", sign),)
     w_dev, w_energy, w_da = objective_weights(req, "shooting")
     if light:  # nearly the minimum-energy plan (see rungs.LIGHT_FROM_JOINTS)
         w_dev, w_da = w_dev * LIGHT_SHARE, w_da * LIGHT_SHARE
