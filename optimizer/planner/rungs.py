@@ -204,16 +204,16 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
                 failures.append(f"{tr.intervals} intervals" + (" (monotone)" if signs else "")
                                 + f" (light): {exc.message}")
                 continue
-            pattern = run_signs(sol.rates)
+            runs = run_signs(sol.rates)
             try:
-                polished = solve(tr, pattern, sol.nodes)
+                polished = solve(tr, runs, sol.nodes)
             except InfeasibleError as exc:
                 tried.extend(exc.diagnostics.get("tried", []))
                 return sol, tr, signs, tried
             if _reversals_and_deviation(req, polished.nodes) <= _reversals_and_deviation(
                     req, sol.nodes):
                 tried.extend(getattr(sol, "tried", ()))
-                return polished, tr, pattern, tried
+                return polished, tr, runs, tried
             tried.extend(getattr(polished, "tried", ()))
             return sol, tr, signs, tried
         ahead: Any = None
