@@ -2,8 +2,8 @@
 
 Three parts, each on the benchmark's generated goals (:func:`bench.goals.generate`):
 
-* **latency in process**: per goal a cold default plan (``plan()``, timed: the baseline of the
-  same run), then replans of it (:func:`optimizer.planner.replan.replan`) at random times from
+* **latency in process** (CPU time of this process, ``time.process_time``: the machine is
+  shared): per goal a cold default plan (``plan()``, timed: the baseline of the same run), then replans of it (:func:`optimizer.planner.replan.replan`) at random times from
   states off the plan's by up to 0.5 deg, with the plan's rates at that time; p50 / p99 per
   ``n``, and the ratio of the cold plan's median to the replan's;
 * **latency over HTTP** (``--http``): ``python -m service`` in a subprocess (one worker),
@@ -78,18 +78,18 @@ def latency(joints: list[int], goals: int, replans: int,
                 replan(warm, *_perturbed_state(warm, np.random.default_rng(0)))
             except PlannerError:
                 pass
-            t0 = time.perf_counter()
+            t0 = time.process_time()
             answer = plan(req).to_dict()
-            plans.append(time.perf_counter() - t0)
+            plans.append(time.process_time() - t0)
             for _ in range(replans):
                 t, state = _perturbed_state(answer, rng, spread_deg)
-                t1 = time.perf_counter()
+                t1 = time.process_time()
                 try:
                     cont = replan(answer, t, state, plain=False)
                     route = cont["diagnostics"]["replan"]["route"]
                 except PlannerError as exc:
                     route = f"refused ({exc.code})"
-                times.append(time.perf_counter() - t1)
+                times.append(time.process_time() - t1)
                 routes[route] = routes.get(route, 0) + 1
         p50, p99 = (float(np.percentile(times, q)) for q in (50, 99))
         out[str(n)] = {"replans": len(times), "p50_ms": 1e3 * p50, "p99_ms": 1e3 * p99,
