@@ -115,16 +115,18 @@ def weighted_step(J: np.ndarray, r: np.ndarray, D2: np.ndarray, mu: float = 0.0)
     """The ``dx`` of least ``|D^-1 dx|`` with ``J dx = r`` (damped by ``mu`` relative to the
     mean diagonal of ``J D^2 J^T``), flat.
 
-    Raises
-    ------
-    numpy.linalg.LinAlgError
-        A singular system.
+    A singular system (rows no free rate moves) is solved in the least-squares sense.
     """
     JD = J * D2
     A = JD @ J.T
     if mu:
         A = A + mu * (float(np.trace(A)) / A.shape[0]) * np.eye(A.shape[0])
-    return np.asarray(JD.T @ np.linalg.solve(A, r))
+    try:
+        y = np.linalg.solve(A, r)
+    except np.linalg.LinAlgError:
+        # rows that the free rates cannot move (all held): least squares on the others
+        y = np.linalg.lstsq(A, r, rcond=None)[0]
+    return np.asarray(JD.T @ y)
 
 
 def correct_pieces(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,

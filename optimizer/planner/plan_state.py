@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import InvalidRequestError, PlannerError
 from ..model import Robot
 from ..results import Plan, json_safe
-from ..timing import ramp_profile
+from ..timing import RAMP, ramp_profile
 
 #: Samples of the handed-out continuation (fewer when less time is left, at least 2 per piece).
 DEFAULT_SAMPLES = 101
@@ -345,13 +345,27 @@ def _read(plan: Any) -> PlanState:
 
 
 
-def law_after_stop(t_stop: float, T_end: float, breaks: np.ndarray) -> np.ndarray:
-    """Rows of :func:`rest_to_rest` laws of pieces ``breaks`` run from ``t_stop`` to ``T_end``, durations in
-    proportion to their plan time."""
+def law_after_stop(t_stop: float, T_end: float, breaks: np.ndarray,
+                   equal: bool = False) -> np.ndarray:
+    """Rows of :func:`rest_to_rest` laws of pieces ``breaks`` run from ``t_stop`` to
+    ``T_end``, durations in proportion to their plan time (``equal``: all the same)."""
     L = np.diff(breaks)
-    D = (T_end - t_stop) * L / L.sum()
+    D = (T_end - t_stop) * (np.full(L.size, 1.0 / L.size) if equal else L / L.sum())
     t0 = t_stop + np.concatenate([[0.0], np.cumsum(D)[:-1]])
-    return np.vstack([rest_to_rest(a, d, s, l) for a, d, s, l in zip(t0, D, breaks[:-1], L)])
+    D[-1] = T_end - t0[-1]      # the law ends at T_end exactly (not at a rounded sum)
+    # ramp_profile of every piece at once: accelerate for r D, cruise, brake for r D
+    r = RAMP
+    v = L / ((1.0 - r) * D)
+    A = v / (r * D)
+    s0 = np.asarray(breaks, float)[:-1]
+    ramp = 0.5 * A * (r * D) ** 2
+    z = np.zeros_like(L)
+    rows = np.stack([
+        np.column_stack([t0, r * D, s0, z, A, z]),
+        np.column_stack([t0 + r * D, (1.0 - 2.0 * r) * D, s0 + ramp, v, z, z]),
+        np.column_stack([t0 + (1.0 - r) * D, r * D, s0 + ramp + v * (1.0 - 2.0 * r) * D, v, -A,
+                         z])], axis=1)
+    return rows.reshape(-1, 6)
 
 
 __all__ = ["DEFAULT_SAMPLES", "LAW_RULE", "MAX_RATE", "PlanState", "REST", "TimeLaw",

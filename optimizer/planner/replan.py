@@ -71,6 +71,10 @@ from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
 
 #: Rounds of holding at 0 the rates that a correction would reverse.
 MAX_HOLDS = 3
+#: The continuation's last piece is split into this many parts and one more...
+TAIL_PIECES = 6
+#: ... each this fraction of the rest: run in equal times, the motion slows geometrically.
+TAIL_RATIO = 0.35
 #: Seconds over which a chained plan's commanded rates are braked to rest (fallback).
 BRAKE_TIME = 0.05
 # ------------------------------------------------------------------ the replanner
@@ -356,44 +360,21 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
                                free[-1:]])
         rates0 = np.repeat(rates0, split, axis=0)
         M *= split
+    free, rates0, tailed = _tail(free, rates0)
+    M = free.size - 1
     emap = PieceMap(tuple(ps.robot.gains), tuple(ps.robot.exponents), M)
     # a piece of plan time L at geometric rate g moves as the unit piece at rate g L
     L = np.diff(free)[:, None]
     q_stop = _pieces_end(ps.robot, q_m, kept.breaks, kept.rates)
     goal = ps.goal
     W0 = rates0 * L
-    # with keep_reversals every rate keeps its sign (a rate that would change sign is held at
-    # 0 instead: no reversal is added to phi or th1, which integrate them)
-    signs = np.sign(W0)
-    held = np.zeros((M, 2), bool)
-    best: tuple[float, np.ndarray] | None = None
-    steps = 0
-    err = math.inf
-    for _ in range(MAX_HOLDS + 1):
-        # weighted first (a rate keeps its sign and share); the plain least-norm step
-        # reaches more goals where a joint must move on pieces that barely move it
-        for floor in (WEIGHT_FLOOR, None):
-            err, W, steps = correct_pieces(emap, q_stop, goal, W0, held=held, floor=floor)
-            if err <= 1e-6:
-                break
-        if err > 1e-6:
-            break
-        flipped = (signs != 0.0) & (np.sign(W) == -signs) & ~held
-        if not keep_reversals or not flipped.any():
-            best = (err, W)
-            break
-        held |= flipped
-    if best is None:
-        raise NumericalError("the Gauss-Newton correction of the later pieces' rates did not "
-                             "reach the goal" + (" keeping their signs" if keep_reversals else
-                                                 f" (miss {err:.3g} rad)"))
-    new_rates = best[1] / L
-    weights = piece_weights(W0, held, floor)
+    err, W, steps, weights = _correct(emap, q_stop, goal, W0, keep_reversals)
+    new_rates = W / L
     t_stop = kept.law.end if kept.law.phases.size else t
-    if T_end == ps.end_time and split == 1 and not braked and kept.own:
+    if T_end == ps.end_time and split == 1 and not braked and kept.own and not tailed:
         later = ps.law.after(t_stop).phases
     else:
-        later = law_after_stop(t_stop, T_end, free)
+        later = law_after_stop(t_stop, T_end, free, equal=True)
 
     def refine(exact_end: np.ndarray, current: np.ndarray) -> np.ndarray:
         # the quadrature's end missed: one step aimed where the map must end for the exact
@@ -403,6 +384,62 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
 
     return _assemble(kept, free, new_rates, later, ps.plan_duration, "gauss_newton", steps,
                      refine)
+
+
+def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
+             keep_reversals: bool) -> tuple[float, np.ndarray, int, np.ndarray]:
+    """The later pieces' rates moved onto the goal (:func:`~.continuation_map.correct_pieces`):
+    first keeping every rate's sign (a rate at rest stays at rest, one that would change sign
+    is held at rest and the rest solved again): no reversal of ``phi`` or ``th1`` is added;
+    then, unless ``keep_reversals``, with any sign (weighted, then the plain least-norm step).
+    Returns the map's miss, the rates, the steps and the weights used (for the defect step).
+
+    Raises
+    ------
+    NumericalError
+        No correction reached the goal.
+    """
+    scale = float(np.max(np.abs(W0), initial=0.0))
+    signs = np.where(np.abs(W0) > 1e-9 * scale, np.sign(W0), 0.0)
+    held = signs == 0.0
+    err = math.inf
+    for _ in range(MAX_HOLDS + 1):
+        if held.all():
+            break
+        err, W, steps = correct_pieces(emap, q0, goal, W0, held=held)
+        if err > 1e-6:
+            break
+        flipped = (signs != 0.0) & (np.sign(W) == -signs) & ~held
+        if not flipped.any():
+            return err, W, steps, piece_weights(W0, held)
+        held |= flipped
+    if not keep_reversals:
+        for floor in (WEIGHT_FLOOR, None):
+            err, W, steps = correct_pieces(emap, q0, goal, W0, floor=floor)
+            if err <= 1e-6:
+                return err, W, steps, piece_weights(W0, None, floor)
+    raise NumericalError("the Gauss-Newton correction of the later pieces' rates did not "
+                         "reach the goal" + (" keeping their signs" if keep_reversals else
+                                             f" (miss {err:.3g} rad)"))
+
+
+def _tail(free: np.ndarray, rates: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The last piece split into :data:`TAIL_PIECES` + 1 parts of geometrically shrinking
+    length (ratio :data:`TAIL_RATIO`): the same path, run stop and go in equal times, so that
+    the motion left near the end (what no later replan can correct) is a small part of the
+    whole. A path that already ends shorter than its previous piece is left as it is (a
+    continuation's tail is not split again). Returns the breaks, the rates and whether the
+    tail was split."""
+    L = np.diff(free)
+    if L.size >= 2 and L[-1] < 0.9 * L[-2]:
+        return free, rates, False
+    a, ell = float(free[-2]), float(L[-1])
+    parts = ell * np.concatenate([(1.0 - TAIL_RATIO) * TAIL_RATIO ** np.arange(TAIL_PIECES),
+                                  [TAIL_RATIO ** TAIL_PIECES]])
+    ends = a + np.cumsum(parts)
+    ends[-1] = free[-1]
+    return (np.concatenate([free[:-1], ends]),
+            np.vstack([rates[:-1], np.repeat(rates[-1:], TAIL_PIECES + 1, axis=0)]), True)
 
 
 def sign_changes(rates: np.ndarray) -> int:
