@@ -38,6 +38,7 @@ import numpy as np
 from optimizer.analysis import closed_loop_run
 from optimizer.errors import PlannerError
 from optimizer.planner.plan import plan
+from optimizer.planner.continuation_map import prepare
 from optimizer.planner.replan import replan
 from optimizer.model import Robot
 from optimizer.problem import PlanRequest
@@ -74,6 +75,7 @@ def latency(joints: list[int], goals: int, replans: int,
         for g in generate(n, goals):
             req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(n))
             warm = plan(req).to_dict()             # the NLP built, as in a warm worker
+            prepare(tuple(req.robot.gains), tuple(req.robot.exponents))
             try:
                 replan(warm, *_perturbed_state(warm, np.random.default_rng(0)))
             except PlannerError:
@@ -141,7 +143,7 @@ def http_latency(replans: int) -> dict[str, Any]:
 
 
 def closed_loop(joints: list[int], goals: int, gain_error: float, spread_deg: float,
-                period: float) -> dict[str, Any]:
+                period: float, keep_reversals: bool = False) -> dict[str, Any]:
     """Open against closed loop on perturbed plants (see the module)."""
     rng = np.random.default_rng(SEED + 1)
     out: dict[str, Any] = {}
@@ -153,7 +155,7 @@ def closed_loop(joints: list[int], goals: int, gain_error: float, spread_deg: fl
             start = np.asarray(g.start) + rng.uniform(-spread_deg, spread_deg, n) * DEG
             e = rng.uniform(-gain_error, gain_error, n - 1)
             op = closed_loop_run(answer, start, e, None)
-            cl = closed_loop_run(answer, start, e, period)
+            cl = closed_loop_run(answer, start, e, period, keep_reversals=keep_reversals)
             nominal = p.indicators.reversals_phi + p.indicators.reversals_th1
             rows.append({"goal": g.name, "open": op["terminal_error"],
                          "closed": cl["terminal_error"],
@@ -189,6 +191,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gain-error", type=float, default=0.05)
     ap.add_argument("--spread-deg", type=float, default=0.5)
     ap.add_argument("--period", type=float, default=0.05)
+    ap.add_argument("--keep-reversals", action="store_true",
+                    help="closed loop: refuse continuations that add reversals")
     ap.add_argument("--out", help="write the JSON here too")
     args = ap.parse_args(argv)
     report: dict[str, Any] = {
@@ -197,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
         report["http"] = http_latency(10 * args.replans)
     if not args.no_loop:
         report["closed_loop"] = closed_loop(args.joints, args.goals, args.gain_error,
-                                            args.spread_deg, args.period)
+                                            args.spread_deg, args.period, args.keep_reversals)
     print(f"latency: states off the plan by up to {args.state_error_deg:g} deg per joint")
     for n, r in report["latency"].items():
         print(f"n = {n}: replan p50 {r['p50_ms']:.2f} ms, p99 {r['p99_ms']:.2f} ms; cold "

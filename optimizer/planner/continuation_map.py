@@ -73,6 +73,14 @@ def piece_end(gains: tuple[float, ...], exponents: tuple[int, ...]) -> BufferedC
     return BufferedCall(ca.Function("piece_end", [q, u], [end]), 2)
 
 
+def prepare(gains: tuple[float, ...], exponents: tuple[int, ...]) -> None:
+    """Build every size's map of a robot ahead of its first replan (a warm worker: the
+    first call of a size otherwise pays its construction, 10-100 ms)."""
+    piece_end(gains, exponents)
+    for P in SIZES:
+        piece_map(gains, exponents, P)
+
+
 def size_for(M: int) -> int:
     """The compiled size that holds ``M`` pieces (``M`` itself above the largest)."""
     return next((P for P in SIZES if P >= M), M)
@@ -175,5 +183,5 @@ def correct_pieces(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
 
 
 __all__ = ["HALVINGS", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
-           "correct_pieces", "piece_end", "piece_map", "piece_weights", "size_for",
+           "correct_pieces", "piece_end", "prepare", "piece_map", "piece_weights", "size_for",
            "weighted_step"]

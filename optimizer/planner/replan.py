@@ -72,7 +72,7 @@ from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
 #: Rounds of holding at 0 the rates that a correction would reverse.
 MAX_HOLDS = 3
 #: The continuation's last piece is split into this many parts and one more...
-TAIL_PIECES = 6
+TAIL_PIECES = 4
 #: ... each this fraction of the rest: run in equal times, the motion slows geometrically.
 TAIL_RATIO = 0.35
 #: Seconds over which a chained plan's commanded rates are braked to rest (fallback).
@@ -90,6 +90,7 @@ class Continuation:
     steps: int
     kept: int = 0               # 1: the first piece is the commanded motion run on
     refine: Any = None          # (exact end, free rates) -> free rates (one defect step)
+    signs_kept: bool = False    # every corrected rate kept its sign (no reversal added)
 
 
 def _commanded(ps: PlanState, t: float) -> np.ndarray:
@@ -368,7 +369,7 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
     q_stop = _pieces_end(ps.robot, q_m, kept.breaks, kept.rates)
     goal = ps.goal
     W0 = rates0 * L
-    err, W, steps, weights = _correct(emap, q_stop, goal, W0, keep_reversals)
+    err, W, steps, weights, signs_kept = _correct(emap, q_stop, goal, W0, keep_reversals)
     new_rates = W / L
     t_stop = kept.law.end if kept.law.phases.size else t
     if T_end == ps.end_time and split == 1 and not braked and kept.own and not tailed:
@@ -382,17 +383,18 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
         _, J = emap(q_stop, current * L)
         return current - weighted_step(J[1:], exact_end[1:] - goal, weights).reshape(M, 2) / L
 
-    return _assemble(kept, free, new_rates, later, ps.plan_duration, "gauss_newton", steps,
-                     refine)
+    return replace(_assemble(kept, free, new_rates, later, ps.plan_duration, "gauss_newton",
+                             steps, refine), signs_kept=signs_kept)
 
 
 def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
-             keep_reversals: bool) -> tuple[float, np.ndarray, int, np.ndarray]:
+             keep_reversals: bool) -> tuple[float, np.ndarray, int, np.ndarray, bool]:
     """The later pieces' rates moved onto the goal (:func:`~.continuation_map.correct_pieces`):
     first keeping every rate's sign (a rate at rest stays at rest, one that would change sign
     is held at rest and the rest solved again): no reversal of ``phi`` or ``th1`` is added;
     then, unless ``keep_reversals``, with any sign (weighted, then the plain least-norm step).
-    Returns the map's miss, the rates, the steps and the weights used (for the defect step).
+    Returns the map's miss, the rates, the steps, the weights used (for the defect step) and
+    whether the signs were kept.
 
     Raises
     ------
@@ -411,13 +413,13 @@ def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
             break
         flipped = (signs != 0.0) & (np.sign(W) == -signs) & ~held
         if not flipped.any():
-            return err, W, steps, piece_weights(W0, held)
+            return err, W, steps, piece_weights(W0, held), True
         held |= flipped
     if not keep_reversals:
         for floor in (WEIGHT_FLOOR, None):
             err, W, steps = correct_pieces(emap, q0, goal, W0, floor=floor)
             if err <= 1e-6:
-                return err, W, steps, piece_weights(W0, None, floor)
+                return err, W, steps, piece_weights(W0, None, floor), False
     raise NumericalError("the Gauss-Newton correction of the later pieces' rates did not "
                          "reach the goal" + (" keeping their signs" if keep_reversals else
                                              f" (miss {err:.3g} rad)"))
@@ -645,6 +647,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         "timing": dict(timing),
         "diagnostics": {"replan": {
             "route": cont.route, "gauss_newton_steps": cont.steps,
+            "signs_kept": cont.signs_kept,
             "kept_piece": bool(cont.kept), "pieces": int(rates.shape[0]),
             "commanded_rates": [float(x) for x in u_c],
             "start_state": q_m.tolist()}},
