@@ -127,7 +127,7 @@ class TimeLaw:
                 or not np.all(np.diff(lam_k) > 0.0) or not np.all(slope > 0.0)):
             raise invalid("plan.time_law's phases and knots are not a law of this library",
                        "plan.time_law")
-        if not np.allclose(cols[0][1:], cols[0][:-1] + cols[1][:-1], rtol=0.0, atol=1e-9):
+        if float(np.max(np.abs(cols[0][1:] - cols[0][:-1] - cols[1][:-1]), initial=0.0)) > 1e-9:
             raise invalid("plan.time_law.phases must be contiguous", "plan.time_law.phases")
         return cls(np.column_stack(cols)), lam_k, sig_k, slope
 
@@ -291,7 +291,7 @@ def _read(plan: Any) -> PlanState:
     except (KeyError, TypeError, ValueError):
         raise invalid("each segment needs t_start and t_end", "plan.coefficients.segments") from None
     if (not np.all(np.isfinite(breaks)) or not np.all(np.diff(breaks) > 0.0)
-            or not np.allclose(ends[:-1], breaks[1:-1], rtol=0.0, atol=1e-12)):
+            or float(np.max(np.abs(ends[:-1] - breaks[1:-1]), initial=0.0)) > 1e-12):
         raise invalid("plan.coefficients.segments must be contiguous pieces in time order",
                    "plan.coefficients.segments")
     rates: np.ndarray | None = None

@@ -19,19 +19,23 @@ at every stop; a plan without a time law has ``lam = t`` and rates that jump at 
 The model is driftless: the state reached at ``lam`` does not depend on the time law, so the
 geometry and the timing are corrected separately.
 
-1. **Kept motion.** The motion under way runs on to the time law's next stop as commanded
-   (the current piece's direction is the commanded rate over ``lam'(t)``): the rates stay
-   continuous and reach that stop at rest. In the last segment, where nothing would be left
-   after its stop, it is braked to rest within :data:`BRAKE_TIME` instead (``lam'`` falls
-   linearly; the rest of the piece becomes correctable).
-2. **Gauss-Newton on what follows.** The rates of the later pieces start at the plan's (the
-   warm start) and take least-norm Gauss-Newton steps onto the goal (``th_1..th_n``; ``phi``
-   is free), each halved until the miss shrinks, with the NLP layer's compiled RK4 end map and
-   its Jacobian (:meth:`~.nlp.MultipleShootingNLP.fine_end`, ``rk4_end_jacobian``; pieces
-   before them get zero rates, under which the driftless model does not move). With
-   ``keep_reversals`` a rate that would change sign is held at zero instead. The remaining
-   time law is kept; pieces split near the end (so that there are more rates than joints) or
-   a new ``duration`` get the default rest-to-rest law (:func:`~.plan_state.rest_to_rest`).
+1. **Kept motion.** The motion under way runs on to the end of its piece at the commanded
+   rates (the current piece's direction is the commanded rate over ``lam'(t)``): where the
+   plan's law stops there, as planned; where it runs on to a later stop, ``lam'`` is brought
+   to rest at the piece's end (:func:`_to_piece_end`), so that every later piece can change
+   direction. In the last piece, where nothing would be left, it is braked to rest within
+   :data:`BRAKE_TIME` instead (``lam'`` falls linearly; the rest of the piece becomes
+   correctable). The rates stay continuous.
+2. **Tail and correction.** The last piece is split into a geometric tail
+   (:data:`TAIL_PIECES` + 1 parts, each :data:`TAIL_RATIO` of what is left, run in equal
+   times: little motion is left near the end, where no later replan corrects the plant).
+   The rates of the later pieces start at the plan's (the warm start) and take weighted
+   least-norm Gauss-Newton steps onto the goal (``th_1..th_n``; ``phi`` is free), each
+   halved until the miss shrinks, with one compiled CasADi end map and Jacobian per robot
+   and size (:mod:`.continuation_map`). First every rate keeps its sign (no reversal of
+   ``phi`` or ``th1`` added); unless ``keep_reversals``, any sign when that fails. The
+   remaining law is kept when nothing was split or stopped early; otherwise every piece runs
+   rest to rest in equal times (:func:`~.plan_state.law_after_stop`).
 3. **Proof.** The continuation's pieces are integrated by cascade quadrature on the original
    model (a miss above 1e-9 rad gets one defect-corrected step), every joint checked at every
    break (monotone on a constant-rate piece), the handed-out samples replayed by their rule.
@@ -42,7 +46,10 @@ geometry and the timing are corrected separately.
 
 Why not change the current piece: its direction changed mid-motion would jump the rates; a
 stop is where the direction may change. The motion after the last replan is what no replan
-corrects (docs/closed-loop.md).
+corrects (docs/closed-loop.md). At ``n >= 4`` the end map's Jacobian is nearly singular in
+the directions only higher brackets reach (smallest weighted singular values 1e-4 of the
+largest on the benchmark's goals): an error there needs a second-order correction, which
+Gauss-Newton does not find, and the full planner answers.
 """
 
 from __future__ import annotations
