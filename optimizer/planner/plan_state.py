@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import InvalidRequestError, PlannerError
 from ..model import Robot
 from ..results import Plan, json_safe
-from ..timing import ramp_profile
+from ..timing import RAMP, ramp_profile
 
 #: Samples of the handed-out continuation (fewer when less time is left, at least 2 per piece).
 DEFAULT_SAMPLES = 101
@@ -127,7 +127,7 @@ class TimeLaw:
                 or not np.all(np.diff(lam_k) > 0.0) or not np.all(slope > 0.0)):
             raise invalid("plan.time_law's phases and knots are not a law of this library",
                        "plan.time_law")
-        if not np.allclose(cols[0][1:], cols[0][:-1] + cols[1][:-1], rtol=0.0, atol=1e-9):
+        if float(np.max(np.abs(cols[0][1:] - cols[0][:-1] - cols[1][:-1]), initial=0.0)) > 1e-9:
             raise invalid("plan.time_law.phases must be contiguous", "plan.time_law.phases")
         return cls(np.column_stack(cols)), lam_k, sig_k, slope
 
@@ -291,7 +291,7 @@ def _read(plan: Any) -> PlanState:
     except (KeyError, TypeError, ValueError):
         raise invalid("each segment needs t_start and t_end", "plan.coefficients.segments") from None
     if (not np.all(np.isfinite(breaks)) or not np.all(np.diff(breaks) > 0.0)
-            or not np.allclose(ends[:-1], breaks[1:-1], rtol=0.0, atol=1e-12)):
+            or float(np.max(np.abs(ends[:-1] - breaks[1:-1]), initial=0.0)) > 1e-12):
         raise invalid("plan.coefficients.segments must be contiguous pieces in time order",
                    "plan.coefficients.segments")
     rates: np.ndarray | None = None
@@ -345,13 +345,27 @@ def _read(plan: Any) -> PlanState:
 
 
 
-def law_after_stop(t_stop: float, T_end: float, breaks: np.ndarray) -> np.ndarray:
-    """Rows of :func:`rest_to_rest` laws of pieces ``breaks`` run from ``t_stop`` to ``T_end``, durations in
-    proportion to their plan time."""
+def law_after_stop(t_stop: float, T_end: float, breaks: np.ndarray,
+                   equal: bool = False) -> np.ndarray:
+    """Rows of :func:`rest_to_rest` laws of pieces ``breaks`` run from ``t_stop`` to
+    ``T_end``, durations in proportion to their plan time (``equal``: all the same)."""
     L = np.diff(breaks)
-    D = (T_end - t_stop) * L / L.sum()
+    D = (T_end - t_stop) * (np.full(L.size, 1.0 / L.size) if equal else L / L.sum())
     t0 = t_stop + np.concatenate([[0.0], np.cumsum(D)[:-1]])
-    return np.vstack([rest_to_rest(a, d, s, l) for a, d, s, l in zip(t0, D, breaks[:-1], L)])
+    D[-1] = T_end - t0[-1]      # the law ends at T_end exactly (not at a rounded sum)
+    # ramp_profile of every piece at once: accelerate for r D, cruise, brake for r D
+    r = RAMP
+    v = L / ((1.0 - r) * D)
+    A = v / (r * D)
+    s0 = np.asarray(breaks, float)[:-1]
+    ramp = 0.5 * A * (r * D) ** 2
+    z = np.zeros_like(L)
+    rows = np.stack([
+        np.column_stack([t0, r * D, s0, z, A, z]),
+        np.column_stack([t0 + r * D, (1.0 - 2.0 * r) * D, s0 + ramp, v, z, z]),
+        np.column_stack([t0 + (1.0 - r) * D, r * D, s0 + ramp + v * (1.0 - 2.0 * r) * D, v, -A,
+                         z])], axis=1)
+    return rows.reshape(-1, 6)
 
 
 __all__ = ["DEFAULT_SAMPLES", "LAW_RULE", "MAX_RATE", "PlanState", "REST", "TimeLaw",

@@ -19,19 +19,23 @@ at every stop; a plan without a time law has ``lam = t`` and rates that jump at 
 The model is driftless: the state reached at ``lam`` does not depend on the time law, so the
 geometry and the timing are corrected separately.
 
-1. **Kept motion.** The motion under way runs on to the time law's next stop as commanded
-   (the current piece's direction is the commanded rate over ``lam'(t)``): the rates stay
-   continuous and reach that stop at rest. In the last segment, where nothing would be left
-   after its stop, it is braked to rest within :data:`BRAKE_TIME` instead (``lam'`` falls
-   linearly; the rest of the piece becomes correctable).
-2. **Gauss-Newton on what follows.** The rates of the later pieces start at the plan's (the
-   warm start) and take least-norm Gauss-Newton steps onto the goal (``th_1..th_n``; ``phi``
-   is free), each halved until the miss shrinks, with the NLP layer's compiled RK4 end map and
-   its Jacobian (:meth:`~.nlp.MultipleShootingNLP.fine_end`, ``rk4_end_jacobian``; pieces
-   before them get zero rates, under which the driftless model does not move). With
-   ``keep_reversals`` a rate that would change sign is held at zero instead. The remaining
-   time law is kept; pieces split near the end (so that there are more rates than joints) or
-   a new ``duration`` get the default rest-to-rest law (:func:`~.plan_state.rest_to_rest`).
+1. **Kept motion.** The motion under way runs on to the end of its piece at the commanded
+   rates (the current piece's direction is the commanded rate over ``lam'(t)``): where the
+   plan's law stops there, as planned; where it runs on to a later stop, ``lam'`` is brought
+   to rest at the piece's end (:func:`_to_piece_end`), so that every later piece can change
+   direction. In the last piece, where nothing would be left, it is braked to rest within
+   :data:`BRAKE_TIME` instead (``lam'`` falls linearly; the rest of the piece becomes
+   correctable). The rates stay continuous.
+2. **Tail and correction.** The last piece is split into a geometric tail
+   (:data:`TAIL_PIECES` + 1 parts, each :data:`TAIL_RATIO` of what is left, run in equal
+   times: little motion is left near the end, where no later replan corrects the plant).
+   The rates of the later pieces start at the plan's (the warm start) and take weighted
+   least-norm Gauss-Newton steps onto the goal (``th_1..th_n``; ``phi`` is free), each
+   halved until the miss shrinks, with one compiled CasADi end map and Jacobian per robot
+   and size (:mod:`.continuation_map`). First every rate keeps its sign (no reversal of
+   ``phi`` or ``th1`` added); unless ``keep_reversals``, any sign when that fails. The
+   remaining law is kept when nothing was split or stopped early; otherwise every piece runs
+   rest to rest in equal times (:func:`~.plan_state.law_after_stop`).
 3. **Proof.** The continuation's pieces are integrated by cascade quadrature on the original
    model (a miss above 1e-9 rad gets one defect-corrected step), every joint checked at every
    break (monotone on a constant-rate piece), the handed-out samples replayed by their rule.
@@ -42,22 +46,22 @@ geometry and the timing are corrected separately.
 
 Why not change the current piece: its direction changed mid-motion would jump the rates; a
 stop is where the direction may change. The motion after the last replan is what no replan
-corrects (docs/closed-loop.md).
+corrects (docs/closed-loop.md). At ``n >= 4`` the end map's Jacobian is nearly singular in
+the directions only higher brackets reach (smallest weighted singular values 1e-4 of the
+largest on the benchmark's goals): an error there needs a second-order correction, which
+Gauss-Newton does not find, and the full planner answers.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 import time
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping
 
-import casadi as ca
 import numpy as np
 
 from ..chained_form import chained_form
-from ..dynamics import rk4_step, vector_field
 from ..errors import InvalidRequestError, InfeasibleError, NumericalError, PlannerError
 from ..forms import EXECUTION_TOLERANCE, REPLAY_NODES, correct, linear_form
 from ..indicators import compute_indicators
@@ -68,67 +72,18 @@ from ..verify import integrate_cascade
 from .plan import plan as full_plan
 from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array,
                          invalid, law_after_stop, read_plan)
-from .correction import minimum_norm_step
-from .nlp import ladder, multiple_shooting_nlp
-from .solvers import BufferedCall
+from .continuation_map import (WEIGHT_FLOOR, PieceMap, correct_pieces, piece_end,
+                               piece_weights, weighted_step)
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
 
-#: Gauss-Newton steps stop once the fine end map is this close to the goal (rad)...
-CORRECTION_TARGET = 1e-11
-#: ... or after this many steps...
-MAX_STEPS = 12
-#: ... each halved at most this many times until the miss shrinks.
-MAX_HALVINGS = 8
 #: Rounds of holding at 0 the rates that a correction would reverse.
 MAX_HOLDS = 3
-#: RK4 steps per piece of the end map built here when no NLP rung fits the pieces.
-OWN_SUBSTEPS = 8
+#: The continuation's last piece is split into this many parts and one more...
+TAIL_PIECES = 4
+#: ... each this fraction of the rest: run in equal times, the motion slows geometrically.
+TAIL_RATIO = 0.35
 #: Seconds over which a chained plan's commanded rates are braked to rest (fallback).
 BRAKE_TIME = 0.05
-# ------------------------------------------------------------------ end maps
-class EndMap:
-    """The RK4 end state of ``N`` equal pieces of normalised time under rates ``(N, 2)`` and
-    its Jacobian: the NLP's compiled maps when a rung of the ladder has ``N`` intervals, else
-    CasADi functions built here (cached)."""
-
-    def __init__(self, robot: Robot, N: int) -> None:
-        self.N = N
-        self.end: Callable[[np.ndarray, np.ndarray], np.ndarray]
-        self.jacobian: Callable[[np.ndarray, np.ndarray], np.ndarray]
-        rung = next((tr for tr in ladder(robot.n) if tr.intervals == N), None)
-        if rung is not None:
-            nlp = multiple_shooting_nlp(tuple(robot.gains), tuple(robot.exponents), False,
-                                        rung.intervals, rung.substeps)
-            self.end, self.jacobian = nlp.fine_end, nlp.rk4_end_jacobian
-        else:
-            fe, jac = _own_maps(tuple(robot.gains), tuple(robot.exponents), N)
-            nq = robot.n + 1
-            self.end = lambda q0, U: fe(q0, U)[0]
-            self.jacobian = lambda q0, U: jac(q0, U)[0].reshape(2 * N, nq).T
-
-
-@functools.lru_cache(maxsize=32)
-def _own_maps(gains: tuple[float, ...], exponents: tuple[int, ...], N: int
-              ) -> tuple[BufferedCall, BufferedCall]:
-    nq = len(gains) + 2
-    q, u = ca.SX.sym("q", nq), ca.SX.sym("u", 2)
-    step = ca.Function("rk4", [q, u], [rk4_step(
-        lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1], ca.cos)),
-        q, u, 1.0 / N, OWN_SUBSTEPS)])
-    U = ca.SX.sym("U", 2 * N)
-    x = q
-    for k in range(N):
-        x = step(x, U[2 * k:2 * k + 2])
-    end = ca.Function("replan_end", [q, U], [x])
-    jac = ca.Function("replan_jac", [q, U], [ca.densify(ca.jacobian(x, U))])
-    return BufferedCall(end, 2), BufferedCall(jac, 2)
-
-
-@functools.lru_cache(maxsize=32)
-def end_map(robot: Robot, N: int) -> EndMap:
-    return EndMap(robot, N)
-
-
 # ------------------------------------------------------------------ the replanner
 @dataclass(frozen=True)
 class Continuation:
@@ -142,6 +97,7 @@ class Continuation:
     steps: int
     kept: int = 0               # 1: the first piece is the commanded motion run on
     refine: Any = None          # (exact end, free rates) -> free rates (one defect step)
+    signs_kept: bool = False    # every corrected rate kept its sign (no reversal added)
 
 
 def _commanded(ps: PlanState, t: float) -> np.ndarray:
@@ -280,6 +236,7 @@ class Kept:
     breaks: np.ndarray
     rates: np.ndarray
     law: TimeLaw
+    own: bool = True            # the plan's own law (False: brought to rest early)
 
     @property
     def pieces(self) -> int:
@@ -319,6 +276,8 @@ def _kept(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
     j = int(np.argmin(np.abs(ps.breaks - s_stop)))
     if abs(ps.breaks[j] - s_stop) > 1e-7 * max(1.0, ps.plan_duration):
         raise NumericalError("the time law stops between the plan's breaks")
+    if j > k + 1:
+        return _to_piece_end(ps, t, s_t, v, k, u_c)
     inner = ps.breaks[k + 1:j]
     kb = np.concatenate([[s_t], inner, [ps.breaks[j]]])
     kr = ps.rates[k:j].copy()
@@ -326,6 +285,29 @@ def _kept(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
     law = ps.law.after(t)
     kept_rows = law.phases[law.phases[:, 0] < t_stop - 1e-12]
     return Kept(j, kb, kr, TimeLaw(kept_rows))
+
+
+def _to_piece_end(ps: PlanState, t: float, s_t: float, v: float, k: int, u_c: np.ndarray
+                  ) -> Kept:
+    """The commanded motion brought to rest at the end of its piece (where the plan's law runs
+    on to a later stop): ``sigma'`` linear from ``v`` to a peak and down to 0, in about the
+    time the plan takes to that break (at most ``3.5 l / v``, so the peak stays above
+    ``v / 14``). The rates stay continuous; every later piece becomes correctable."""
+    assert ps.rates is not None
+    s_end = float(ps.breaks[k + 1])
+    ell = s_end - s_t
+    # the plan's own time to the break (its sigma is increasing: a grid and interpolation)
+    grid = np.linspace(t, ps.law.end, 64)
+    sg = ps.law.evaluate(grid)[0]
+    D_plan = float(np.interp(s_end, sg, grid)) - t if sg[-1] >= s_end else ps.law.end - t
+    D = min(max(D_plan, 1e-6), 3.5 * ell / v)
+    h = 0.5 * D
+    peak = 0.5 * (4.0 * ell / D - v)
+    s_mid = s_t + 0.5 * (v + peak) * h
+    law = np.array([[t, h, s_t, v, (peak - v) / h, 0.0],
+                    [t + h, h, s_mid, peak, -peak / h, 0.0]])
+    rates = (np.asarray(u_c, float) / v)[None, :]
+    return Kept(k + 1, np.array([s_t, s_end]), rates, TimeLaw(law), own=False)
 
 
 def _braked(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
@@ -353,10 +335,10 @@ def _braked(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
 
 def _pieces_end(robot: Robot, q0: np.ndarray, breaks: np.ndarray, rates: np.ndarray
                 ) -> np.ndarray:
-    """The state after constant-rate pieces: RK4 with :data:`OWN_SUBSTEPS` steps each (as
+    """The state after constant-rate pieces: RK4 (:func:`~.continuation_map.piece_end`) (as
     close to the exact model as the correction's end map; the continuation's quadrature
     proves the whole)."""
-    end, _ = _own_maps(tuple(robot.gains), tuple(robot.exponents), 1)
+    end = piece_end(tuple(robot.gains), tuple(robot.exponents))
     q = np.asarray(q0, float)
     for L, r in zip(np.diff(breaks), rates):
         if L > 0.0:
@@ -386,54 +368,87 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
                                free[-1:]])
         rates0 = np.repeat(rates0, split, axis=0)
         M *= split
-    N = next((tr.intervals for tr in ladder(n) if tr.intervals >= M), M)
-    emap = end_map(ps.robot, N)
-    # the end map's intervals are 1/N of normalised time: a piece of plan time L at rate g
-    # moves as the rate g L N there
-    scale = (np.diff(free) * N)[:, None]
+    free, rates0, tailed = _tail(free, rates0)
+    M = free.size - 1
+    emap = PieceMap(tuple(ps.robot.gains), tuple(ps.robot.exponents), M)
+    # a piece of plan time L at geometric rate g moves as the unit piece at rate g L
+    L = np.diff(free)[:, None]
     q_stop = _pieces_end(ps.robot, q_m, kept.breaks, kept.rates)
-    U0 = np.zeros((N, 2))
-    U0[N - M:] = rates0 * scale
     goal = ps.goal
-    # with keep_reversals every rate keeps its sign (a rate that would change sign is held at
-    # 0 instead: no reversal is added to phi or th1, which integrate them)
-    signs = np.sign(rates0)
-    held = np.zeros((M, 2), bool)
-    best: tuple[float, np.ndarray] | None = None
-    steps = 0
-    for _ in range(MAX_HOLDS + 1):
-        start = U0.copy()
-        start[N - M:][held] = 0.0
-        err, U, steps = _gauss_newton(emap, q_stop, goal, start, N - M, ~held)
-        if err > 1e-6:
-            break
-        flipped = (signs != 0.0) & (np.sign(U[N - M:]) == -signs) & ~held
-        if not keep_reversals or not flipped.any():
-            best = (err, U)
-            break
-        held |= flipped
-    if best is None:
-        raise NumericalError("the Gauss-Newton correction of the later pieces' rates did not "
-                             "reach the goal" + (" keeping their signs" if keep_reversals else
-                                                 f" (miss {err:.3g} rad)"))
-    new_rates = best[1][N - M:] / scale
+    W0 = rates0 * L
+    err, W, steps, weights, signs_kept = _correct(emap, q_stop, goal, W0, keep_reversals)
+    new_rates = W / L
     t_stop = kept.law.end if kept.law.phases.size else t
-    if T_end == ps.end_time and split == 1 and not braked:
+    if T_end == ps.end_time and split == 1 and not braked and kept.own and not tailed:
         later = ps.law.after(t_stop).phases
     else:
-        later = law_after_stop(t_stop, T_end, free)
+        later = law_after_stop(t_stop, T_end, free, equal=True)
 
     def refine(exact_end: np.ndarray, current: np.ndarray) -> np.ndarray:
-        # the quadrature's end missed: one step aimed where the fine map must end for the
-        # exact model to reach the goal (a defect correction)
-        V = np.zeros((N, 2))
-        V[N - M:] = current * scale
-        r = exact_end[1:] - goal
-        J = emap.jacobian(q_stop, V)[1:, 2 * (N - M):]
-        return current - minimum_norm_step(J, r).reshape(M, 2) / scale
+        # the quadrature's end missed: one step aimed where the map must end for the exact
+        # model to reach the goal (a defect correction)
+        _, J = emap(q_stop, current * L)
+        return current - weighted_step(J[1:], exact_end[1:] - goal, weights).reshape(M, 2) / L
 
-    return _assemble(kept, free, new_rates, later, ps.plan_duration, "gauss_newton", steps,
-                     refine)
+    return replace(_assemble(kept, free, new_rates, later, ps.plan_duration, "gauss_newton",
+                             steps, refine), signs_kept=signs_kept)
+
+
+def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
+             keep_reversals: bool) -> tuple[float, np.ndarray, int, np.ndarray, bool]:
+    """The later pieces' rates moved onto the goal (:func:`~.continuation_map.correct_pieces`):
+    first keeping every rate's sign (a rate at rest stays at rest, one that would change sign
+    is held at rest and the rest solved again): no reversal of ``phi`` or ``th1`` is added;
+    then, unless ``keep_reversals``, with any sign (weighted, then the plain least-norm step).
+    Returns the map's miss, the rates, the steps, the weights used (for the defect step) and
+    whether the signs were kept.
+
+    Raises
+    ------
+    NumericalError
+        No correction reached the goal.
+    """
+    scale = float(np.max(np.abs(W0), initial=0.0))
+    signs = np.where(np.abs(W0) > 1e-9 * scale, np.sign(W0), 0.0)
+    held = signs == 0.0
+    err = math.inf
+    for _ in range(MAX_HOLDS + 1):
+        if held.all():
+            break
+        err, W, steps = correct_pieces(emap, q0, goal, W0, held=held)
+        if err > 1e-6:
+            break
+        flipped = (signs != 0.0) & (np.sign(W) == -signs) & ~held
+        if not flipped.any():
+            return err, W, steps, piece_weights(W0, held), True
+        held |= flipped
+    if not keep_reversals:
+        for floor in (WEIGHT_FLOOR, None):
+            err, W, steps = correct_pieces(emap, q0, goal, W0, floor=floor)
+            if err <= 1e-6:
+                return err, W, steps, piece_weights(W0, None, floor), False
+    raise NumericalError("the Gauss-Newton correction of the later pieces' rates did not "
+                         "reach the goal" + (" keeping their signs" if keep_reversals else
+                                             f" (miss {err:.3g} rad)"))
+
+
+def _tail(free: np.ndarray, rates: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The last piece split into :data:`TAIL_PIECES` + 1 parts of geometrically shrinking
+    length (ratio :data:`TAIL_RATIO`): the same path, run stop and go in equal times, so that
+    the motion left near the end (what no later replan can correct) is a small part of the
+    whole. A path that already ends shorter than its previous piece is left as it is (a
+    continuation's tail is not split again). Returns the breaks, the rates and whether the
+    tail was split."""
+    L = np.diff(free)
+    if L.size >= 2 and L[-1] < 0.9 * L[-2]:
+        return free, rates, False
+    a, ell = float(free[-2]), float(L[-1])
+    parts = ell * np.concatenate([(1.0 - TAIL_RATIO) * TAIL_RATIO ** np.arange(TAIL_PIECES),
+                                  [TAIL_RATIO ** TAIL_PIECES]])
+    ends = a + np.cumsum(parts)
+    ends[-1] = free[-1]
+    return (np.concatenate([free[:-1], ends]),
+            np.vstack([rates[:-1], np.repeat(rates[-1:], TAIL_PIECES + 1, axis=0)]), True)
 
 
 def sign_changes(rates: np.ndarray) -> int:
@@ -444,45 +459,6 @@ def sign_changes(rates: np.ndarray) -> int:
         nz = np.sign(col[np.abs(col) > 1e-12])
         total += int(np.sum(nz[1:] != nz[:-1]))
     return total
-
-
-def _gauss_newton(emap: "EndMap", q0: np.ndarray, goal: np.ndarray, U: np.ndarray, first: int,
-                  free: np.ndarray) -> tuple[float, np.ndarray, int]:
-    """Gauss-Newton steps of least norm on the rates ``U[first:]`` where ``free`` (the others
-    fixed) onto ``th(1) = goal``, each halved until the miss shrinks (a backtracking line
-    search: near a reversal the Jacobian is ill-conditioned and a full step overshoots).
-    Returns the miss (rad), the rates and the steps taken."""
-
-    def miss(V: np.ndarray) -> tuple[float, np.ndarray]:
-        r = emap.end(q0, V)[1:] - goal
-        e = float(np.max(np.abs(r)))
-        return (e if math.isfinite(e) else math.inf), r
-
-    cols = np.concatenate([np.zeros(2 * first, bool), free.ravel()])
-    err, r = miss(U)
-    steps = 0
-    while err > CORRECTION_TARGET and steps < MAX_STEPS and cols.any():
-        J = emap.jacobian(q0, U)[1:, cols]
-        if not np.all(np.isfinite(J)):
-            break
-        flat = np.zeros(U.size)
-        try:
-            flat[cols] = minimum_norm_step(J, r)
-        except np.linalg.LinAlgError:
-            break
-        step = flat.reshape(U.shape)
-        alpha = 1.0
-        for _ in range(MAX_HALVINGS + 1):
-            V = U - alpha * step
-            e2, r2 = miss(V)
-            if e2 < err:
-                break
-            alpha *= 0.5
-        else:
-            break
-        U, err, r = V, e2, r2
-        steps += 1
-    return err, U, steps
 
 
 def _assemble(kept: Kept, free: np.ndarray, new_rates: np.ndarray, later: np.ndarray,
@@ -678,6 +654,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         "timing": dict(timing),
         "diagnostics": {"replan": {
             "route": cont.route, "gauss_newton_steps": cont.steps,
+            "signs_kept": cont.signs_kept,
             "kept_piece": bool(cont.kept), "pieces": int(rates.shape[0]),
             "commanded_rates": [float(x) for x in u_c],
             "start_state": q_m.tolist()}},
@@ -685,5 +662,5 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     return out
 
 
-__all__ = ["Continuation", "EndMap", "Kept", "PlanState", "TimeLaw", "end_map", "read_plan",
+__all__ = ["Continuation", "Kept", "PlanState", "TimeLaw", "read_plan",
            "replan", "sign_changes"]

@@ -1,0 +1,187 @@
+"""The end map of a continuation's pieces and its Jacobian, compiled once per robot, and the
+weighted Gauss-Newton correction that moves the pieces onto the goal.
+
+A continuation's later pieces are constant geometric rates ``g_k`` over plan-time lengths
+``L_k``; the model is driftless, so each piece is the unit-length flow under the displacement
+rates ``w_k = g_k L_k``. :func:`piece_map` is one CasADi function of the start state and the
+``w_k`` of ``P`` pieces (fewer pieces are padded in front with zero rates, under which
+nothing moves) that returns the RK4 end state and its Jacobian in one call: a fixed-size,
+reset-free computation whose answer depends on its arguments only.
+
+:func:`correct_pieces` takes weighted least-norm Gauss-Newton steps: the change of a rate is
+measured relative to the rate itself (weights ``|w| + floor``), so the correction is shared
+in proportion to how much each piece already moves and a rate keeps its sign unless the goal
+needs a change of its own size; a step that does not shrink the miss is halved.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import casadi as ca
+import numpy as np
+
+from ..dynamics import rk4_step, vector_field
+from .solvers import BufferedCall
+
+#: RK4 steps per piece (a piece moves a few hundredths of a radian to a few tenths: the map
+#: is within ~1e-9 rad of the exact model on the former; the quadrature of the verification
+#: measures the rest, and one defect-corrected step removes it).
+SUBSTEPS = 4
+#: Sizes of the compiled maps: a continuation of ``M`` pieces uses the smallest ``P >= M``.
+SIZES = (4, 8, 12, 16, 20, 24, 32, 48)
+#: Relative floor of the weights (of the largest rate): pieces at rest may move a little.
+WEIGHT_FLOOR = 0.05
+#: Steps stop once the map's miss is this small (rad)...
+TARGET = 1e-11
+#: ... or after this many steps.
+MAX_STEPS = 12
+#: Fractions of the Gauss-Newton step tried in turn until one shrinks the miss (near a
+#: direction that only brackets reach the full step overshoots).
+HALVINGS = tuple(0.5 ** k for k in range(9))
+
+
+@functools.lru_cache(maxsize=64)
+def piece_map(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> BufferedCall:
+    """The compiled map ``(q0, W) -> (q_end, d q_end / d W)`` of ``P`` unit pieces (``W``:
+    ``(2, P)`` column-major, so the C-contiguous ``(P, 2)`` array of the rates; the Jacobian
+    comes back flat column-major, ``(n+1, 2P)``)."""
+    nq = len(gains) + 2
+    q = ca.SX.sym("q", nq)
+    u = ca.SX.sym("u", 2)
+    step = ca.Function("piece", [q, u], [rk4_step(
+        lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1], ca.cos)),
+        q, u, 1.0, SUBSTEPS)])
+    W = ca.SX.sym("W", 2, P)
+    x = q
+    for k in range(P):
+        x = step(x, W[:, k])
+    fn = ca.Function(f"continuation_{P}", [q, W], [x, ca.densify(ca.jacobian(x, ca.vec(W)))])
+    return BufferedCall(fn, 2, (0, 1))
+
+
+@functools.lru_cache(maxsize=16)
+def piece_end(gains: tuple[float, ...], exponents: tuple[int, ...]) -> BufferedCall:
+    """The compiled end state of one unit piece ``(q0, w) -> q_end``, with twice
+    :data:`SUBSTEPS` RK4 steps (the motion under way, run on as commanded)."""
+    nq = len(gains) + 2
+    q = ca.SX.sym("q", nq)
+    u = ca.SX.sym("u", 2)
+    end = rk4_step(lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1],
+                                                          ca.cos)), q, u, 1.0, 2 * SUBSTEPS)
+    return BufferedCall(ca.Function("piece_end", [q, u], [end]), 2)
+
+
+def prepare(gains: tuple[float, ...], exponents: tuple[int, ...]) -> None:
+    """Build every size's map of a robot ahead of its first replan (a warm worker: the
+    first call of a size otherwise pays its construction, 10-100 ms)."""
+    piece_end(gains, exponents)
+    for P in SIZES:
+        piece_map(gains, exponents, P)
+
+
+def size_for(M: int) -> int:
+    """The compiled size that holds ``M`` pieces (``M`` itself above the largest)."""
+    return next((P for P in SIZES if P >= M), M)
+
+
+class PieceMap:
+    """The end state and Jacobian of ``M`` pieces of displacement rates ``(M, 2)`` from ``q0``
+    (the compiled :func:`piece_map` of the next size, padded in front)."""
+
+    def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...], M: int) -> None:
+        self.M, self.P = M, size_for(M)
+        self.nq = len(gains) + 2
+        self._call = piece_map(gains, exponents, self.P)
+
+    def __call__(self, q0: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """End state and Jacobian ``(n+1, 2M)`` at rates ``W`` ``(M, 2)``."""
+        full = np.zeros((self.P, 2))
+        full[self.P - self.M:] = W
+        end, jac = self._call(np.asarray(q0, float), full)
+        J = jac.reshape(2 * self.P, self.nq).T[:, 2 * (self.P - self.M):]
+        return end, J
+
+
+def piece_weights(W0: np.ndarray, held: np.ndarray | None = None,
+                  floor: float | None = WEIGHT_FLOOR) -> np.ndarray:
+    """The squared weights of the rates' changes (flat): ``(|w| + floor max|w|)^2``, 0 where
+    held; ``floor`` None: all 1 (the plain least-norm step)."""
+    d = np.abs(np.asarray(W0, float)).ravel()
+    if floor is None:
+        d = np.ones_like(d)
+    else:
+        d = d + floor * max(float(d.max(initial=0.0)), 1e-3)
+    D2 = d * d
+    if held is not None:
+        D2[np.asarray(held, bool).ravel()] = 0.0
+    return D2
+
+
+def weighted_step(J: np.ndarray, r: np.ndarray, D2: np.ndarray, mu: float = 0.0) -> np.ndarray:
+    """The ``dx`` of least ``|D^-1 dx|`` with ``J dx = r`` (damped by ``mu`` relative to the
+    mean diagonal of ``J D^2 J^T``), flat.
+
+    A singular system (rows no free rate moves) is solved in the least-squares sense.
+    """
+    JD = J * D2
+    A = JD @ J.T
+    if mu:
+        A = A + mu * (float(np.trace(A)) / A.shape[0]) * np.eye(A.shape[0])
+    try:
+        y = np.linalg.solve(A, r)
+    except np.linalg.LinAlgError:
+        # rows that the free rates cannot move (all held): least squares on the others
+        y = np.linalg.lstsq(A, r, rcond=None)[0]
+    return np.asarray(JD.T @ y)
+
+
+def correct_pieces(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
+                   target: float = TARGET, max_steps: int = MAX_STEPS,
+                   held: np.ndarray | None = None, floor: float | None = WEIGHT_FLOOR
+                   ) -> tuple[float, np.ndarray, int]:
+    """Weighted least-norm Gauss-Newton from ``W0`` onto ``th(end) = goal`` (``phi`` free).
+
+    Each step solves ``min |D^-1 dW|`` subject to ``J dW = -r`` (``D = |W0| + floor``), damped
+    by ``mu`` (``(J D^2 J^T + mu I)``) when the full step does not shrink the miss.
+
+    Returns
+    -------
+    (float, ndarray, int)
+        The map's miss (rad, max norm), the rates ``(M, 2)``, the steps taken.
+    """
+    W = np.array(W0, float)
+    D2 = piece_weights(W, held, floor)
+    if held is not None:
+        W[np.asarray(held, bool)] = 0.0
+    end, J = emap(q0, W)
+    r = end[1:] - goal
+    err = float(np.max(np.abs(r)))
+    size = float(r @ r)
+    steps = 0
+    while err > target and steps < max_steps:
+        accepted = False
+        try:
+            full = weighted_step(J[1:], r, D2).reshape(W.shape)
+        except np.linalg.LinAlgError:
+            break
+        for alpha in HALVINGS:
+            V = W - alpha * full
+            end2, J2 = emap(q0, V)
+            r2 = end2[1:] - goal
+            e2 = float(np.max(np.abs(r2)))
+            s2 = float(r2 @ r2)
+            if math.isfinite(s2) and s2 < size:
+                accepted = True
+                break
+        if not accepted:
+            break
+        W, J, r, err, size = V, J2, r2, e2, s2
+        steps += 1
+    return err, W, steps
+
+
+__all__ = ["HALVINGS", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
+           "correct_pieces", "piece_end", "prepare", "piece_map", "piece_weights", "size_for",
+           "weighted_step"]

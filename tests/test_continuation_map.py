@@ -1,0 +1,109 @@
+"""The replanner's compiled end map of constant-rate pieces (optimizer.planner.continuation_map)
+against scipy on the tests' own model, its Jacobian against central differences of that
+integration, and the correction onto a goal; and two properties of the continuations built
+with it: a rate keeps its sign when it can, and little motion is left near the end."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from optimizer.model import Robot
+from optimizer.planner.continuation_map import PieceMap, correct_pieces
+from optimizer.planner.plan import plan
+from optimizer.planner.replan import read_plan, replan, sign_changes
+from optimizer.problem import PlanRequest
+
+from reference import PROTOTYPE_K, PROTOTYPE_M, model_rhs
+
+START, GOAL = (0.3, 0.4, 0.5), (0.9, 1.0, 0.8)
+
+
+def scipy_end(q0: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """The tests' model from ``q0`` through unit pieces at the displacement rates ``W``."""
+    q = np.asarray(q0, float)
+    for w in W:
+        sol = solve_ivp(lambda t, x, w=w: model_rhs(x, w, PROTOTYPE_K, PROTOTYPE_M), (0.0, 1.0),
+                        q, method="DOP853", rtol=1e-12, atol=1e-13)
+        q = sol.y[:, -1]
+    return q
+
+
+@pytest.fixture(scope="module")
+def pieces() -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(3)
+    W = rng.uniform(-0.08, 0.08, (7, 2))          # 7 pieces moving a few hundredths of a rad
+    return np.array([0.1, *START]), W
+
+
+def test_end_map_matches_scipy(pieces) -> None:
+    q0, W = pieces
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    end, _ = emap(q0, W)
+    assert np.max(np.abs(end - scipy_end(q0, W))) < 1e-9
+
+
+def test_jacobian_matches_central_differences(pieces) -> None:
+    q0, W = pieces
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    _, J = emap(q0, W)
+    h = 1e-5
+    for k in (0, 5, 13):                              # columns in the order of W.ravel()
+        Wp, Wm = W.copy().ravel(), W.copy().ravel()
+        Wp[k] += h
+        Wm[k] -= h
+        fd = (scipy_end(q0, Wp.reshape(W.shape)) - scipy_end(q0, Wm.reshape(W.shape))) / (2 * h)
+        assert np.allclose(J[:, k], fd, rtol=1e-5, atol=1e-8)
+
+
+def test_correction_reaches_the_goal_on_scipy(pieces) -> None:
+    q0, W = pieces
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    goal = scipy_end(q0, W)[1:] + np.array([2e-3, -1e-3, 1.5e-3])
+    err, W1, steps = correct_pieces(emap, q0, goal, W)
+    assert err < 1e-10 and steps >= 1
+    assert np.max(np.abs(scipy_end(q0, W1)[1:] - goal)) < 1e-8
+
+
+@pytest.fixture(scope="module")
+def answer() -> dict:
+    return plan(PlanRequest(start=START, goal=GOAL)).to_dict()
+
+
+def test_small_errors_keep_every_rates_sign(answer: dict) -> None:
+    """A small error early on is corrected without changing any rate's sign: no reversal of
+    phi or th1 is added to the rest of the plan."""
+    ps = read_plan(answer)
+    rng = np.random.default_rng(11)
+    kept = 0
+    for _ in range(5):
+        i = int(rng.integers(1, 30))
+        t = answer["path"]["t"][i]
+        q = np.array(answer["path"]["q"][i]) + [0.0, *rng.uniform(-2e-4, 2e-4, 3)]
+        out = replan(answer, t, q)
+        rates = np.array([s["u"] for s in out["coefficients"]["segments"]])
+        if out["diagnostics"]["replan"]["signs_kept"]:
+            kept += 1
+            sig = float(ps.law.evaluate(np.array([t]))[0][0])
+            k = int(np.searchsorted(ps.breaks, sig, side="right") - 1)
+            assert sign_changes(rates) <= sign_changes(ps.rates[k:])
+    assert kept >= 4
+
+
+def test_little_motion_is_left_near_the_end(answer: dict) -> None:
+    """The continuation's own rates, integrated by scipy on the tests' model: in its last
+    0.05 s the joints move less than 1 % of their whole travel (the plan's own law, which
+    runs its last piece rest to rest in 0.083 s, moves about 4 % there)."""
+    from test_replan import run_plant
+
+    q0 = np.array(answer["path"]["q"][0]) + [0.0, 1e-3, -1e-3, 1e-3]
+    out = replan(answer, 0.0, q0)
+    T = out["duration"]
+    late = run_plant(out, q0, 0.0, T - 0.05, PROTOTYPE_K)
+    end = run_plant(out, late, T - 0.05, T, PROTOTYPE_K)
+    assert np.max(np.abs(end[1:] - np.array(GOAL))) < 1e-8
+    assert np.all(np.abs(end - late)[1:] < 0.01 * np.abs(end - q0)[1:])
+    plan_late = run_plant(answer, q0, 0.0, T - 0.05, PROTOTYPE_K)
+    plan_end = run_plant(answer, plan_late, T - 0.05, T, PROTOTYPE_K)
+    assert np.max(np.abs(plan_end - plan_late)[1:] / np.abs(plan_end - q0)[1:]) > 0.02
