@@ -32,8 +32,9 @@ on, default settings; ``PLANNER_*`` environment variables are passed through and
   cancelled and counted as ``unfinished``; the percentiles are then a lower bound). Between two
   levels the bench waits until ``/readyz`` reports no busy or waiting worker;
 * **CPU**: during each window, the CPU seconds of this load generator, of the server's event-loop
-  process and of its workers (psutil), per answered request; the event loop's share is the
-  service's per-request overhead outside the job;
+  process and of its workers (psutil), per answered request, and of each the part spent in the
+  kernel (system time: sockets, pipes, page faults); the event loop's share is the service's
+  per-request overhead outside the job (``python -m bench.http_stages`` splits it by stage);
 * **memory**: resident set size (RSS) and unique set size (USS) of every process of the server's
   tree (psutil), idle after start and after the load.
 

@@ -19,7 +19,9 @@ Event loop (the server process):
 * ``ASGI app``: the whole app called as uvicorn calls it (the request middleware, gzip, the fast
   route with all the above, metrics, the JSON access log), with a stub pool that unpickles a
   worker's real answer instead of running the job. What the event loop spends beyond it is
-  uvicorn's (httptools, the transport) and asyncio's.
+  uvicorn's (httptools, the transport) and asyncio's. The load benchmark's client does not
+  accept gzip; ``ASGI app, the client accepts gzip`` is the same for a client that does (most
+  HTTP libraries and browsers), the answer then compressed in the event loop.
 
 Worker:
 
@@ -68,8 +70,9 @@ class _StubPool:
         return pickle.loads(self.outcome)  # type: ignore[no-any-return]
 
 
-def _asgi_caller(app: Any) -> Callable[[bytes], None]:
-    """One ``POST /v1/plans`` through ``app`` per call, on one event loop."""
+def _asgi_caller(app: Any, gzip: bool = False) -> Callable[[bytes], None]:
+    """One ``POST /v1/plans`` through ``app`` per call, on one event loop (with ``gzip``, from
+    a client that accepts gzip)."""
     loop = asyncio.new_event_loop()
 
     def call(body: bytes) -> None:
@@ -78,7 +81,8 @@ def _asgi_caller(app: Any) -> Callable[[bytes], None]:
                  "query_string": b"", "root_path": "", "client": ("127.0.0.1", 1),
                  "server": ("127.0.0.1", 8000),
                  "headers": [(b"host", b"127.0.0.1:8000"), (b"content-type", b"application/json"),
-                             (b"content-length", str(len(body)).encode())]}
+                             (b"content-length", str(len(body)).encode()),
+                             *([(b"accept-encoding", b"gzip")] if gzip else [])]}
         sent: list[dict[str, Any]] = []
         messages = [{"type": "http.request", "body": body, "more_body": False}]
 
@@ -137,8 +141,10 @@ def measure(requests: int = 200, rounds: int = 5, log: Any = print) -> dict[str,
     app = create_app(settings)
     app.state.pool = _StubPool(outcome_frames[0])
     call = _asgi_caller(app)
+    call_gzip = _asgi_caller(app, gzip=True)
     for b in bodies[:10]:
         call(b)
+        call_gzip(b)
 
     stages: list[tuple[str, str, Callable[[int], Any]]] = [
         ("event loop", "validate (model_validate_json)",
@@ -149,6 +155,8 @@ def measure(requests: int = 200, rounds: int = 5, log: Any = print) -> dict[str,
         ("event loop", "answer unpickle", lambda i: pickle.loads(outcome_frames[i])),
         ("event loop", "ASGI app (all of the above, middleware, access log)",
          lambda i: call(bodies[i])),
+        ("event loop", "ASGI app, the client accepts gzip (level 1 in the event loop)",
+         lambda i: call_gzip(bodies[i])),
         ("worker", "job unpickle", lambda i: pickle.loads(job_frames[i])),
         ("worker", "PlanRequest.from_dict", lambda i: PlanRequest.from_dict(payloads[i])),
         ("worker", "plan", lambda i: plan(requests_lib[i])),
