@@ -18,7 +18,7 @@ from .worker_protocol import CANCEL_SIGNAL, PING, PONG
 
 
 def worker_main(conn: Connection, warmup: bool, log_level: str, nice: int = 0,
-                 native_cache: str | None = None) -> None:
+                native_cache: str | None = None) -> None:
     """Entry point of a worker process: warm up, then serve jobs until told to stop."""
     # the server decides when workers stop: a SIGINT/SIGTERM sent to the whole process group
     # (Ctrl-C, systemd, some container runtimes) must not kill a job in flight; the server

@@ -52,8 +52,9 @@ runs in a separate *process*, and a solve that overruns must be killed. A
 * A request whose client goes away does not leak its worker: the worker is returned (or
   replaced) by the pipe's protocol or the timer when the job ends, never by the request's
   coroutine. A request cancelled while it waits leaves the queue; one cancelled while its job
-  runs sends the worker :data:`service.worker_protocol.CANCEL_SIGNAL`, which makes the job's next deadline check fail
-  (:func:`optimizer.planner.context.cancel`), so the worker is free again without a restart.
+  runs sends the worker :data:`service.worker_protocol.CANCEL_SIGNAL`, which makes the job's
+  next deadline check fail (:func:`optimizer.planner.context.cancel`), so the worker is free
+  again without a restart.
 """
 
 from __future__ import annotations
@@ -462,8 +463,9 @@ class WorkerPool(PoolHealth):
         with self._lock:
             ident = self._next_ident
             self._next_ident += 1
-        proc = self._ctx.Process(target=worker_main, args=(theirs, self.warmup, self.log_level, self.nice,
-                                                             self.native_cache),
+        proc = self._ctx.Process(target=worker_main,
+                                 args=(theirs, self.warmup, self.log_level, self.nice,
+                                       self.native_cache),
                                  name=f"planner-worker-{ident}", daemon=True)
         t0 = time.perf_counter()
         try:
