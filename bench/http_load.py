@@ -32,8 +32,9 @@ on, default settings; ``PLANNER_*`` environment variables are passed through and
   cancelled and counted as ``unfinished``; the percentiles are then a lower bound). Between two
   levels the bench waits until ``/readyz`` reports no busy or waiting worker;
 * **CPU**: during each window, the CPU seconds of this load generator, of the server's event-loop
-  process and of its workers (psutil), per answered request; the event loop's share is the
-  service's per-request overhead outside the job;
+  process and of its workers (psutil), per answered request, and of each the part spent in the
+  kernel (system time: sockets, pipes, page faults); the event loop's share is the service's
+  per-request overhead outside the job (``python -m bench.http_stages`` splits it by stage);
 * **memory**: resident set size (RSS) and unique set size (USS) of every process of the server's
   tree (psutil), idle after start and after the load.
 
@@ -326,9 +327,12 @@ class Server:
         return out
 
     def cpu(self) -> dict[str, float]:
-        """CPU seconds (user + system) so far of the event-loop process and of the workers."""
+        """CPU seconds so far of the event-loop process (``server``) and of the workers
+        (``workers``): user + system, and each apart (``server_user``, ``server_system``, ...;
+        the kernel's share is the sockets' and pipes' copies)."""
         import psutil
-        out = {"server": 0.0, "workers": 0.0}
+        out = {k: 0.0 for k in ("server", "workers", "server_user", "server_system",
+                                "workers_user", "workers_system")}
         for p, role in self._tree():
             try:
                 t = p.cpu_times()
@@ -338,6 +342,8 @@ class Server:
                 else None
             if key:
                 out[key] += t.user + t.system
+                out[key + "_user"] += t.user
+                out[key + "_system"] += t.system
         return out
 
 
@@ -441,12 +447,14 @@ async def load(url: str, name: str, clients: int, seconds: float, drain: float,
 
     cpu0 = server.cpu() if server is not None else None
     own0 = time.process_time()
+    own_times0 = os.times()
     wall0 = time.perf_counter()
     tasks = [asyncio.create_task(one_client(c, random.Random(seed * 1000 + i)))
              for i, c in enumerate(conns)]
     done, pending = await asyncio.wait(tasks, timeout=seconds + drain)
     wall = time.perf_counter() - wall0
     own = time.process_time() - own0
+    own_times1 = os.times()
     cpu1 = server.cpu() if server is not None else None
     for t in pending:
         t.cancel()
@@ -456,15 +464,16 @@ async def load(url: str, name: str, clients: int, seconds: float, drain: float,
     lat = np.asarray(latencies)
     summ = summarise(latencies)
     answered = int(lat.size)
-    cpu: dict[str, Any] = {"wall_s": wall, "client_s": own}
+    cpu: dict[str, Any] = {"wall_s": wall, "client_s": own,
+                           "client_system_s": own_times1.system - own_times0.system}
     if cpu0 is not None and cpu1 is not None:
-        cpu["server_s"] = cpu1["server"] - cpu0["server"]
-        cpu["workers_s"] = cpu1["workers"] - cpu0["workers"]
+        for key in ("server", "workers", "server_system", "workers_system"):
+            cpu[key + "_s"] = cpu1[key] - cpu0[key]
         total = own + cpu["server_s"] + cpu["workers_s"]
         cpu["client_share"] = own / total if total > 0 else math.nan
     per = 1e3 / answered if answered else math.nan
-    cpu.update({k.replace("_s", "_ms_per_request"): v * per for k, v in list(cpu.items())
-                if k in ("client_s", "server_s", "workers_s")})
+    cpu.update({k[:-2] + "_ms_per_request": v * per for k, v in list(cpu.items())
+                if k.endswith("_s") and k != "wall_s"})
     return {
         "job": name, "clients": clients, "seconds": seconds,
         "throughput": ok_in_window / seconds, "answered": answered,
@@ -486,7 +495,10 @@ def _describe(res: dict[str, Any]) -> str:
     if "server_ms_per_request" in cpu:
         text += (f", event loop {cpu['server_ms_per_request']:.2f} ms, workers "
                  f"{cpu['workers_ms_per_request']:.2f} ms (client share "
-                 f"{cpu['client_share']:.0%})")
+                 f"{cpu['client_share']:.0%}); of which system: client "
+                 f"{cpu['client_system_ms_per_request']:.2f}, event loop "
+                 f"{cpu['server_system_ms_per_request']:.2f}, workers "
+                 f"{cpu['workers_system_ms_per_request']:.2f} ms")
     return text
 
 

@@ -284,6 +284,7 @@ every sample goes to `bench/results/`, which is not versioned). It holds the lat
     .venv/bin/python -m bench --quick          # fewer repeats, 3 s per HTTP level (page untouched)
     .venv/bin/python -m bench --help           # choose cases, methods, repeats, --report PATH
     .venv/bin/python bench/profile_plan.py     # profile of the hot path (any --case, --method)
+    .venv/bin/python -m bench.http_stages      # CPU of a plan request, stage by stage
     .venv/bin/python -m bench.study_scaling    # a 1,000-goal study on 1 and 2 workers (studies.md)
     .venv/bin/python -m bench.replan --http    # closed-loop replanning: latency
                                                # against a cold plan, HTTP, closed loop on

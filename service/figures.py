@@ -235,7 +235,11 @@ def _check_fmt(fmt: str) -> str:
     return f
 
 
-def _draw(build: Callable[[], Figure], fmt: str) -> bytes:
+def render_figure(build: Callable[[], Figure], fmt: str) -> bytes:
+    """The figure ``build()`` makes, drawn in the service's style (its rc settings, one figure
+    at a time: matplotlib's state is global) and saved as ``fmt`` (``png`` or ``svg``).
+
+    Every figure of this module is drawn through it; :mod:`service.figures_study` too."""
     f = _check_fmt(fmt)
     with _LOCK, matplotlib.rc_context(_RC):  # type: ignore[arg-type]
         fig = build()
@@ -287,7 +291,7 @@ def joint_angles(plan: Mapping[str, Any], fmt: str = "png") -> bytes:
         axp.set_xlim(t0, t1)
         return fig
 
-    return _draw(build, fmt)
+    return render_figure(build, fmt)
 
 
 def _rates_panel(ax: Any, p: "_PlanData") -> None:
@@ -413,7 +417,7 @@ def chained_state(plan: Mapping[str, Any], fmt: str = "png",
         _legend_right(axes[0], handles)
         return fig
 
-    return _draw(build, fmt)
+    return render_figure(build, fmt)
 
 
 def robustness(plan: Mapping[str, Any], robustness: Mapping[str, Any], fmt: str = "png") -> bytes:
@@ -516,7 +520,7 @@ def robustness(plan: Mapping[str, Any], robustness: Mapping[str, Any], fmt: str 
         _legend_right(axes[0], handles)
         return fig
 
-    return _draw(build, fmt)
+    return render_figure(build, fmt)
 
 
 def _intervals_from_flags(ds: np.ndarray, ok: np.ndarray) -> list[tuple[float, float]]:
@@ -638,7 +642,7 @@ def sweep(sweep: Mapping[str, Any], fmt: str = "png", planned: float | None = No
                                     label="sensitivity ||J_R(T)||_F,\nother dphi")])
         return fig
 
-    return _draw(build, fmt)
+    return render_figure(build, fmt)
 
 
 def pareto(plan: Mapping[str, Any], fmt: str = "png") -> bytes:
@@ -687,7 +691,7 @@ def pareto(plan: Mapping[str, Any], fmt: str = "png") -> bytes:
         _legend_right(ax, handles)
         return fig
 
-    return _draw(build, fmt)
+    return render_figure(build, fmt)
 
 
 # ------------------------------------------------------------------ dispatch

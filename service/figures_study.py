@@ -33,7 +33,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 from optimizer.study_io import read_rows
 
-from .figures import DEG, DPI, WIDTH, _draw
+from .figures import DEG, DPI, WIDTH, render_figure
 from .formats import FORMATS
 
 #: Mechanisms drawn at most (one row of panels each).
@@ -110,7 +110,7 @@ def study_map(rows: Sequence[Mapping[str, Any]], fmt: str = "png", x: str = "goa
                 ax.set_ylabel(f"{y} ({DEG})")
         return fig
 
-    return _draw(build, fmt)
+    return render_figure(build, fmt)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

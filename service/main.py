@@ -19,7 +19,6 @@ from typing import Any, AsyncIterator
 from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.middleware.gzip import GZipMiddleware
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import HTMLResponse
@@ -32,6 +31,7 @@ from starlette.responses import Response
 
 from . import __version__
 from .auth import CHALLENGE, UNAUTHORIZED_DETAIL, authorized, encode_keys
+from .compression import GZipWhenAccepted
 from .dispatch import request_id
 from .fastpath import FastPlanRoute, is_json
 from .metrics import Metrics
@@ -139,8 +139,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # gzip for clients that accept it (a plan at the default 201 samples: 62 KB of JSON), outside
     # the request middleware so that its own answers (the fast path, 401, 413) are compressed
     # too; its answers pass through in the same chunks, each still under send_timeout. Level 1:
-    # the event loop compresses, and JSON of floats shrinks almost as much as at level 9
-    app.add_middleware(GZipMiddleware, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=1)
+    # the event loop compresses, and JSON of floats shrinks almost as much as at level 9.
+    # Requests that do not accept gzip skip the middleware (service.compression)
+    app.add_middleware(GZipWhenAccepted, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=1)
     if settings.cors_origins:  # outermost: its headers are on every answer, a 401 or 413 too
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST"],

@@ -11,7 +11,7 @@ from __future__ import annotations
 import gc
 import logging
 
-from . import jobs, workers  # noqa: F401 - loaded once for every forked worker
+from . import jobs, worker_process  # noqa: F401 - loaded once for every forked worker
 
 try:
     WARMUP: dict = jobs.warm_up()
@@ -21,7 +21,7 @@ except Exception as exc:  # noqa: BLE001 - an optimisation only; each worker war
                                                 type(exc).__name__)
 
 # everything loaded so far lives as long as the forkserver and the workers forked from it: out
-# of the collector's reach (:func:`service.workers._freeze_heap`), so that no worker's
+# of the collector's reach (:func:`service.worker_process.freeze_heap`), so that no worker's
 # collections walk them (and, by writing to their headers, copy the pages they share)
 gc.collect()
 gc.freeze()

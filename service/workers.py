@@ -11,10 +11,13 @@ runs in a separate *process*, and a solve that overruns must be killed. A
   modules and warms up once (:data:`PRELOAD`: :mod:`service.preload` builds the default robot's
   CasADi chained form), so that every worker it forks starts ready to plan; each worker is
   connected to the server by **one duplex pipe** (a Unix socket pair) and runs
-  :func:`_worker_main`: it warms up (a no-op when the forkserver did), says ``ready``, then
-  answers one ``(kind, payload)`` message at a time with a plain dict
-  (:func:`service.jobs.run_job`; a result's JSON is encoded by the worker).
-* The server's end of each pipe is an asyncio transport (:class:`_PipeProtocol`): a job is
+  :func:`service.worker_process.worker_main`: it warms up (a no-op when the forkserver did),
+  says ``ready``, then answers one ``(kind, payload)`` message at a time with a plain dict
+  (:func:`service.jobs.run_job`; a result's JSON is encoded by the worker). The messages are
+  :mod:`service.worker_protocol`'s.
+* The server's end of each pipe is an asyncio transport
+  (:class:`service.worker_protocol.PipeProtocol`) owned by a
+  :class:`service.worker_handle.WorkerHandle`, which runs one job at a time: a job is
   written to it without blocking and its answer is read by the event loop as it arrives, with
   multiprocessing's framing (so the worker side is a plain blocking
   :class:`multiprocessing.connection.Connection`). No helper thread per request: a thread
@@ -31,7 +34,8 @@ runs in a separate *process*, and a solve that overruns must be killed. A
   ``worker_lost``). An idle worker that dies is replaced before any request can take it.
 * **A pool that heals**: a replacement that fails to start (dies while warming up, no file
   descriptors, a failed fork) is retried with a growing pause (:data:`RESTART_BACKOFF`) for as
-  long as the pool is open, so a slot is never given up. Idle workers are pinged every
+  long as the pool is open, so a slot is never given up. The health checks
+  (:mod:`service.pool_health`): idle workers are pinged every
   ``ping_interval`` s; one that does not answer within ``ping_timeout`` (stopped, wedged) is
   killed and replaced. Between pings, a worker found stopped (:mod:`service.procstate`) when a
   request takes it is replaced and the request takes another; one stopped under a job (looked
@@ -44,32 +48,37 @@ runs in a separate *process*, and a solve that overruns must be killed. A
 * **Shutdown**: :meth:`WorkerPool.drain` gives up, at a deadline, the requests still waiting
   and the jobs still running (:class:`ShuttingDown`, 503 ``shutting_down``), so that each is
   answered before the server's own shutdown timeout cancels it.
+* The pool's failures are :mod:`service.pool_errors`' (re-exported here).
 * A request whose client goes away does not leak its worker: the worker is returned (or
   replaced) by the pipe's protocol or the timer when the job ends, never by the request's
   coroutine. A request cancelled while it waits leaves the queue; one cancelled while its job
-  runs sends the worker :data:`CANCEL_SIGNAL`, which makes the job's next deadline check fail
-  (:func:`optimizer.planner.context.cancel`), so the worker is free again without a restart.
+  runs sends the worker :data:`service.worker_protocol.CANCEL_SIGNAL`, which makes the job's
+  next deadline check fail (:func:`optimizer.planner.context.cancel`), so the worker is free
+  again without a restart.
 """
 
 from __future__ import annotations
 
 import asyncio
-import gc
 import logging
 import multiprocessing
 import os
-import pickle
-import signal
 import socket
-import struct
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from multiprocessing.connection import Connection
 from typing import Any, Callable
 
-from .procstate import is_stopped
+from .pool_errors import (JobTimeout, Overloaded, PoolError, QueueTimeout, ShuttingDown,
+                          WorkerLost)
+from .pool_health import PoolHealth
+from .worker_handle import WorkerHandle
+from .worker_process import worker_main
+from .worker_protocol import PipeProtocol
+
+__all__ = ["PRELOAD", "RESTART_BACKOFF", "JobTimeout", "Overloaded", "PoolError", "PoolStats",
+           "QueueTimeout", "ShuttingDown", "WorkerLost", "WorkerPool"]
 
 log = logging.getLogger("service.workers")
 
@@ -77,295 +86,9 @@ log = logging.getLogger("service.workers")
 #: warmed up: :mod:`service.preload`).
 PRELOAD = ["service.preload"]
 
-#: The pool's liveness probe of an idle worker and its answer.
-PING = "ping"
-PONG = {"ok": True, "pong": True}
-
-#: The signal that asks a worker to drop its job (see :func:`_worker_main`).
-CANCEL_SIGNAL = signal.SIGUSR1
-
 #: Seconds between attempts to start a replacement worker: doubled after each failure up to
 #: the last value (a failed start is retried for as long as the pool is open).
 RESTART_BACKOFF = (0.1, 2.0)
-
-
-class PoolError(Exception):
-    """Base class of the pool's own failures."""
-
-
-class Overloaded(PoolError):
-    """More than ``queue_size`` requests would wait for a worker."""
-
-
-class JobTimeout(PoolError):
-    """The worker did not answer within the job's time limit plus grace; it was killed."""
-
-    def __init__(self, limit: float) -> None:
-        super().__init__(f"no answer within {limit:g} s")
-        self.limit = limit
-
-
-class WorkerLost(PoolError):
-    """The worker process ended (crashed or was killed) before answering."""
-
-
-class QueueTimeout(Overloaded):
-    """No worker became free within the queue's time limit (none may be alive)."""
-
-
-class ShuttingDown(PoolError):
-    """The server is stopping and its drain deadline came before the job could finish."""
-
-
-# ---------------------------------------------------------------------------- worker side
-def _worker_main(conn: Connection, warmup: bool, log_level: str, nice: int = 0,
-                 native_cache: str | None = None) -> None:
-    """Entry point of a worker process: warm up, then serve jobs until told to stop."""
-    # the server decides when workers stop: a SIGINT/SIGTERM sent to the whole process group
-    # (Ctrl-C, systemd, some container runtimes) must not kill a job in flight; the server
-    # finishes its requests, then stops the workers (and a worker whose server died sees its
-    # pipe close and exits)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    from optimizer.planner import context as _plan
-
-    from . import jobs
-
-    # the server's request to drop the job in progress (its client went away): the solve ends
-    # at its next deadline check (:func:`optimizer.planner.context.cancel`)
-    signal.signal(CANCEL_SIGNAL, lambda signum, frame: _plan.cancel())
-    from .logs import configure_logging
-
-    configure_logging(log_level)
-    info: dict[str, Any] = {}
-    if native_cache:
-        from optimizer import native
-        try:
-            info["native"] = native.configure(native_cache) is not None
-        except OSError as exc:  # an unusable directory: the virtual machine serves alone
-            logging.getLogger("service.worker").warning(
-                "compiled NLP functions off: %s", type(exc).__name__)
-            info["native"] = False
-    if warmup:
-        try:
-            info.update(jobs.warm_up())
-        except Exception as exc:  # noqa: BLE001 - warm-up is an optimisation only
-            info["warmup_error"] = type(exc).__name__
-    _freeze_heap()
-    if nice > 0:
-        # below the event loop: it only routes requests, and a loop descheduled behind two
-        # CPU-bound solves is where the latency tail came from (p99 at 8 clients 25-26 ->
-        # 19-21 ms on 2 cores, interleaved runs); the solves' total CPU is unchanged
-        os.nice(nice)
-    conn.send(("ready", info))
-    while True:
-        try:
-            message = conn.recv()
-        except (EOFError, OSError):
-            break
-        if message is None:
-            break
-        kind, payload, request_id = message
-        if kind == PING:
-            conn.send(PONG)
-            continue
-        _plan.clear_cancel()
-        conn.send(jobs.run_job(kind, payload, request_id))
-    conn.close()
-
-
-def _freeze_heap() -> None:
-    """Move every object alive now (the solver modules, CasADi functions, warm-up caches:
-    hundreds of thousands of them) out of the garbage collector's reach.
-
-    They live as long as the process. Without this, each of the collector's full passes,
-    triggered by the containers a plan allocates, walks all of them again: about 0.2 ms of a
-    worker's 3 ms per plan. Objects created later (the jobs') are collected as usual. Called
-    after the warm-up; the forkserver does the same before it forks (:mod:`service.preload`),
-    which also keeps the collector from writing to (and so copying) the pages the workers
-    share with it.
-    """
-    gc.collect()
-    gc.freeze()
-
-
-# ---------------------------------------------------------------------------- server side
-def _consume(future: asyncio.Future[Any]) -> None:
-    """Retrieve the outcome of a future nobody awaits (a ping), so asyncio does not log it."""
-    if not future.cancelled():
-        future.exception()
-
-
-_HEADER = struct.Struct("!i")
-_LONG_HEADER = struct.Struct("!Q")
-
-
-def _frame(message: Any) -> list[bytes]:
-    """``message`` pickled, with the length header of :class:`multiprocessing.connection`."""
-    data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-    n = len(data)
-    if n > 0x7FFFFFFF:
-        return [_HEADER.pack(-1) + _LONG_HEADER.pack(n), data]
-    return [_HEADER.pack(n), data]
-
-
-class _PipeProtocol(asyncio.Protocol):
-    """The server's end of a worker's pipe: unframes and unpickles the worker's messages."""
-
-    def __init__(self, worker: "_Worker") -> None:
-        self.worker = worker
-        self.buffer = bytearray()
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.worker.transport = transport  # type: ignore[assignment]
-
-    def data_received(self, data: bytes) -> None:
-        buf = self.buffer
-        buf += data
-        while True:
-            n = len(buf)
-            if n < 4:
-                return
-            (size,) = _HEADER.unpack_from(buf)
-            start = 4
-            if size == -1:
-                if n < 12:
-                    return
-                (size,) = _LONG_HEADER.unpack_from(buf, 4)
-                start = 12
-            end = start + size
-            if n < end:
-                return
-            try:
-                message = pickle.loads(buf[start:end])
-            except Exception:  # noqa: BLE001 - a garbled pipe: treat the worker as lost
-                log.exception("unreadable message from worker %s", self.worker.ident)
-                self.worker.retire()
-                self.worker.on_lost()
-                return
-            del buf[:end]
-            self.worker.on_message(message)
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self.worker.on_lost()
-
-
-class _Worker:
-    """One worker process, the server's end of its pipe and the job it runs (if any).
-
-    At most one job (or the wait for ``ready``) is outstanding: :meth:`begin` sends it and arms
-    its timer; exactly one of the answer (:meth:`on_message`), the timer (:meth:`_on_timeout`)
-    or the pipe closing (:meth:`on_lost`) ends it, resolving the request's future (unless the
-    request went away) and calling ``on_end(worker, exc)``.
-    """
-
-    def __init__(self, process: Any, ident: int) -> None:
-        self.process = process
-        self.ident = ident
-        self.transport: asyncio.Transport | None = None
-        self.ready_info: dict[str, Any] = {}
-        self.up = False        # it said ready
-        self.dead = False      # its pipe closed
-        self.retired = False   # taken out of the pool (killed or stopped)
-        self.unresponsive = False  # found stopped (SIGSTOP)
-        self.on_idle_lost: Callable[[_Worker], None] | None = None
-        self._future: asyncio.Future[Any] | None = None
-        self._timer: asyncio.TimerHandle | None = None
-        self._on_end: Callable[[_Worker, BaseException | None], None] | None = None
-        self._limit = 0.0
-
-    @property
-    def busy(self) -> bool:
-        return self._future is not None
-
-    @property
-    def live(self) -> bool:
-        """Started, warmed up and not known to be dead, killed or unresponsive."""
-        return self.up and not (self.dead or self.retired)
-
-    def begin(self, message: Any, limit: float,
-              on_end: Callable[["_Worker", BaseException | None], None] | None = None,
-              ) -> asyncio.Future[Any]:
-        """Send ``message`` (unless None) and expect one answer within ``limit`` s."""
-        if self.dead or self.retired or (message is not None and self.transport is None):
-            raise WorkerLost(f"worker {self.ident} ended unexpectedly")
-        frame = _frame(message) if message is not None else None
-        loop = asyncio.get_running_loop()
-        future: asyncio.Future[Any] = loop.create_future()
-        self._future, self._on_end, self._limit = future, on_end, limit
-        self._timer = loop.call_later(limit, self._on_timeout)
-        if frame is not None and self.transport is not None:
-            self.transport.writelines(frame)
-        return future
-
-    def _end(self, result: Any = None, exc: BaseException | None = None) -> None:
-        future, on_end, timer = self._future, self._on_end, self._timer
-        self._future = self._on_end = self._timer = None
-        if timer is not None:
-            timer.cancel()
-        if future is not None and not future.done():
-            if exc is not None:
-                future.set_exception(exc)
-            else:
-                future.set_result(result)
-        if on_end is not None:
-            on_end(self, exc)
-
-    def interrupt(self, future: asyncio.Future[Any]) -> None:
-        """Ask the process to drop the job of ``future`` if it still runs it (the request
-        went away); its answer, a timeout, then ends the job as usual."""
-        if self._future is future and not (self.dead or self.retired):
-            try:
-                os.kill(self.process.pid, CANCEL_SIGNAL)
-            except (ProcessLookupError, TypeError):
-                pass
-
-    def abandon(self, exc: BaseException) -> None:
-        """End the outstanding job with ``exc`` (the pool is giving it up)."""
-        if self._future is not None:
-            self._end(exc=exc)
-
-    def on_message(self, message: Any) -> None:
-        if self._future is None:  # nothing expected (cannot happen: one job at a time)
-            log.warning("unexpected message from worker %s", self.ident)
-            return
-        self._end(result=message)
-
-    def _on_timeout(self) -> None:
-        # SIGKILL at once and answer; the process is reaped later (:meth:`reap`), so that the
-        # answer does not wait for the kernel to tear the process down
-        self.retire()
-        self._end(exc=JobTimeout(self._limit))
-
-    def on_lost(self) -> None:
-        if self.dead:
-            return
-        self.dead = True
-        if self._future is not None:
-            self._end(exc=WorkerLost(f"worker {self.ident} ended unexpectedly"))
-        elif not self.retired and self.on_idle_lost is not None:
-            self.on_idle_lost(self)
-
-    def retire(self) -> None:
-        """SIGKILL the process (if alive) and close the pipe, without waiting."""
-        self.retired = True
-        if self.process.is_alive():
-            self.process.kill()
-        if self.transport is not None:
-            self.transport.abort()
-
-    def send_stop(self) -> None:
-        """Ask the worker to exit (it finishes nothing: call only when it is idle)."""
-        self.retired = True
-        if self.transport is not None and not self.dead:
-            self.transport.writelines(_frame(None))
-
-    def reap(self, timeout: float = 5.0) -> None:
-        """Wait for the process to end, SIGKILL it after ``timeout`` s (in a helper thread)."""
-        self.process.join(timeout)
-        if self.process.is_alive():
-            self.process.kill()
-            self.process.join(5.0)
 
 
 @dataclass(frozen=True)
@@ -383,7 +106,7 @@ class PoolStats:
     restarts: int
 
 
-class WorkerPool:
+class WorkerPool(PoolHealth):
     """``size`` solver processes behind a queue of at most ``queue_size`` waiting requests.
 
     Parameters
@@ -439,8 +162,8 @@ class WorkerPool:
         # process starts (the first one waits for the forkserver's imports) and reaping only
         self._threads = ThreadPoolExecutor(max_workers=size + 2,
                                            thread_name_prefix="planner-pool")
-        self._idle: asyncio.Queue[_Worker] | None = None
-        self._all: set[_Worker] = set()
+        self._idle: asyncio.Queue[WorkerHandle] | None = None
+        self._all: set[WorkerHandle] = set()
         self._lock = threading.Lock()
         self._waiting = 0
         self._reserved = 0  # places taken by admitted batches whose items have not run yet
@@ -595,41 +318,7 @@ class WorkerPool:
             if worker.process.is_alive():
                 return await self._watched(worker, worker.begin(message, limit, self._finished))
 
-    async def _watched(self, worker: _Worker, answer: asyncio.Future[Any]) -> dict[str, Any]:
-        """:meth:`_await`, looking every ``ping_timeout`` s whether the worker has been
-        stopped meanwhile: a stopped worker's job is ended :class:`WorkerLost` (so that
-        :meth:`run` gives it to another worker) instead of waiting out its time limit."""
-        loop = asyncio.get_running_loop()
-        timer: list[asyncio.TimerHandle] = []
-
-        def look() -> None:
-            if answer.done() or worker.dead or worker.retired:
-                return
-            if is_stopped(worker.process.pid):
-                log.warning("worker %s is stopped under a job", worker.ident)
-                worker.unresponsive = True
-                worker.retire()
-                worker.abandon(WorkerLost(f"worker {worker.ident} stopped under the job"))
-                return
-            timer[:] = [loop.call_later(self.ping_timeout, look)]
-
-        timer.append(loop.call_later(self.ping_timeout, look))
-        try:
-            return await self._await(worker, answer)
-        finally:
-            timer[0].cancel()
-
-    @staticmethod
-    async def _await(worker: _Worker, answer: asyncio.Future[Any]) -> dict[str, Any]:
-        """The job's answer; when the request is cancelled (its client went away) the worker
-        is asked to drop the job (where the method checks its deadline, it stops there)."""
-        try:
-            return await answer  # type: ignore[no-any-return]
-        except asyncio.CancelledError:
-            worker.interrupt(answer)
-            raise
-
-    async def _take(self) -> _Worker:
+    async def _take(self) -> WorkerHandle:
         """An idle worker, waiting at most ``queue_timeout`` s (less when draining)."""
         idle = self._idle
         if idle is None or self._closing:
@@ -657,15 +346,8 @@ class WorkerPool:
                     self._waiting -= 1
             else:
                 worker = idle.get_nowait()
-            if worker.dead or worker.retired:
-                continue  # (a worker that died idle is being replaced: take the next)
-            if is_stopped(worker.process.pid):
-                # stopped while idle, before its ping noticed: it would hold this request
-                # for its whole time limit
-                worker.unresponsive = True
-                self._replace_worker(worker, "unresponsive")
-                continue
-            return worker
+            if self._usable(worker):
+                return worker
 
     def admit(self, reserve: int = 0) -> None:
         """Raise :class:`Overloaded` when a new request would exceed the queue bound.
@@ -692,14 +374,11 @@ class WorkerPool:
         self._reserved = max(self._reserved - count, 0)
 
     # ------------------------------------------------------------------ internals
-    def _finished(self, worker: _Worker, exc: BaseException | None) -> None:
+    def _finished(self, worker: WorkerHandle, exc: BaseException | None) -> None:
         """Return the worker to the idle queue, or replace it if it was killed or died."""
         self._return(worker, exc, "timeout")
 
-    def _pinged(self, worker: _Worker, exc: BaseException | None) -> None:
-        self._return(worker, exc, "unresponsive")
-
-    def _return(self, worker: _Worker, exc: BaseException | None, timeout_reason: str) -> None:
+    def _return(self, worker: WorkerHandle, exc: BaseException | None, timeout_reason: str) -> None:
         if self._closing:
             return
         if isinstance(exc, JobTimeout):
@@ -712,43 +391,7 @@ class WorkerPool:
             assert self._idle is not None
             self._idle.put_nowait(worker)
 
-    async def _ping_idle(self) -> None:
-        """Probe the idle workers every ``ping_interval`` s (see the class docstring)."""
-        assert self._idle is not None
-        idle = self._idle
-        while not self._closing:
-            await asyncio.sleep(self.ping_interval)
-            workers = []
-            while not idle.empty():
-                workers.append(idle.get_nowait())
-            for w in workers:
-                if w.dead or w.retired:
-                    continue  # died idle: already being replaced
-                try:
-                    pong = w.begin((PING, None, None), self.ping_timeout, self._pinged)
-                except WorkerLost:
-                    continue
-                pong.add_done_callback(_consume)
-
-    def _idle_lost(self, worker: _Worker) -> None:
-        """A worker died while idle (OOM kill, an operator): take it out of the idle queue (the
-        queue's size counts idle workers for admission and /readyz) and replace it at once."""
-        if not self._closing:
-            self._drop_idle(worker)
-            self._replace_worker(worker, "lost")
-
-    def _drop_idle(self, worker: _Worker) -> None:
-        # runs on the event loop, like every get and put of the queue: nothing interleaves
-        assert self._idle is not None
-        keep = []
-        while not self._idle.empty():
-            w = self._idle.get_nowait()
-            if w is not worker:
-                keep.append(w)
-        for w in keep:
-            self._idle.put_nowait(w)
-
-    def _replace_worker(self, worker: _Worker, reason: str) -> None:
+    def _replace_worker(self, worker: WorkerHandle, reason: str) -> None:
         log.warning("replacing worker %s (%s)", worker.ident, reason)
         with self._lock:
             self._all.discard(worker)
@@ -781,12 +424,12 @@ class WorkerPool:
             await asyncio.sleep(pause)
             pause = min(pause * 2.0, longest)
 
-    async def _start_worker(self) -> _Worker:
+    async def _start_worker(self) -> WorkerHandle:
         loop = asyncio.get_running_loop()
         worker, sock = await loop.run_in_executor(self._threads, self._new_process)
         ready = worker.begin(None, self.start_timeout)  # before its message can arrive
         try:
-            await loop.connect_accepted_socket(lambda: _PipeProtocol(worker), sock)
+            await loop.connect_accepted_socket(lambda: PipeProtocol(worker), sock)
         except BaseException:
             sock.close()
             worker.retire()
@@ -813,14 +456,16 @@ class WorkerPool:
         assert self._idle is not None
         self._idle.put_nowait(worker)
         return worker
-    def _new_process(self) -> tuple[_Worker, socket.socket]:
+
+    def _new_process(self) -> tuple[WorkerHandle, socket.socket]:
         """Start a worker process (blocking: runs in a helper thread); its pipe's socket."""
         ours, theirs = self._ctx.Pipe(duplex=True)
         with self._lock:
             ident = self._next_ident
             self._next_ident += 1
-        proc = self._ctx.Process(target=_worker_main, args=(theirs, self.warmup, self.log_level, self.nice,
-                                                             self.native_cache),
+        proc = self._ctx.Process(target=worker_main,
+                                 args=(theirs, self.warmup, self.log_level, self.nice,
+                                       self.native_cache),
                                  name=f"planner-worker-{ident}", daemon=True)
         t0 = time.perf_counter()
         try:
@@ -838,7 +483,7 @@ class WorkerPool:
         finally:
             ours.close()
         log.debug("worker %s started in %.3f s", ident, time.perf_counter() - t0)
-        return _Worker(process=proc, ident=ident), sock
+        return WorkerHandle(process=proc, ident=ident), sock
 
     def _spawn_task(self, coro: Any) -> None:
         task = asyncio.ensure_future(coro)

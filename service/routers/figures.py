@@ -41,11 +41,12 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from starlette.responses import Response
 
-from ..dispatch import check_plan, run_job
+from ..dispatch import run_job
 from ..formats import FORMATS
 from ..problems import ServiceProblem
 from ..schemas import MIN_JOINTS, PlanResponse, Schemas, SweepFigureRequest
 from . import ERROR_RESPONSES
+from .common import checked_plan, checked_robustness, checked_sweep
 
 #: Seconds a figure job may take beyond the request's ``time_limit`` (the drawing itself).
 RENDER_SECONDS = 15.0
@@ -132,16 +133,29 @@ def negotiate(fmt: Optional[str], accept: Optional[str]) -> str:
     return best
 
 
-async def _figure(request: Request, kind: str, job_payload: dict[str, Any], time_limit: float,
-                  fmt: Optional[str]) -> Response:
-    """Run the ``figure`` job and answer with the image."""
+async def _image(request: Request, job: str, kind: str, fmt: Optional[str], key: str,
+                 value: Any, limit: float) -> Response:
+    """Run figure job ``job`` (``figure`` or ``figure_of_answer``) with ``{key: value}`` for
+    figure ``kind`` in the negotiated format and answer with the image."""
     chosen = negotiate(fmt, request.headers.get("accept"))
-    limit = time_limit + RENDER_SECONDS
-    image = await run_job(request, "figure", {"figure": kind, "format": chosen,
-                                              "request": job_payload}, limit, method=kind)
+    image = await run_job(request, job, {"figure": kind, "format": chosen, key: value}, limit,
+                          method=kind)
     return Response(image, media_type=FORMATS[chosen],
                     headers={"Content-Disposition": f'inline; filename="{kind}.{chosen}"',
                              "Vary": "Accept"})
+
+
+async def _figure(request: Request, kind: str, job_payload: dict[str, Any], time_limit: float,
+                  fmt: Optional[str]) -> Response:
+    """Compute as the JSON route does (``job_payload``: its job's payload, checked), then draw."""
+    return await _image(request, "figure", kind, fmt, "request", job_payload,
+                        time_limit + RENDER_SECONDS)
+
+
+async def _drawn(request: Request, kind: str, data: dict[str, Any],
+                 fmt: Optional[str]) -> Response:
+    """Draw ``data`` (an answer the client sent) as figure ``kind`` in a worker."""
+    return await _image(request, "figure_of_answer", kind, fmt, "data", data, RENDER_SECONDS)
 
 
 def build_router(S: Schemas) -> APIRouter:
@@ -155,9 +169,8 @@ def build_router(S: Schemas) -> APIRouter:
                              "start-to-goal references that d_a measures against." + COMMON)
     async def figure_joint_angles(body: S.PlanRequest, request: Request,  # type: ignore[name-defined]
                                   format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
-        payload = body.to_library()
-        check_plan(payload)
-        return await _figure(request, "joint_angles", payload, body.time_limit, format)
+        return await _figure(request, "joint_angles", checked_plan(body), body.time_limit,
+                             format)
 
     @router.post("/figures/chained_state", response_class=Response, responses=IMAGE_RESPONSES,
                  summary="Figure: chained-form state against time",
@@ -167,9 +180,8 @@ def build_router(S: Schemas) -> APIRouter:
                              + COMMON)
     async def figure_chained_state(body: S.PlanRequest, request: Request,  # type: ignore[name-defined]
                                    format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
-        payload = body.to_library()
-        check_plan(payload)
-        return await _figure(request, "chained_state", payload, body.time_limit, format)
+        return await _figure(request, "chained_state", checked_plan(body), body.time_limit,
+                             format)
 
     @router.post("/figures/pareto", response_class=Response, responses=IMAGE_RESPONSES,
                  summary="Figure: the trade-off between reversals and deviation",
@@ -178,9 +190,8 @@ def build_router(S: Schemas) -> APIRouter:
                              "actuator reversals, the main plan starred." + COMMON)
     async def figure_pareto(body: S.PlanRequest, request: Request,  # type: ignore[name-defined]
                             format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
-        payload = {**body.to_library(), "pareto": True}
-        check_plan(payload)
-        return await _figure(request, "pareto", payload, body.time_limit, format)
+        return await _figure(request, "pareto", checked_plan(body, pareto=True),
+                             body.time_limit, format)
 
     @router.post("/figures/sweep", response_class=Response, responses=IMAGE_RESPONSES,
                  summary="Figure: indicators against dphi",
@@ -189,9 +200,7 @@ def build_router(S: Schemas) -> APIRouter:
                              "intervals shaded and the grid's best member starred." + COMMON)
     async def figure_sweep(body: S.SweepRequest, request: Request,  # type: ignore[name-defined]
                            format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
-        payload = body.to_library()
-        check_plan(payload["request"])
-        return await _figure(request, "sweep", payload, body.time_limit, format)
+        return await _figure(request, "sweep", checked_sweep(body), body.time_limit, format)
 
     @router.post("/figures/robustness", response_class=Response, responses=IMAGE_RESPONSES,
                  summary="Figure: nominal path against open-loop runs from perturbed starts",
@@ -202,13 +211,7 @@ def build_router(S: Schemas) -> APIRouter:
                              "plan.samples is bounded as with `include_paths`." + COMMON)
     async def figure_robustness(body: S.RobustnessRequest, request: Request,  # type: ignore[name-defined]
                                 format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
-        payload = body.to_library()
-        check_plan(payload["plan"], prefix="plan.")
-        n = len(body.plan.start)
-        for i, row in enumerate(body.starts or []):
-            if len(row) != n:
-                raise ServiceProblem("invalid_request", f"starts[{i}] has {len(row)} angles but "
-                                     f"the plan has n = {n} joints", field=f"starts[{i}]")
+        payload = checked_robustness(body)
         runs = len(body.starts) if body.starts is not None else body.random.count
         most = request.app.state.settings.max_total_samples
         if runs * body.plan.samples > most:
@@ -260,14 +263,3 @@ def build_router(S: Schemas) -> APIRouter:
 
     return router
 
-
-async def _drawn(request: Request, kind: str, data: dict[str, Any],
-                 fmt: Optional[str]) -> Response:
-    """Draw ``data`` (an answer the client sent) as figure ``kind`` in a worker."""
-    chosen = negotiate(fmt, request.headers.get("accept"))
-    image = await run_job(request, "figure_of_answer",
-                          {"figure": kind, "format": chosen, "data": data}, RENDER_SECONDS,
-                          method=kind)
-    return Response(image, media_type=FORMATS[chosen],
-                    headers={"Content-Disposition": f'inline; filename="{kind}.{chosen}"',
-                             "Vary": "Accept"})

@@ -3,10 +3,9 @@
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from ..dispatch import run_job
-from ..problems import SafeJSONResponse
 from ..schemas import ReplanRequest, ReplanResponse
 from . import ERROR_RESPONSES
+from .common import json_answer
 
 
 def build_router() -> APIRouter:
@@ -27,8 +26,6 @@ def build_router() -> APIRouter:
     async def create_replan(body: ReplanRequest, request: Request) -> Response:
         payload = body.to_library()
         payload["time_limit"] = body.time_limit
-        result = await run_job(request, "replan", payload, body.time_limit,
-                               method="replan")
-        return SafeJSONResponse(result)
+        return await json_answer(request, "replan", payload, body.time_limit, method="replan")
 
     return router

@@ -3,10 +3,9 @@
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from ..dispatch import check_plan, run_job
-from ..problems import SafeJSONResponse, ServiceProblem
 from ..schemas import RobustnessResponse, Schemas
 from . import ERROR_RESPONSES
+from .common import checked_robustness, json_answer
 
 
 def build_router(S: Schemas) -> APIRouter:
@@ -22,15 +21,7 @@ def build_router(S: Schemas) -> APIRouter:
                              "map at the actual state. The top-level `time_limit` bounds the "
                              "whole job.")
     async def create_robustness(body: S.RobustnessRequest, request: Request) -> Response:  # type: ignore[name-defined]
-        payload = body.to_library()
-        check_plan(payload["plan"], prefix="plan.")
-        n = len(body.plan.start)
-        for i, row in enumerate(body.starts or []):
-            if len(row) != n:
-                raise ServiceProblem("invalid_request", f"starts[{i}] has {len(row)} angles but "
-                                     f"the plan has n = {n} joints", field=f"starts[{i}]")
-        result = await run_job(request, "robustness", payload, body.time_limit,
-                               method=body.plan.method)
-        return SafeJSONResponse(result)
+        return await json_answer(request, "robustness", checked_robustness(body),
+                                 body.time_limit, method=body.plan.method)
 
     return router

@@ -3,10 +3,9 @@
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from ..dispatch import check_plan, run_job
-from ..problems import SafeJSONResponse
 from ..schemas import Schemas, SweepResponse
 from . import ERROR_RESPONSES
+from .common import checked_sweep, json_answer
 
 
 def build_router(S: Schemas) -> APIRouter:
@@ -20,9 +19,7 @@ def build_router(S: Schemas) -> APIRouter:
                              "the exact singularity-free dphi intervals there. The request's "
                              "`time_limit` bounds the whole sweep.")
     async def create_sweep(body: S.SweepRequest, request: Request) -> Response:  # type: ignore[name-defined]
-        payload = body.to_library()
-        check_plan(payload["request"])
-        result = await run_job(request, "sweep", payload, body.time_limit, method="sweep")
-        return SafeJSONResponse(result)
+        return await json_answer(request, "sweep", checked_sweep(body), body.time_limit,
+                                 method="sweep")
 
     return router

@@ -3,10 +3,10 @@
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from ..dispatch import check_robot, run_job
-from ..problems import SafeJSONResponse
+from ..dispatch import check_robot
 from ..schemas import Schemas, TransformResponse
 from . import ERROR_RESPONSES
+from .common import json_answer
 
 
 def build_router(S: Schemas) -> APIRouter:
@@ -22,8 +22,7 @@ def build_router(S: Schemas) -> APIRouter:
     async def create_transform(body: S.TransformRequest, request: Request) -> Response:  # type: ignore[name-defined]
         payload = body.to_library()
         check_robot(payload.get("robot"), len(body.points[0]) - 1)
-        result = await run_job(request, "transform", payload, body.time_limit,
-                               method="transform")
-        return SafeJSONResponse(result)
+        return await json_answer(request, "transform", payload, body.time_limit,
+                                 method="transform")
 
     return router

@@ -51,3 +51,39 @@ def test_the_path_columns_are_named(client):
     # an answer with its names is drawn as it is (sent back unchanged)
     r = client.post("/v1/figures/from_plan/joint_angles", params={"format": "svg"}, json=plan)
     assert r.status_code == 200, r.text
+
+
+def _gzip_app():
+    """GZipWhenAccepted around a two-route app: a large JSON answer and a small one."""
+    from starlette.applications import Starlette
+    from starlette.responses import Response
+    from starlette.routing import Route
+    from starlette.testclient import TestClient as StarletteClient
+
+    from service.compression import GZipWhenAccepted
+
+    large = json.dumps({"q": [[i * 0.001, i * 0.002] for i in range(600)]}).encode()
+    app = Starlette(routes=[
+        Route("/large", lambda request: Response(large, media_type="application/json")),
+        Route("/small", lambda request: Response(b'{"ok":true}', media_type="application/json")),
+    ])
+    return StarletteClient(GZipWhenAccepted(app, minimum_size=1400, compresslevel=1)), large
+
+
+def test_gzip_only_for_clients_that_accept_it_and_vary_on_every_answer():
+    client, large = _gzip_app()
+    # what GZipMiddleware decides: "gzip" in the first Accept-Encoding header's value
+    for accept, compressed in (("gzip", True), ("br, gzip;q=0.5", True), ("identity", False),
+                               ("", False), ("deflate", False)):
+        with client.stream("GET", "/large", headers={"Accept-Encoding": accept}) as r:
+            raw = b"".join(r.iter_raw())
+        assert r.status_code == 200
+        assert "Accept-Encoding" in r.headers["vary"], accept
+        if compressed:
+            assert r.headers["content-encoding"] == "gzip", accept
+            assert gzip.decompress(raw) == large and len(raw) < len(large) // 2
+        else:
+            assert "content-encoding" not in r.headers, accept
+            assert raw == large and int(r.headers["content-length"]) == len(large)
+    small = client.get("/small", headers={"Accept-Encoding": "gzip"})
+    assert "content-encoding" not in small.headers and small.content == b'{"ok":true}'
