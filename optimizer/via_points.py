@@ -165,9 +165,9 @@ def validate_via_points(points: Sequence[ViaPoint], n: int, duration: float | No
         inside = lo < vp.angle < hi if open_ else lo <= vp.angle <= hi
         if not inside:
             bounded = bounds is not None and j < len(bounds) and bounds[j] is not None
-            where_range = (f"({lo:g}, {hi:g})" if open_ else f"[{lo:g}, {hi:g}]") + \
-                f" rad = {'(' if open_ else '['}{math.degrees(lo):.1f}, " \
-                f"{math.degrees(hi):.1f}{')' if open_ else ']'} deg"
+            a, b = ("(", ")") if open_ else ("[", "]")
+            where_range = (f"{a}{lo:g}, {hi:g}{b} rad = {a}{math.degrees(lo):.4g}, "
+                           f"{math.degrees(hi):.4g}{b} deg")
             why = (f"joint {vp.joint}'s range within its joint_bounds[{j}]" if bounded else
                    f"joint {vp.joint}'s range" + (" (the singularity-free region)" if j < n - 1
                                                    else ""))
