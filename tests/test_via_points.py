@@ -8,6 +8,7 @@ then read at the via time, at the end (the goal) and at every sample (the region
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -246,3 +247,19 @@ def test_an_unreachable_via_point_is_named():
                       time_limit=20.0))
     assert isinstance(err.value, InfeasibleError)
     assert err.value.field == "via_points" and "via point" in err.value.message
+
+
+def test_the_cli_takes_via_points(tmp_path, capsys):
+    from optimizer.__main__ import main
+    path = tmp_path / "req.json"
+    path.write_text(json.dumps({"start": START, "goal": GOAL, "via_points": [VIA]}))
+    assert main(["plan", str(path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    (reported,) = out["diagnostics"]["via_points"]
+    assert reported["joint"] == "th2" and reported["error"] <= VIA_TOLERANCE
+    # and refuses a bad one as the API does, naming the element
+    path.write_text(json.dumps({"start": START, "goal": GOAL, "method": "polynomial",
+                                "via_points": [VIA]}))
+    assert main(["plan", str(path)]) != 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["code"] == "invalid_request" and out["field"] == "via_points"
