@@ -49,7 +49,8 @@ from ..problem import PlanRequest
 from ..via_points import SAME_TIME, ViaPoint, distinct_times
 
 #: A via point is honoured when the handed-out path (the default, linear form) passes within
-#: this (rad) of its angle at its time (measured: ~1e-10 rad).
+#: this (rad) of its angle at its time (measured on random goals of 3 to 5 joints: 1e-16 to
+#: 4e-8 rad).
 VIA_TOLERANCE = 1e-6
 #: The same for a controller period's held form (zero-order hold), which is corrected onto
 #: the goal only: holding each rate for a period moves the path between the goal's ends.
@@ -115,20 +116,6 @@ def pin_via_nodes(req: PlanRequest, N: int, lb: np.ndarray, ub: np.ndarray) -> N
     for vp in req.via_points:
         k = _node_of(req, N, vp)
         lb[k, 1 + vp.index] = ub[k, 1 + vp.index] = vp.angle
-
-
-def pin_guess(req: PlanRequest, N: int, Q: np.ndarray) -> np.ndarray:
-    """Node states ``Q`` (N+1, n+1) of a guess bent through the via angles: each joint's
-    straight line replaced by the piecewise-linear one through its via nodes."""
-    Q = np.array(Q, float)
-    for j in range(1, Q.shape[1]):
-        pts = sorted((_node_of(req, N, vp), vp.angle) for vp in req.via_points
-                     if 1 + vp.index == j)
-        if pts:
-            ks = [0] + [k for k, _ in pts] + [N]
-            vals = [Q[0, j]] + [a for _, a in pts] + [Q[N, j]]
-            Q[:, j] = np.interp(np.arange(N + 1, dtype=float), ks, vals)
-    return Q
 
 
 def correct_rates_through_vias(req: PlanRequest, nlp: Any, rates: np.ndarray, phi_end: float,
