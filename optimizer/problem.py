@@ -14,6 +14,7 @@ import numpy as np
 from .errors import InfeasibleError, InvalidRequestError
 from .model import Robot
 from .steering import ConstraintPoint, validate_constraint_points
+from .via_points import ViaPoint, validate_via_points, via_points_from
 
 OBJECTIVES = ("reversals_then_deviation", "tp_then_da", "tp_then_sensitivity", "weighted")
 #: Fewest actuator reversals (phi and th1), then the smallest joint-space deviation from the
@@ -69,6 +70,11 @@ class PlanRequest:
     objective, singularity : str
     weights : Weights
     constraint_points : tuple of ConstraintPoint
+        Values of the chained states ``z_k`` at times (the paper's family only).
+    via_points : tuple of ViaPoint
+        Joint-space via points: joint ``th_j`` at an angle (rad) at a time (s) of the
+        answer's time axis (:mod:`optimizer.via_points`); honoured exactly by ``shooting``
+        and ``penalty`` (``auto`` runs only those), refused by the paper's family.
     samples : int
         Number of time samples in the returned path.
     time_limit : float
@@ -109,6 +115,7 @@ class PlanRequest:
     singularity: str = "full"
     weights: Weights = field(default_factory=Weights)
     constraint_points: tuple[ConstraintPoint, ...] = ()
+    via_points: tuple[ViaPoint, ...] = ()
     samples: int = 201
     time_limit: float = 10.0
     max_u1: float | None = None
@@ -239,6 +246,30 @@ class PlanRequest:
             object.__setattr__(self, "max_reversals", int(budget))
         if not isinstance(self.pareto, bool):
             raise InvalidRequestError("pareto must be true or false", field="pareto")
+        self._check_via_points()
+
+    def _check_via_points(self) -> None:
+        """Via points: their own checks (:func:`~optimizer.via_points.validate_via_points`),
+        and the options they cannot be combined with."""
+        vias = via_points_from(self.via_points)
+        object.__setattr__(self, "via_points", vias)
+        if not vias:
+            return
+        if self.constraint_points:
+            raise InvalidRequestError(
+                "via_points and constraint_points cannot be combined: constraint points are "
+                "chained-form states, honoured only by the paper's family, which cannot honour "
+                "joint-space via points; give the waypoints as via_points alone",
+                field="via_points")
+        for name in ("max_reversals", "pareto"):
+            if getattr(self, name) not in (None, False):
+                raise InvalidRequestError(
+                    f"via_points cannot be combined with {name}: the reversal budget's "
+                    f"candidates do not pass through via points; drop {name} or the via points",
+                    field="via_points")
+        duration = None if self.duration is None and self.has_limits else \
+            self.duration_or_default
+        validate_via_points(vias, self.n, duration, self.joint_bounds)
 
     @property
     def n(self) -> int:
@@ -323,6 +354,7 @@ class PlanRequest:
         d["constraint_points"] = tuple(
             cp if isinstance(cp, ConstraintPoint) else
             ConstraintPoint(float(cp["time"]), int(cp["state"]), float(cp["value"])) for cp in cps)
+        d["via_points"] = via_points_from(d.pop("via_points", None))
         if d.get("phi_change_bounds") is None:
             d.pop("phi_change_bounds", None)
         if d.get("joint_bounds") is not None:

@@ -25,6 +25,7 @@ from optimizer.planner.registry import METHODS, method_names
 from optimizer.problem import (DEFAULT_OBJECTIVE, MAX_REVERSALS, OBJECTIVES,
                                joint_angles_problem,
                                joint_bounds_degrees_problem)
+from optimizer.via_points import MAX_VIA_POINTS, MAX_VIA_TIMES
 
 from .settings import LIBRARY_MAX_JOINTS, LIBRARY_MIN_DURATION, LIBRARY_MIN_JOINTS, Limits
 
@@ -626,6 +627,24 @@ def build_schemas(limits: Limits) -> Schemas:
                                  description="Chained state index k of z_k, 2..n+1.")
         value: num(-1e6, 1e6, description="Value of z_state at time.") = Field(...)  # type: ignore[valid-type]
 
+    class ViaPoint(RequestModel):
+        """A joint-space via point: joint ``joint`` passes through ``angle`` at ``time``.
+
+        Honoured exactly by the methods that plan on the original model (``shooting``,
+        ``penalty``; ``auto`` then runs only those); the paper's family (``polynomial``,
+        ``retimed``, ``constraint_points``) answers 422 naming ``via_points``."""
+
+        model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+            {"time": 0.5, "joint": "th2", "angle": 0.349066}]})
+
+        time: num(0.0, L.max_duration, description="Time (s) on the answer's time axis (path.t), "  # type: ignore[valid-type]
+                  "strictly inside (0, duration).") = Field(..., examples=[0.5])
+        joint: str = Field(..., max_length=8, examples=["th2"],
+                           description="The joint, named as path.q_names names it: th1 .. thn.")
+        angle: num(-1e3, 1e3, description="The joint's angle (rad) at time: inside the "  # type: ignore[valid-type]
+                   "joint's range (th1..th(n-1) in (0, pi/2), thn in [-2 pi, 2 pi]) and "
+                   "joint_bounds.") = Field(..., examples=[0.349066])
+
     class RandomStarts(RequestModel):
         """Perturbed starts drawn uniformly in ``start +- spread`` (reproducible by ``seed``)."""
 
@@ -683,6 +702,14 @@ def build_schemas(limits: Limits) -> Schemas:
         constraint_points: Optional[list[ConstraintPoint]] = Field(
             None, max_length=L.max_constraint_points,
             description=f"Constraint points (at most {L.max_constraint_points}).")
+        via_points: Optional[list[ViaPoint]] = Field(
+            None, max_length=MAX_VIA_POINTS,
+            description=f"Joint-space via points (at most {MAX_VIA_POINTS}, at most "
+                        f"{MAX_VIA_TIMES} distinct times): the returned path passes through "
+                        "each joint angle at its time (within 1e-6 rad on path; "
+                        "diagnostics.via_points reports each). Methods shooting, penalty and "
+                        "auto; not with constraint_points, max_reversals or pareto; with "
+                        "actuator limits a duration is needed (the times are seconds).")
         samples: StrictInt = Field(201, ge=2, le=L.max_samples,
                                    description=f"Time samples of the returned path (2.."
                                                f"{L.max_samples}).")
@@ -814,6 +841,15 @@ def build_schemas(limits: Limits) -> Schemas:
                                   description=f"Evenly spaced dphi values (2.."
                                               f"{L.max_sweep_points}).")
         intervals: bool = Field(True, description="Also compute the exact feasible intervals.")
+
+        @model_validator(mode="after")
+        def _no_via_points(self) -> Any:
+            if self.via_points:
+                raise PydanticCustomError(
+                    "via_points_sweep", "a sweep scans the paper's polynomial family over "
+                    "dphi, whose paths cannot honour joint-space via_points: drop them (plan "
+                    "with POST /v1/plans instead)", {"field": "via_points"})
+            return self
 
         def to_library(self) -> dict[str, Any]:
             d = self.model_dump(exclude_none=True)

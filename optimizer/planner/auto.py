@@ -4,6 +4,8 @@ What runs (each method through :mod:`.registry`, its capabilities checked there)
 
 * **Constraint points given**: only the paper's family honours them: ``polynomial`` and
   ``constraint_points``, both, ranked.
+* **Via points given** (joint angles at times): only ``shooting`` and ``penalty`` honour them;
+  the rules below run, and :meth:`~.base.Method.can_plan` skips every other method.
 * **The paper's objectives** (``tp_then_da``, ``tp_then_sensitivity``): the family's answer is
   the paper's answer. ``polynomial`` (and, for ``tp_then_da``, ``retimed``: the same path under
   the ``d_a``-optimal time law); only when the family cannot reach the goal, ``shooting``, and

@@ -34,6 +34,8 @@ class Capabilities:
         constant actuator rates planned on the original model).
     max_joints : int
         The largest number of joints it plans for.
+    via_points : bool
+        Honours joint-space via points (:mod:`optimizer.via_points`).
     """
 
     constraint_points: bool
@@ -41,11 +43,13 @@ class Capabilities:
     reverses_phi: bool
     inputs: str
     max_joints: int = 8
+    via_points: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         return {"constraint_points": self.constraint_points,
                 "fixed_phi_change": self.fixed_phi_change, "reverses_phi": self.reverses_phi,
-                "inputs": self.inputs, "max_joints": self.max_joints}
+                "inputs": self.inputs, "max_joints": self.max_joints,
+                "via_points": self.via_points}
 
 
 class Method:
@@ -65,6 +69,12 @@ class Method:
                 f"method {self.name!r} takes no constraint points (they are points of the "
                 "chained polynomial inputs: use 'polynomial', 'constraint_points' or 'auto')",
                 field="constraint_points")
+        if req.via_points and not cap.via_points:
+            raise InvalidRequestError(
+                f"method {self.name!r} cannot honour via_points: its paths are the paper's "
+                "polynomial family in chained form, whose points are chained-form states z_k, "
+                "not joint angles; use method 'shooting' or 'penalty' (or 'auto', which then "
+                "runs only those)", field="via_points")
         if req.phi_change is not None and not cap.fixed_phi_change:
             raise InvalidRequestError(f"method {self.name!r} does not take a fixed phi_change",
                                       field="phi_change")

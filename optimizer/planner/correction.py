@@ -16,6 +16,7 @@ from ..results import Plan
 from .finish import finish_actuator_plan
 from .nlp import MultipleShootingNLP, Transcription
 from .rungs import signs_list
+from .via import correct_rates_through_vias
 
 
 #: The Newton correction stops once the model ends this close to the goal (rad)...
@@ -132,6 +133,8 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
     errors : list of float
         ``max |th(1) - goal|`` of the fine end map before each step and after the last.
     """
+    if req.via_points:  # the via angles too (optimizer.planner.via)
+        return correct_rates_through_vias(req, nlp, rates, phi_end, exact_end)
     N = rates.shape[0]
     q0 = req.q_start()
     target = np.concatenate([[phi_end], req.goal])

@@ -40,6 +40,7 @@ from ..verify import (CASCADE_TOL, PlannedInputs, Replay, Verification, integrat
                       integrate_cascade, verify_plan)
 from .family import SEARCH_SAMPLES
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region, make_region
+from .via import check_handed_out, via_schedule, via_time_law_errors
 
 #: Points of the dense grid the indicators are measured on (the searches' own density, so
 #: that t_p and d_a agree with what was optimised).
@@ -170,8 +171,10 @@ def plan_time_law(req: PlanRequest, rates: RatesOf, breaks: np.ndarray, constant
     (:func:`optimizer.timing.time_law`)."""
     stops = [cp.time for cp in req.constraint_points]
     path = geometric_path(rates, np.asarray(breaks, float), constant=constant, stops=stops)
-    return time_law(path, request_limits(req), req.duration, req.duration_or_default,
-                    fixed_times=bool(req.constraint_points), max_duration=MAX_DURATION)
+    with via_time_law_errors(req):  # the via points fix the times: say so in their terms
+        return time_law(path, request_limits(req), req.duration, req.duration_or_default,
+                        fixed_times=bool(req.constraint_points or req.via_points),
+                        max_duration=MAX_DURATION)
 
 
 def retime_and_execute(req: PlanRequest, rates: RatesOf, breaks: np.ndarray, constant: bool,
@@ -249,6 +252,8 @@ def actuator_schedule(req: PlanRequest, rates: np.ndarray) -> ActuatorSchedule:
     """Rates ``U`` (N, 2) on equal intervals of normalised time, as a schedule in seconds on
     the plan's own duration (:func:`_plan_duration`; the time law fits the answer's duration
     and limits afterwards: the model is driftless, ``T`` does not change the path)."""
+    if req.via_points:  # the via nodes at the via times (optimizer.planner.via)
+        return via_schedule(req, rates)
     T = _plan_duration(req)
     return ActuatorSchedule(breaks=np.linspace(0.0, T, rates.shape[0] + 1), rates=rates / T)
 
@@ -352,6 +357,8 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
     # change of direction), corrected for its rule and verified by it
     law, exe = retime_and_execute(req, schedule.u, breaks, True, float(final[0]), ind, method,
                                   law=law, initial=rep)
+    if req.via_points:  # the handed-out path through every via point, measured
+        diagnostics["via_points"] = check_handed_out(req, exe.path, exe.check.rule)
     timing["execution"] = exe.seconds
     return Plan(robot=robot, method=method, phi_change=dphi, duration=law.T, inputs=schedule,
                 chained=None, feasible_phi_changes=[], indicators=_handed_out(exe, ind),

@@ -58,6 +58,7 @@ from .. import native
 from ..dynamics import rk4_step, vector_field
 from ..errors import InvalidRequestError
 from ..problem import PlanRequest
+from . import via
 from .solvers import (SPENT_MEMORY_BYTES, BufferedCall, DeadlineCallback, fatrop_options,
                       ipopt_options, memory_bytes)
 
@@ -582,6 +583,8 @@ def variable_bounds(req: PlanRequest, nlp: MultipleShootingNLP, tr: Transcriptio
     else:
         lo_phi, hi_phi = req.phi_change_bounds
         lbW[N, 0], ubW[N, 0] = req.phi_start + lo_phi, req.phi_start + hi_phi
+    if req.via_points:  # each via point's joint fixed at its node (optimizer.planner.via)
+        via.pin_via_nodes(req, N, lbW, ubW)
     return nlp.flat(lbW), nlp.flat(ubW), (lo_phi, hi_phi)
 
 

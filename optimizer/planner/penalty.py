@@ -334,7 +334,7 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
 class PenaltyMethod(Method):
     name = "penalty"
     capabilities = Capabilities(constraint_points=False, fixed_phi_change=True,
-                                reverses_phi=True, inputs="actuator")
+                                reverses_phi=True, inputs="actuator", via_points=True)
     options = {"rho_start": RHO_START, "rho_growth": RHO_GROWTH,
                "rho_increases": RHO_INCREASES, "solvers": SOLVERS}
 

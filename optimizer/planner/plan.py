@@ -19,6 +19,7 @@ from .budget import check_budget_request, plan_with_budget
 from .context import Deadline, PlanContext
 from .registry import AUTO, get
 from .nlp import ladder
+from .via import via_failure
 from .rules import check_endpoints, clear_request_caches, full_region, travel_reach_error
 
 
@@ -49,7 +50,7 @@ def plan(req: PlanRequest) -> Plan:
             result = get(req.method).plan(req, ctx)
     except (InfeasibleError, NumericalError) as exc:
         if not budget:
-            raise
+            raise via_failure(req, exc)  # (exc itself without via points)
         # the budget's own candidates may still find a path (and say how few reversals)
         result = plan_with_budget(req, ctx, None, exc)
     else:

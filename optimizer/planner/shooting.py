@@ -227,7 +227,7 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
 class ShootingMethod(Method):
     name = "shooting"
     capabilities = Capabilities(constraint_points=False, fixed_phi_change=True,
-                                reverses_phi=True, inputs="actuator")
+                                reverses_phi=True, inputs="actuator", via_points=True)
     options = {"ladder": {"3 joints": [dataclasses.asdict(t) for t in LADDER_3_JOINTS],
                           "more joints": [dataclasses.asdict(t) for t in LADDER]},
                "margin": MARGIN,
