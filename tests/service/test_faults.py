@@ -774,7 +774,10 @@ def test_a_shutdown_that_cannot_drain_answers_503_shutting_down(tmp_path):
         if a.status_code == 503:
             assert_problem(a, 503, "shutting_down")
             assert a.headers["retry-after"] == "1" and a.headers["connection"] == "close"
-    assert code == 0 and stopped < 6.0, log_text[-2000:]
+    # the 503s above show the deadline; this bound catches a server that stays on after it
+    # (idle machine: 2.6-2.8 s; load 13 on 2 cores: 8.1 s, the exit stopping the workers after
+    # the answers; draining the work instead takes 5 jobs' time, ~50 s at that load)
+    assert code == 0 and stopped < 3.0 + 4 * LAG, log_text[-2000:]
     assert not re.search(r'"status": ?500\b', log_text), log_text[-3000:]
     assert "Traceback" not in log_text and "Exception in ASGI" not in log_text, log_text[-3000:]
     assert re.search(r'"status": ?503\b', log_text)  # the access log counts them as answered
@@ -853,7 +856,7 @@ def test_a_worker_stopped_between_pings_never_holds_a_request():
 def test_a_job_whose_worker_is_stopped_under_it_runs_on_another_worker():
     """A worker stopped while it runs a job (~1 s of replays on an idle machine): the job is
     given to the other worker within about ``worker_ping_timeout`` and answered 200, not 504
-    after its 20 s."""
+    after its time limit (60 s: at load 14 on 2 cores the job's second run took more than 20)."""
     with running_app(workers=2, queue_size=8, worker_ping_interval=60,
                      worker_ping_timeout=0.3) as client:
         pool = client.app.state.pool
@@ -861,7 +864,7 @@ def test_a_job_whose_worker_is_stopped_under_it_runs_on_another_worker():
         before = set(pool.pids())
         answer: list[Any] = []
         t = threading.Thread(target=lambda: answer.append(
-            client.post("/v1/robustness", json={**SLOWISH, "time_limit": 20})))
+            client.post("/v1/robustness", json={**SLOWISH, "time_limit": 60})))
         t0 = time.perf_counter()
         t.start()
         deadline = time.monotonic() + 20
@@ -875,7 +878,7 @@ def test_a_job_whose_worker_is_stopped_under_it_runs_on_another_worker():
             t.join(timeout=60)
             elapsed = time.perf_counter() - t0
             (r,) = answer
-            assert r.status_code == 200, r.text  # (504 after the 20 s before)
+            assert r.status_code == 200, r.text  # (504 after the whole time limit before)
             print(f"\nworker stopped under a job: 200 after {elapsed:.1f} s")
             assert busy[0] not in pool.pids() and busy[0] in before
         finally:
