@@ -182,10 +182,18 @@ class Page:
         self.page.click("#plan-button")
 
     def wait_for_figures(self) -> None:
+        """Until every figure is drawn, or one has failed (then say which, and why: its status
+        line, the page's error and console, instead of waiting out WAIT_MS)."""
         self.page.wait_for_function(
             """kinds => kinds.every(k => { const i = document.getElementById('fig-' + k);
-                 return i && i.complete && i.naturalWidth > 0; })""",
+                 return i && i.complete && i.naturalWidth > 0; })
+               || kinds.some(k => { const i = document.getElementById('fig-' + k);
+                 return i && i.closest('figure').classList.contains('failed'); })""",
             arg=list(FIGURES), timeout=WAIT_MS)
+        failed = {k: self.text(f"#fig-status-{k}") for k in FIGURES
+                  if "failed" in (self.page.get_attribute(f"#fig-{k} >> xpath=ancestor::figure",
+                                                          "class") or "")}
+        assert not failed, (failed, self.text("#error"), self.errors)
         self.page.wait_for_function("() => !document.getElementById('plan-button').disabled",
                                     timeout=WAIT_MS)
 
