@@ -125,7 +125,8 @@ def test_a_worker_that_dies_is_replaced_and_the_request_answered():
     with running_app(workers=1, queue_size=4, worker_ping_interval=0) as c:
         (pid,) = c.app.state.pool.pids()
         slow = {"robot": {}, "start": [10 * DEG] * 8, "goal": [30 * DEG] * 8,
-                "phi_change_range": [-12.0, 12.0], "points": 201, "time_limit": 30}
+                "phi_change_range": [-12.0, 12.0], "points": 201,
+                "time_limit": 60}  # the largest: it runs twice, at load 10 well past 30 s
         with ThreadPoolExecutor(max_workers=1) as ex:
             pending = ex.submit(c.post, "/v1/sweeps", json=slow)
             deadline = time.monotonic() + 10
