@@ -11,13 +11,17 @@ import pytest
 # the helpers module sits beside this file; make it importable whatever pytest's import mode
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from svc_support import TestClient, free_port, running_app, server_process  # noqa: E402
+from svc_support import (TestClient, free_port, running_app, server_process,  # noqa: E402
+                         warm_figures)
 
 
 @pytest.fixture(scope="session")
 def client() -> Iterator[TestClient]:
-    """The shared app: 2 workers, a queue large enough for the concurrency test."""
-    with running_app(workers=2, queue_size=64) as c:
+    """The shared app: 2 workers, a queue large enough for the concurrency test, and the
+    largest default time limit (what these tests check is not how fast a plan is: at load 10
+    on 2 cores a plan of 20001 samples ran past the default 10 s)."""
+    with running_app(workers=2, queue_size=64, default_time_limit=60.0) as c:
+        warm_figures(c.post, 2)
         yield c
 
 
@@ -30,7 +34,8 @@ def live_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """
     port = free_port()
     log = tmp_path_factory.mktemp("live") / "server.log"
-    env = {"PLANNER_HOST": "0.0.0.0", "PLANNER_PORT": str(free_port()), "PLANNER_WORKERS": "1"}
+    env = {"PLANNER_HOST": "0.0.0.0", "PLANNER_PORT": str(free_port()), "PLANNER_WORKERS": "1",
+           "PLANNER_DEFAULT_TIME_LIMIT": "60"}  # (speed is not what these tests check)
     argv = [sys.executable, "-m", "service", "--host", "127.0.0.1", "--port", str(port)]
     with server_process(argv, env, port, log) as base:
         yield base

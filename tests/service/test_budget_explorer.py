@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import re
 
-from test_explorer_browser import Page, browser_context, explorer_server  # noqa: F401
+from test_explorer_browser import (WAIT_MS, Page, browser_context,  # noqa: F401
+                                   explorer_server)
 
 
 def test_the_front_is_listed_drawn_and_a_member_picked(browser_context, explorer_server):  # noqa: F811
@@ -22,9 +23,9 @@ def test_the_front_is_listed_drawn_and_a_member_picked(browser_context, explorer
     loaded = ("kinds => kinds.every(k => { const i = document.getElementById('fig-' + k);"
               " return i && i.complete && i.naturalWidth > 0; })")
     # the front costs several plans' time (and the machine is shared): generous waits
-    p.wait_for_function(loaded, arg=["pareto", "joint_angles"], timeout=180_000)
+    p.wait_for_function(loaded, arg=["pareto", "joint_angles"], timeout=WAIT_MS)
     p.wait_for_function("() => !document.getElementById('plan-button').disabled",
-                        timeout=180_000)
+                        timeout=WAIT_MS)
     assert not p.is_hidden("#front-out")
     rows = p.query_selector_all("#front-rows tr")
     assert len(rows) >= 2
@@ -34,8 +35,8 @@ def test_the_front_is_listed_drawn_and_a_member_picked(browser_context, explorer
     reversals = last.query_selector("td").inner_text().strip()
     last.query_selector("button").click()
     p.wait_for_function(f"() => document.getElementById('status').textContent.includes("
-                        f"'{reversals} reversals')", timeout=30_000)
-    p.wait_for_function(loaded, arg=["joint_angles", "chained_state"], timeout=60_000)
+                        f"'{reversals} reversals')", timeout=WAIT_MS)
+    p.wait_for_function(loaded, arg=["joint_angles", "chained_state"], timeout=WAIT_MS)
     assert tab.calls_to("/v1/figures/from_plan/joint_angles") == before + 1
     assert re.search(r"\d", tab.text("#ind-terminal_error"))
     # no script error (a figure or sweep answered 504 on a busy machine is the network's)

@@ -36,14 +36,16 @@ import pytest
 
 from service.schemas import build_schemas
 from service.settings import Limits
-from svc_support import (DEG, ROOT, WORKED, assert_problem, free_port, running_app,
+from svc_support import (DEG, LAG, ROOT, WORKED, assert_problem, free_port, running_app,
                          server_process)
 
 CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 21}
 #: ~1 s of work for one worker: a plan, then 40 open-loop v-replays (DOP853 with the input
 #: map at the actual state, ~20 ms each; the u-replays of the handed-out form take ~1 ms).
+#: Under the largest time limit: at load 16 on 2 cores a job run again after its worker was
+#: killed ran past 30 s (504), and what these tests check is where a job runs, not how fast.
 SLOWISH = {"plan": {**WORKED, "phi_change": 34 * DEG, "samples": 51},
-           "random": {"count": 40, "spread": 0.01, "seed": 5}, "replay": "v", "time_limit": 30}
+           "random": {"count": 40, "spread": 0.01, "seed": 5}, "replay": "v", "time_limit": 60}
 
 
 def _workers(server_pid: int) -> list[psutil.Process]:
@@ -88,6 +90,10 @@ def two_workers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str,
     log = tmp_path_factory.mktemp("faults") / "server.log"
     env = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "2",
            "PLANNER_QUEUE_SIZE": "100", "PLANNER_LOG_LEVEL": "warning",
+           # the slow readers' 8 plans queue for 2 workers: at load 13-16 on 2 cores (~10 s
+           # a plan) the last ones waited past the default 30 s and were answered 503, which
+           # is small enough never to stall, so they were never counted dropped
+           "PLANNER_QUEUE_TIMEOUT": "240",
            "PLANNER_MAX_ROBUSTNESS_RUNS": "1000", **BOUNDS}
     with server_process([sys.executable, "-m", "service"], env, port, log) as base:
         yield base, _server_pid(port)
@@ -260,8 +266,8 @@ def test_a_stopped_idle_worker_is_replaced_before_it_holds_a_request():
             _wait_live(client, 1)
             t0 = time.perf_counter()
             r = client.post("/v1/plans", json={**CHEAP, "time_limit": 5})
-            assert r.status_code == 200, r.text
-            assert time.perf_counter() - t0 < 2.0
+            assert r.status_code == 200, r.text  # (a stopped worker holding it: 504 after 5 s)
+            assert time.perf_counter() - t0 < 5.0
             metrics = client.get("/metrics").text
             assert 'planner_worker_restarts_total{reason="unresponsive"} 1.0' in metrics
         finally:
@@ -312,7 +318,9 @@ def test_a_request_waits_for_a_worker_at_most_queue_timeout():
         elapsed = time.perf_counter() - t0
         body = assert_problem(r, 503, "overloaded")
         assert "retry-after" in r.headers and "no worker became free" in body["detail"]
-        assert 0.5 <= elapsed < 1.5, elapsed
+        # a request that waited for the worker would be answered 200 once the ~1 s job (far
+        # longer on a loaded machine) ends: the 503 above is what shows the queue timeout
+        assert 0.5 <= elapsed < 0.5 + LAG, elapsed
         t.join(timeout=60)
 
 
@@ -374,7 +382,8 @@ def test_a_connection_without_a_complete_head_is_closed_after_header_timeout(bou
         t0 = time.monotonic()
         assert _read_all(s) == b""
         elapsed = time.monotonic() - t0
-    assert 0.9 <= elapsed < 2.0, elapsed
+    # header timeout 1 s; without it the connection stays open until the socket's 10 s
+    assert 0.9 <= elapsed < 1.0 + LAG, elapsed
 
 
 @pytest.mark.parametrize("trickle", [False, True], ids=["stalled", "trickled"])
@@ -399,7 +408,7 @@ def test_a_body_that_does_not_arrive_in_time_is_answered_408(bounded, trickle):
     status, body = _problem_of(raw)
     assert status == 408 and body["code"] == "request_timeout", body
     assert b"connection: close" in raw.lower()
-    assert 0.9 <= elapsed < 2.0, elapsed
+    assert 0.9 <= elapsed < 1.0 + LAG, elapsed  # body timeout 1 s
 
 
 #: The head of a request answered 413 at once (its Content-Length is past the 1 MiB limit).
@@ -517,15 +526,26 @@ def test_connections_past_the_cap_are_answered_503_at_once(bounded):
     base = bounded
     socks = [_raw(_port(base)) for _ in range(50)]  # the cap is 40
     try:
-        time.sleep(0.3)
-        refused = []
         for s in socks:
             s.setblocking(False)
-            try:
-                refused.append(s.recv(65536))
-            except BlockingIOError:
-                pass
-        refused = [r for r in refused if r]  # (b"": closed, none should be yet)
+        got = [b""] * len(socks)
+
+        def read() -> int:
+            for i, s in enumerate(socks):
+                try:
+                    got[i] += s.recv(65536)
+                except (BlockingIOError, ConnectionResetError):
+                    pass
+            return sum(1 for g in got if g)
+
+        # the refusals come at once, but on a loaded machine "at once" is when the event loop
+        # gets to them: wait for the 10 (LAG at most), then a little more for any 11th
+        deadline = time.monotonic() + LAG
+        while read() < 10 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3)
+        read()
+        refused = [g for g in got if g]  # (none of the 40 within the cap is answered)
         assert len(refused) == 10, len(refused)
         status, body = _problem_of(refused[0])
         assert status == 503 and body["code"] == "overloaded"
@@ -548,7 +568,9 @@ def test_slow_readers_are_dropped_and_server_memory_stays_bounded(two_workers):
     every client dropped (up to 4 minutes), not a fixed time."""
     base, pid = two_workers
     port = _port(base)
-    body = json.dumps({**CHEAP, "samples": 20001}).encode()
+    # the longest time limit the server allows (PLANNER_MAX_TIME_LIMIT, 60 s): the default
+    # 10 s ran out at load 10 on 2 cores (504), and how long the plan takes is not the point
+    body = json.dumps({**CHEAP, "samples": 20001, "time_limit": 60}).encode()
     dropped_line = 'planner_connections_closed_total{reason="send_timeout"}'
     with httpx.Client(base_url=base, timeout=120) as client:
         _wait_live(client, 2, timeout=120)
@@ -612,9 +634,9 @@ def _metric(text: str, prefix: str) -> float:
 
 def test_a_client_that_leaves_takes_its_queued_job_with_it(two_workers):
     base, _ = two_workers
-    # ~11 s of replays (this module's server allows that many runs): past the busy clients'
-    # 6 s on any machine; the jobs stop when those clients leave
-    long_job = {**SLOWISH, "random": {"count": 600, "spread": 0.01, "seed": 3}}
+    # ~20 s of replays (this module's server allows that many runs): past the busy clients'
+    # 10 s on any machine; the jobs stop when those clients leave
+    long_job = {**SLOWISH, "random": {"count": 1000, "spread": 0.01, "seed": 3}}
 
     def post(path: str, body: dict[str, Any], timeout: float) -> None:
         with pytest.raises(httpx.TimeoutException):  # the client gives up
@@ -626,7 +648,8 @@ def test_a_client_that_leaves_takes_its_queued_job_with_it(two_workers):
         plans_499 = 'planner_http_requests_total{method="POST",route="/v1/plans",status="499"}'
         metrics = client.get("/metrics").text
         before = _metric(metrics, gone), _metric(metrics, plans_499)
-        busy = [threading.Thread(target=post, args=("/v1/robustness", long_job, 6.0))
+        # the busy clients stay past the leavers (5 s), and leave before their jobs end
+        busy = [threading.Thread(target=post, args=("/v1/robustness", long_job, 10.0))
                 for _ in range(2)]
         for t in busy:
             t.start()
@@ -634,19 +657,22 @@ def test_a_client_that_leaves_takes_its_queued_job_with_it(two_workers):
         while client.get("/readyz").json()["idle"] > 0:
             assert time.monotonic() < deadline
             time.sleep(0.01)
-        leavers = [threading.Thread(target=post, args=("/v1/plans", CHEAP, 3.0))
+        # 5 s to give up: time for six threads to connect and queue on a loaded machine
+        leavers = [threading.Thread(target=post, args=("/v1/plans", CHEAP, 5.0))
                    for _ in range(6)]
         for t in leavers:
             t.start()
-        deadline = time.monotonic() + 2.5
+        deadline = time.monotonic() + 4.5
         while (waiting := client.get("/readyz").json()["waiting"]) < 6:
             assert time.monotonic() < deadline, waiting
             time.sleep(0.02)
         for t in leavers:
             t.join()
-        time.sleep(0.2)
-        ready = client.get("/readyz").json()
-        assert ready["waiting"] == 0 and ready["idle"] == 0, ready  # the jobs left the queue
+        deadline = time.monotonic() + LAG  # the server notices each leaver as its loop runs
+        while (ready := client.get("/readyz").json())["waiting"] and time.monotonic() < deadline:
+            time.sleep(0.05)
+        # the jobs left the queue, while the busy ones (their clients stay 10 s) still run
+        assert ready["waiting"] == 0 and ready["idle"] == 0, ready
         metrics = client.get("/metrics").text
         assert _metric(metrics, gone) >= before[0] + 6
         assert _metric(metrics, plans_499) == before[1] + 6
@@ -655,10 +681,11 @@ def test_a_client_that_leaves_takes_its_queued_job_with_it(two_workers):
 
 
 def test_a_client_that_leaves_stops_its_running_job_where_the_method_can(two_workers):
-    """Robustness replays check their deadline between runs: a job of ~9 s whose client gives
-    up after 0.5 s frees its worker at the next check, not 9 s later."""
+    """Robustness replays check their deadline between runs: a job of ~20 s (1,000 replays of
+    ~20 ms on an idle machine, several times that on a loaded one) whose client gives up after
+    0.5 s frees its worker at the next check, not 20 s later."""
     base, _ = two_workers
-    long_job = {**SLOWISH, "random": {"count": 200, "spread": 0.01, "seed": 3}}
+    long_job = {**SLOWISH, "random": {"count": 1000, "spread": 0.01, "seed": 3}}
     with httpx.Client(base_url=base, timeout=30) as client:
         _wait_live(client, 2)
         before = client.get("/readyz").json()["restarts"]
@@ -666,7 +693,7 @@ def test_a_client_that_leaves_stops_its_running_job_where_the_method_can(two_wor
         for _ in range(2):
             with pytest.raises(httpx.TimeoutException):
                 httpx.post(base + "/v1/robustness", json=long_job, timeout=0.5)
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 10  # half the jobs' length on an idle machine
         while (ready := client.get("/readyz").json())["idle"] < 2:
             assert time.monotonic() < deadline, ready
             time.sleep(0.05)
@@ -674,8 +701,9 @@ def test_a_client_that_leaves_stops_its_running_job_where_the_method_can(two_wor
         assert ready["restarts"] == before  # stopped by the job itself, no worker killed
         r = client.post("/v1/plans", json=CHEAP)
         assert r.status_code == 200, r.text
-    print(f"\ntwo ~9 s jobs whose clients left after 0.5 s each: workers free after {freed:.1f} s")
-    assert freed < 4.0
+    print(f"\ntwo ~20 s jobs whose clients left after 0.5 s each: workers free after "
+          f"{freed:.1f} s")
+    assert freed < 11.0
 
 
 def test_a_client_that_leaves_mid_body_is_counted_499_not_400(two_workers):
@@ -684,8 +712,12 @@ def test_a_client_that_leaves_mid_body_is_counted_499_not_400(two_workers):
         s.sendall(b"POST /v1/sweeps HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
                   b"Content-Length: 100\r\n\r\n{\"start\":")
         time.sleep(0.1)
-    time.sleep(0.3)
-    metrics = httpx.get(base + "/metrics", timeout=10).text
+    deadline = time.monotonic() + LAG  # counted once the event loop sees the connection go
+    while True:
+        metrics = httpx.get(base + "/metrics", timeout=10).text
+        if 'route="/v1/sweeps",status="' in metrics or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
     assert 'route="/v1/sweeps",status="499"} 1.0' in metrics
     assert 'route="/v1/sweeps",status="400"}' not in metrics
 
@@ -748,7 +780,10 @@ def test_a_shutdown_that_cannot_drain_answers_503_shutting_down(tmp_path):
         if a.status_code == 503:
             assert_problem(a, 503, "shutting_down")
             assert a.headers["retry-after"] == "1" and a.headers["connection"] == "close"
-    assert code == 0 and stopped < 6.0, log_text[-2000:]
+    # the 503s above show the deadline; this bound catches a server that stays on after it
+    # (idle machine: 2.6-2.8 s; load 13 on 2 cores: 8.1 s, the exit stopping the workers after
+    # the answers; draining the work instead takes 5 jobs' time, ~50 s at that load)
+    assert code == 0 and stopped < 3.0 + 4 * LAG, log_text[-2000:]
     assert not re.search(r'"status": ?500\b', log_text), log_text[-3000:]
     assert "Traceback" not in log_text and "Exception in ASGI" not in log_text, log_text[-3000:]
     assert re.search(r'"status": ?503\b', log_text)  # the access log counts them as answered
@@ -827,7 +862,7 @@ def test_a_worker_stopped_between_pings_never_holds_a_request():
 def test_a_job_whose_worker_is_stopped_under_it_runs_on_another_worker():
     """A worker stopped while it runs a job (~1 s of replays on an idle machine): the job is
     given to the other worker within about ``worker_ping_timeout`` and answered 200, not 504
-    after its 20 s."""
+    after its time limit (60 s: at load 14 on 2 cores the job's second run took more than 20)."""
     with running_app(workers=2, queue_size=8, worker_ping_interval=60,
                      worker_ping_timeout=0.3) as client:
         pool = client.app.state.pool
@@ -835,7 +870,7 @@ def test_a_job_whose_worker_is_stopped_under_it_runs_on_another_worker():
         before = set(pool.pids())
         answer: list[Any] = []
         t = threading.Thread(target=lambda: answer.append(
-            client.post("/v1/robustness", json={**SLOWISH, "time_limit": 20})))
+            client.post("/v1/robustness", json={**SLOWISH, "time_limit": 60})))
         t0 = time.perf_counter()
         t.start()
         deadline = time.monotonic() + 20
@@ -849,7 +884,7 @@ def test_a_job_whose_worker_is_stopped_under_it_runs_on_another_worker():
             t.join(timeout=60)
             elapsed = time.perf_counter() - t0
             (r,) = answer
-            assert r.status_code == 200, r.text  # (504 after the 20 s before)
+            assert r.status_code == 200, r.text  # (504 after the whole time limit before)
             print(f"\nworker stopped under a job: 200 after {elapsed:.1f} s")
             assert busy[0] not in pool.pids() and busy[0] in before
         finally:

@@ -20,11 +20,13 @@ G3 = [30 * DEG] * 3
 #: A cheap request (fixed dphi, few samples).
 CHEAP = {"start": W3, "goal": G3, "method": "polynomial", "phi_change": 34 * DEG, "samples": 21}
 
-#: The tightened limits of this module's app.
+#: The tightened limits of this module's app. The time limits are tightened too, but not so far
+#: that an accepted request runs out of time on a loaded machine: the constraint-points plan at
+#: the limit takes 0.9 s of CPU, 8 s at load 10 on 2 cores (it was 504 with 1 s).
 LIMITS = dict(max_body_bytes=4096, max_joints=5, max_samples=101, max_constraint_points=2,
               max_batch_size=3, max_robustness_runs=4, max_sweep_points=11,
               max_transform_points=5, max_total_samples=250, max_duration=100.0,
-              max_time_limit=2.0, default_time_limit=1.0)
+              max_time_limit=30.0, default_time_limit=30.0)
 
 
 @pytest.fixture(scope="module")
@@ -131,21 +133,21 @@ OVER = [
     ("constraint_time", "/v1/plans", {**CHEAP, "constraint_points": [
         {"time": 100.5, "state": 2, "value": 0.1}]}, 422, "constraint_points[0].time",
      "less than or equal to 100"),
-    ("time_limit_plan", "/v1/plans", {**CHEAP, "time_limit": 2.5}, 422, "time_limit",
-     "less than or equal to 2"),
+    ("time_limit_plan", "/v1/plans", {**CHEAP, "time_limit": 30.5}, 422, "time_limit",
+     "less than or equal to 30"),
     ("time_limit_zero", "/v1/plans", {**CHEAP, "time_limit": 0}, 422, "time_limit",
      "greater than 0"),
     ("time_limit_sweep", "/v1/sweeps", {**CHEAP, "phi_change_range": [0.5, 0.7], "points": 3,
-                                        "time_limit": 3}, 422, "time_limit",
-     "less than or equal to 2"),
+                                        "time_limit": 31}, 422, "time_limit",
+     "less than or equal to 30"),
     ("time_limit_transform", "/v1/transforms", {**TRANSFORM, "points": [[0.0] + W3],
                                                 "time_limit": -1}, 422, "time_limit",
      "greater than 0"),
-    ("time_limit_robustness", "/v1/robustness", {**ROBUST, "starts": [W3], "time_limit": 9},
-     422, "time_limit", "less than or equal to 2"),
+    ("time_limit_robustness", "/v1/robustness", {**ROBUST, "starts": [W3], "time_limit": 39},
+     422, "time_limit", "less than or equal to 30"),
     ("time_limit_batch_item", "/v1/plans/batch", {"requests": [CHEAP, {**CHEAP,
-                                                                       "time_limit": 5}]},
-     422, "requests[1].time_limit", "less than or equal to 2"),
+                                                                       "time_limit": 35}]},
+     422, "requests[1].time_limit", "less than or equal to 30"),
 ]
 
 
@@ -179,7 +181,7 @@ AT = [
     ("sweep_points", "/v1/sweeps", {**CHEAP, "phi_change_range": [0.5, 0.7], "points": 11}),
     ("transform_points", "/v1/transforms", {**TRANSFORM, "points": [[0.0] + W3] * 5}),
     ("duration", "/v1/plans", {**CHEAP, "duration": 100.0}),
-    ("time_limit", "/v1/plans", {**CHEAP, "time_limit": 2.0}),
+    ("time_limit", "/v1/plans", {**CHEAP, "time_limit": 30.0}),
 ]
 
 
@@ -226,7 +228,7 @@ def test_the_openapi_document_follows_the_limits(tight):
     plan = doc["components"]["schemas"]["PlanRequest"]["properties"]
     assert plan["samples"]["maximum"] == 101
     assert plan["start"]["maxItems"] == 5
-    assert plan["time_limit"]["maximum"] == 2
+    assert plan["time_limit"]["maximum"] == 30
     assert plan["duration"]["anyOf"][0]["maximum"] == 100
     assert plan["constraint_points"]["anyOf"][0]["maxItems"] == 2
     assert doc["components"]["schemas"]["RandomStarts"]["properties"]["count"]["maximum"] == 4

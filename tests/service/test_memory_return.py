@@ -82,7 +82,9 @@ def test_the_middleware_releases_memory_after_large_answers_only(monkeypatch):
         r = client.post("/v1/plans", json={**WORKED, "phi_change": 34 * DEG, "samples": 21})
         assert r.status_code == 200 and len(r.content) < memory.MMAP_THRESHOLD
         assert calls == []
-        r = client.post("/v1/plans", json={**WORKED, "phi_change": 34 * DEG, "samples": 20001})
+        # (the largest time limit: at load 10 on 2 cores this plan ran past the default 10 s)
+        r = client.post("/v1/plans", json={**WORKED, "phi_change": 34 * DEG, "samples": 20001,
+                                           "time_limit": 60})
         assert r.status_code == 200 and len(r.content) > memory.MMAP_THRESHOLD
         assert calls == [1]
 

@@ -8,7 +8,8 @@ Three ways past the limit:
   input map at the actual state, about 45 ms each, so ~9 s; the replays have no deadline checks
   of their own) and a short ``time_limit``;
 * a hung worker (SIGSTOP): the pool must kill it, whatever the library does;
-* the library's own deadline check (an 8-joint sweep): answered at once, no worker killed.
+* the library's own deadline check (a 3-joint sweep of 2001 points): answered at once, no
+  worker killed.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import Any, Iterator
 
 import pytest
 
-from svc_support import DEG, WORKED, TestClient, assert_problem, running_app
+from svc_support import DEG, LAG, WORKED, TestClient, assert_problem, running_app
 
 GRACE = 0.5
 CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 21}
@@ -69,7 +70,9 @@ def test_a_slow_job_is_answered_timeout_within_limit_plus_grace(one_worker, time
     assert body["field"] == "time_limit" and body["diagnostics"]["time_limit"] == time_limit
     print(f"\ntime_limit {time_limit} s: timeout answered after {elapsed:.3f} s "
           f"(+{elapsed - time_limit:.3f} s)")
-    assert time_limit <= elapsed < time_limit + GRACE, elapsed
+    # the promise is time_limit + GRACE from the worker taking the job (idle machine: +0.46 s);
+    # LAG is the loaded machine's; the job itself runs ~9 s idle, far past either bound
+    assert time_limit <= elapsed < time_limit + GRACE + LAG, elapsed
     # the pool recovers: the next request succeeds (on the replacement worker)
     r = one_worker.post("/v1/plans", json=CHEAP)
     assert r.status_code == 200, r.text
@@ -100,7 +103,8 @@ def test_a_hung_worker_is_killed_replaced_and_the_next_request_succeeds(one_work
     elapsed = time.perf_counter() - t0
     (r,) = answers
     assert_problem(r, 504, "timeout")
-    assert 0.5 <= elapsed < 0.5 + GRACE + 0.5, elapsed
+    # (not killed: no answer within the join's 30 s)
+    assert 0.5 <= elapsed < 0.5 + GRACE + LAG, elapsed
     assert _gone(old), "the hung worker was not killed and reaped"
     r = one_worker.post("/v1/plans", json=CHEAP)
     assert r.status_code == 200, r.text
@@ -118,12 +122,15 @@ def test_the_librarys_own_deadline_is_answered_at_once_without_a_kill(one_worker
     _idle(one_worker)
     before = one_worker.get("/readyz").json()["restarts"]
     t0 = time.perf_counter()
-    r = one_worker.post("/v1/sweeps", json={"robot": {}, "start": [10 * DEG] * 8,
-                                             "goal": [30 * DEG] * 8,
-                                             "phi_change_range": [-12.0, 12.0], "points": 2001,
-                                             "time_limit": 0.2})
+    # a 3-joint sweep (~3 ms of CPU a point, ~6 s in all): the library checks its deadline at
+    # every point, and a point stays far inside the grace however loaded the machine (the
+    # 8-joint sweep used before took longer than the 0.45 s grace between two checks at load
+    # 14 on 2 cores, and the pool's kill came first)
+    r = one_worker.post("/v1/sweeps", json={**WORKED, "phi_change_range": [-3.0, 3.0],
+                                             "points": 2001, "time_limit": 0.2})
     elapsed = time.perf_counter() - t0
     body = assert_problem(r, 504, "timeout")
     assert body["field"] == "time_limit"
-    assert elapsed < 0.2 + GRACE, elapsed
+    assert elapsed < 0.2 + GRACE + LAG, elapsed
+    # answered by the library's deadline check, not by the pool's kill at 0.2 + GRACE
     assert one_worker.get("/readyz").json()["restarts"] == before
