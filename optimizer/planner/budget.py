@@ -12,16 +12,18 @@ the original model in the handed-out form):
    default objective the ladder's fewest-reversal plan;
 2. **the straightest**: the transcription with free rate signs on :data:`BUDGET_TRANSCRIPTION`
    (30 intervals: more switching than the ladder's first rung allows), its deviation epigraph
-   bounding the squared distance of every node from the SEGMENT start -> goal (the answer's
-   ``deviation``; :data:`~.nlp.DEVIATION_MODES`), weighted :data:`FREE_DEVIATION_WEIGHT` (a
-   thousand times the default's: the energy then only makes the rates unique). Its plan has
-   the most reversals ``R_free`` and the smallest deviation found;
+   bounding the squared distance from the SEGMENT start -> goal (the answer's ``deviation``;
+   :data:`~.nlp.DEVIATION_MODES`) of every node and of every interval's midpoint
+   (:data:`DEVIATION_POINTS`: with the nodes alone the path bulged between them), weighted
+   :data:`FREE_DEVIATION_WEIGHT` (a thousand times the default's: the energy then only makes
+   the rates unique). Its plan has the most reversals ``R_free`` and the smallest deviation
+   found;
 3. **fewer reversals, bought back**: the straightest plan's sign pattern (per interval and
    actuator) has runs; merging the run that travels least into its neighbours (it takes their
    sign) removes one reversal (a run at an end) or two (inside), for the least loss of the
    motion that bought straightness. The sign-held NLP (the rungs' machinery: every interval's
-   rates held to the pattern's signs, from the previous solution's nodes) gives the straightest
-   plan of that pattern; merging goes on until no run is left to merge or the count reaches
+   rates held to the pattern's signs, from the previous solution's nodes; fatrop, then IPOPT
+   when it fails: :data:`HELD_SOLVERS`) gives the straightest plan of that pattern; merging goes on until no run is left to merge or the count reaches
    the first candidate's. When a pattern's NLP fails (the goal needs that run: ``th_1`` must
    move its way, or ``phi`` must reverse) the next-smallest run is merged instead.
 
@@ -31,10 +33,11 @@ than :data:`DEVIATION_TOLERANCE`). ``max_reversals = k`` answers the front's mem
 most reversals ``<= k`` (the straightest); none: :class:`~optimizer.errors.InfeasibleError`
 naming ``max_reversals`` and the fewest reversals found.
 
-Cost: one plan for the first candidate, then one NLP (IPOPT, 20-50 iterations) and one
-finishing per other candidate, and one NLP per failed merge: about 0.1 s per member for 3
-joints, several times ``K + 1`` default plans for ``K`` members (the bench measures it:
-:mod:`bench.budget`).
+Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-90 iterations), then one
+sign-held NLP (fatrop, 20-40 iterations) and one finishing per other candidate, and one NLP per
+failed merge. The NLPs run in CasADi's virtual machine (not compiled, unlike the default
+plan's first rung), 1.5-3 ms per iteration for 3 joints: a member costs several default plans
+(the bench measures it: :mod:`bench.budget`).
 """
 
 from __future__ import annotations
