@@ -22,8 +22,8 @@ the original model in the handed-out form):
    actuator) has runs; merging the run that travels least into its neighbours (it takes their
    sign) removes one reversal (a run at an end) or two (inside), for the least loss of the
    motion that bought straightness. The sign-held NLP (the rungs' machinery: every interval's
-   rates held to the pattern's signs, from the previous solution's nodes; fatrop, then IPOPT
-   when it fails: :data:`HELD_SOLVERS`) gives the straightest plan of that pattern; merging goes on until no run is left to merge or the count reaches
+   rates held to the pattern's signs, from the previous solution's nodes, by IPOPT:
+   :data:`HELD_SOLVERS`) gives the straightest plan of that pattern; merging goes on until no run is left to merge or the count reaches
    the first candidate's. When a pattern's NLP fails (the goal needs that run: ``th_1`` must
    move its way, or ``phi`` must reverse) the next-smallest run is merged instead.
 
@@ -34,7 +34,7 @@ most reversals ``<= k`` (the straightest); none: :class:`~optimizer.errors.Infea
 naming ``max_reversals`` and the fewest reversals found.
 
 Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-90 iterations), then one
-sign-held NLP (fatrop, 20-40 iterations) and one finishing per other candidate, and one NLP per
+sign-held NLP (IPOPT, 20-40 iterations) and one finishing per other candidate, and one NLP per
 failed merge. The NLPs run in CasADi's virtual machine (not compiled, unlike the default
 plan's first rung), 1.5-3 ms per iteration for 3 joints: a member costs several default plans
 (the bench measures it: :mod:`bench.budget`).
@@ -86,10 +86,11 @@ DEVIATION_POINTS = 1
 #: Solvers of the free NLPs (the straightest), tried in order: IPOPT (fatrop, from the
 #: straight line at this weight, reached its iteration cap or converged slower).
 FREE_SOLVERS = ("ipopt",)
-#: Solvers of the sign-held NLPs (every merge), tried in order: fatrop from the previous
-#: candidate's nodes converged on 34 of 35 such NLPs of 6 generated 3-joint goals, to the
-#: same front as IPOPT, the front's time 25 % smaller; IPOPT when fatrop fails.
-HELD_SOLVERS = ("fatrop", "ipopt")
+#: Solvers of the sign-held NLPs (every merge), tried in order: IPOPT. fatrop from the
+#: previous candidate's nodes converged on 34 of 35 such NLPs of 6 generated 3-joint goals, to
+#: the same front for 25 % less time, but on 5 joints it stopped in worse local optima (two of
+#: the bench's five 5-joint goals lost 0.4-1.2 deg at the min-max peer's count).
+HELD_SOLVERS = ("ipopt",)
 #: A front member must be straighter than every member with fewer reversals by more than this
 #: (rad): smaller differences are numerical noise, not a trade.
 DEVIATION_TOLERANCE = 1e-6
