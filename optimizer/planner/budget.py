@@ -23,8 +23,8 @@ the original model in the handed-out form):
    sign) removes one reversal (a run at an end) or two (inside), for the least loss of the
    motion that bought straightness. The sign-held NLP (the rungs' machinery: every interval's
    rates held to the pattern's signs, from the previous solution's nodes, by IPOPT:
-   :data:`HELD_SOLVERS`) gives the straightest plan of that pattern; merging goes on until no run is left to merge or the count reaches
-   the first candidate's. When a pattern's NLP fails (the goal needs that run: ``th_1`` must
+   :data:`HELD_SOLVERS`) gives the straightest plan of that pattern; merging goes on until no
+   run is left to merge or the count reaches the first candidate's. When a pattern's NLP fails (the goal needs that run: ``th_1`` must
    move its way, or ``phi`` must reverse) the next-smallest run is merged instead.
 
 Each candidate is kept only when it is verified; the front is the candidates sorted by
@@ -148,11 +148,12 @@ def _solve(req: PlanRequest, deadline: Any, tr: Transcription,
            w_dev: float, phi_travel: float = GUESS_PHI_TRAVEL) -> ShootingSolution:
     """The transcription ``tr`` with deviation weight ``w_dev`` and rates held to ``signs``
     (per interval and actuator, 0: free), from ``start_nodes`` or else the straight line with
-    ``phi`` travelling ``phi_travel`` (rad), by IPOPT.
+    ``phi`` travelling ``phi_travel`` (rad).
 
     Solvers :data:`FREE_SOLVERS` (free signs) or :data:`HELD_SOLVERS` (held), in order, by
-    the one loop of attempts (:func:`~.attempts.first_converged`). No time cap of its own (the answer would depend on the machine's load): patterns the rules rule
-    out are not solved (:func:`possible`), and at most :data:`MERGE_TRIES` fail per level.
+    the one loop of attempts (:func:`~.attempts.first_converged`). No time cap of its own
+    (the answer would depend on the machine's load): patterns the rules rule out are not
+    solved (:func:`possible`), and at most :data:`MERGE_TRIES` fail per level.
     """
     nlp = _nlp(req, tr)
     a, b = np.array(req.start), np.array(req.goal)
