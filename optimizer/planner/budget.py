@@ -24,8 +24,9 @@ the original model in the handed-out form):
    motion that bought straightness. The sign-held NLP (the rungs' machinery: every interval's
    rates held to the pattern's signs, from the previous solution's nodes, by IPOPT:
    :data:`HELD_SOLVERS`) gives the straightest plan of that pattern; merging goes on until no
-   run is left to merge or the count reaches the first candidate's. When a pattern's NLP fails (the goal needs that run: ``th_1`` must
-   move its way, or ``phi`` must reverse) the next-smallest run is merged instead.
+   run is left to merge or the count reaches the first candidate's. When a pattern's NLP
+   fails (the goal needs that run: ``th_1`` must move its way, or ``phi`` must reverse) the
+   next-smallest run is merged instead.
 
 Each candidate is kept only when it is verified; the front is the candidates sorted by
 reversals, each kept when its deviation is smaller than every one with fewer reversals (by more
