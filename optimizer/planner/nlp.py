@@ -146,6 +146,11 @@ class MultipleShootingNLP:
         A rung of :data:`LADDER`.
     region : {"hard", "penalty"}
         How the region enters (see the module docstring).
+    deviation : {"line", "segment"}
+        What the deviation epigraph measures (:data:`DEVIATION_MODES`).
+    deviation_points : int
+        Inner points per interval (equally spaced) whose distance the deviation epigraph
+        bounds too, besides the nodes (0: the nodes alone).
 
     Attributes
     ----------
@@ -183,9 +188,9 @@ class MultipleShootingNLP:
 
         x, u = ca.SX.sym("x", nx), ca.SX.sym("u", 2)
         step = ca.Function("rk4", [x, u], [rk4_step(field, x, u, h, substeps)])
-        # the states at deviation_points equally spaced inner times of an interval (one RK4
-        # step from its node each): the deviation epigraph bounds them too, so that a path
-        # cannot return to the line at the nodes only (see DEVIATION_MODES)
+        # the states at deviation_points equally spaced inner times of an interval (the
+        # interval's RK4 steps from its node, shortened): the deviation epigraph bounds them
+        # too, so that a path cannot come back to the line at the nodes only (the budget's)
         inner = [ca.Function(f"rk4_inner{j}", [x, u], [rk4_step(
             field, x, u, h * j / (deviation_points + 1), substeps)])
             for j in range(1, deviation_points + 1)]
