@@ -12,18 +12,21 @@ the original model in the handed-out form):
    default objective the ladder's fewest-reversal plan;
 2. **the straightest**: the transcription with free rate signs on :data:`BUDGET_TRANSCRIPTION`
    (30 intervals: more switching than the ladder's first rung allows), its deviation epigraph
-   bounding the squared distance of every node from the SEGMENT start -> goal (the answer's
-   ``deviation``; :data:`~.nlp.DEVIATION_MODES`), weighted :data:`FREE_DEVIATION_WEIGHT` (a
-   thousand times the default's: the energy then only makes the rates unique). Its plan has
-   the most reversals ``R_free`` and the smallest deviation found;
+   bounding the squared distance from the SEGMENT start -> goal (the answer's ``deviation``;
+   :data:`~.nlp.DEVIATION_MODES`) of every node and of every interval's midpoint
+   (:data:`DEVIATION_POINTS`: with the nodes alone the path bulged between them), weighted
+   :data:`FREE_DEVIATION_WEIGHT` (a thousand times the default's: the energy then only makes
+   the rates unique). Its plan has the most reversals ``R_free`` and the smallest deviation
+   found;
 3. **fewer reversals, bought back**: the straightest plan's sign pattern (per interval and
    actuator) has runs; merging the run that travels least into its neighbours (it takes their
    sign) removes one reversal (a run at an end) or two (inside), for the least loss of the
    motion that bought straightness. The sign-held NLP (the rungs' machinery: every interval's
-   rates held to the pattern's signs, from the previous solution's nodes) gives the straightest
-   plan of that pattern; merging goes on until no run is left to merge or the count reaches
-   the first candidate's. When a pattern's NLP fails (the goal needs that run: ``th_1`` must
-   move its way, or ``phi`` must reverse) the next-smallest run is merged instead.
+   rates held to the pattern's signs, from the previous solution's nodes, by IPOPT:
+   :data:`HELD_SOLVERS`) gives the straightest plan of that pattern; merging goes on until no
+   run is left to merge or the count reaches the first candidate's. When a pattern's NLP
+   fails (the goal needs that run: ``th_1`` must move its way, or ``phi`` must reverse) the
+   next-smallest run is merged instead.
 
 Each candidate is kept only when it is verified; the front is the candidates sorted by
 reversals, each kept when its deviation is smaller than every one with fewer reversals (by more
@@ -31,10 +34,11 @@ than :data:`DEVIATION_TOLERANCE`). ``max_reversals = k`` answers the front's mem
 most reversals ``<= k`` (the straightest); none: :class:`~optimizer.errors.InfeasibleError`
 naming ``max_reversals`` and the fewest reversals found.
 
-Cost: one plan for the first candidate, then one NLP (IPOPT, 20-50 iterations) and one
-finishing per other candidate, and one NLP per failed merge: about 0.1 s per member for 3
-joints, several times ``K + 1`` default plans for ``K`` members (the bench measures it:
-:mod:`bench.budget`).
+Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-90 iterations), then one
+sign-held NLP (IPOPT, 20-40 iterations) and one finishing per other candidate, and one NLP per
+failed merge. The NLPs run in CasADi's virtual machine (not compiled, unlike the default
+plan's first rung), 1.5-3 ms per iteration for 3 joints: a member costs several default plans
+(the bench measures it: :mod:`bench.budget`).
 """
 
 from __future__ import annotations
@@ -46,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InfeasibleError, NumericalError, PlannerError, SolverTimeoutError
+from ..errors import InfeasibleError, NumericalError, PlannerError
 from ..indicators import ACTUATOR_DEAD_BAND
 from ..problem import PlanRequest
 from ..results import Plan, ParetoMember
@@ -55,7 +59,7 @@ from .context import PlanContext
 from .correction import finish_solution
 from .nlp import D_A_WEIGHT, Transcription, nlp_for, node_bounds
 from .rungs import th1_reach_ok
-from .solvers import run_solver
+from .attempts import Attempt, first_converged
 from .ranking import best
 from .rules import joint_limits, monotone_reach_ok, monotone_signs
 from .shooting import GUESS_PHI_TRAVEL, ShootingSolution
@@ -72,6 +76,22 @@ FREE_DEVIATION_WEIGHT = 30000.0
 #: candidate within 0.3 deg of it on all 10 (closer to the min-max peer on 3, farther on 4),
 #: each NLP about a third of the time.
 BUDGET_TRANSCRIPTION = Transcription(30, 1, 20.0)
+#: Inner points per interval (its midpoint) where the deviation epigraph bounds the distance
+#: too, besides the nodes. With the nodes alone the NLP bought straightness the path does not
+#: have: it returned to the segment at the nodes and bulged between them (on a 3-joint goal the
+#: nodes' largest distance 2.04 deg, the re-integrated path's 4.30 deg; with the midpoint
+#: 3.10 and 3.40, with three inner points 3.27 and 3.27). On 20 generated 3-joint goals of a
+#: seed the bench does not use, ``max_reversals`` = the min-max peer's count came within
+#: 0.25 deg of the peer on 18 without, 20 with the midpoint (the front's time +28 %).
+DEVIATION_POINTS = 1
+#: Solvers of the free NLPs (the straightest), tried in order: IPOPT (fatrop, from the
+#: straight line at this weight, reached its iteration cap or converged slower).
+FREE_SOLVERS = ("ipopt",)
+#: Solvers of the sign-held NLPs (every merge), tried in order: IPOPT. fatrop from the
+#: previous candidate's nodes converged on 34 of 35 such NLPs of 6 generated 3-joint goals, to
+#: the same front for 25 % less time, but on 5 joints it stopped in worse local optima (two of
+#: the bench's five 5-joint goals lost 0.4-1.2 deg at the min-max peer's count).
+HELD_SOLVERS = ("ipopt",)
 #: A front member must be straighter than every member with fewer reversals by more than this
 #: (rad): smaller differences are numerical noise, not a trade.
 DEVIATION_TOLERANCE = 1e-6
@@ -129,58 +149,44 @@ def _solve(req: PlanRequest, deadline: Any, tr: Transcription,
            w_dev: float, phi_travel: float = GUESS_PHI_TRAVEL) -> ShootingSolution:
     """The transcription ``tr`` with deviation weight ``w_dev`` and rates held to ``signs``
     (per interval and actuator, 0: free), from ``start_nodes`` or else the straight line with
-    ``phi`` travelling ``phi_travel`` (rad), by IPOPT.
+    ``phi`` travelling ``phi_travel`` (rad).
 
-    IPOPT alone: at this deviation weight (a thousand times the default's) fatrop reached its
-    iteration cap from nearly every start, where IPOPT converged in 20-90 iterations. No time
-    cap of its own (the answer would depend on the machine's load): patterns the rules rule
-    out are not solved (:func:`possible`), and at most :data:`MERGE_TRIES` fail per level.
+    Solvers :data:`FREE_SOLVERS` (free signs) or :data:`HELD_SOLVERS` (held), in order, by
+    the one loop of attempts (:func:`~.attempts.first_converged`). No time cap of its own
+    (the answer would depend on the machine's load): patterns the rules rule out are not
+    solved (:func:`possible`), and at most :data:`MERGE_TRIES` fail per level.
     """
-    nlp = nlp_for(req, tr, deviation="segment")
+    nlp = _nlp(req, tr)
     a, b = np.array(req.start), np.array(req.goal)
     lo, hi = node_bounds(req, joint_limits(req))
     lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi, signs)
     p = nlp_layer.parameters(req, w_dev, 1.0, D_A_WEIGHT)
-    solvers = [s for s, _ in nlp.solvers if s == "ipopt"]
-    starts: list[tuple[str, np.ndarray]] = []
     if start_nodes is not None:
-        starts.append(("the previous candidate's nodes",
-                       np.clip(nlp.guess_from_nodes(start_nodes, a, b), lbw, ubw)))
+        guess, x0 = "the previous candidate's nodes", nlp.guess_from_nodes(start_nodes, a, b)
     else:
         travel = min(max(phi_travel, lo_phi), hi_phi)
-        starts.append((f"phi travel {travel:+.3g} rad",
-                       np.clip(nlp.guess(a, b, req.phi_start, travel), lbw, ubw)))
-    tried: list[dict[str, Any]] = []
-    for guess, x0 in starts:
-        for name in solvers:
-            if deadline.remaining <= MIN_SOLVE_TIME:
-                raise SolverTimeoutError(
-                    f"the reversal budget's NLPs did not finish within the time limit of "
-                    f"{deadline.seconds:g} s", field="time_limit",
-                    diagnostics={"stage": "budget NLP", "tried": tried})
-            out = run_solver(nlp, name, x0, p, lbw, ubw, deadline.remaining)
-            tried.append({"solver": name, "guess": guess, "status": out.status,
-                          "iterations": out.iterations})
-            if out.success and out.x is not None:
-                nodes, rates = nlp.unpack(out.x)
-                return ShootingSolution(nodes=nodes, rates=rates, status=f"{name}: {out.status}",
-                                        iterations=out.iterations, start=guess,
-                                        tried=tuple(tried))
-            if out.kind == "timeout":
-                raise SolverTimeoutError(
-                    f"the reversal budget's NLPs did not finish within the time limit of "
-                    f"{deadline.seconds:g} s", field="time_limit",
-                    diagnostics={"stage": "budget NLP", "tried": tried})
-    raise InfeasibleError("the budget's NLP found no path", diagnostics={"tried": tried})
+        guess, x0 = f"phi travel {travel:+.3g} rad", nlp.guess(a, b, req.phi_start, travel)
+    x0 = np.clip(x0, lbw, ubw)
+    names = HELD_SOLVERS if signs is not None else FREE_SOLVERS
+    out = first_converged(nlp, [Attempt(name, guess, x0) for name in names], p, lbw, ubw,
+                          deadline, "the reversal budget's NLP", "budget NLP")
+    nodes, rates = nlp.unpack(out.x)
+    return ShootingSolution(nodes=nodes, rates=rates, status=f"{out.solver}: {out.status}",
+                            iterations=out.iterations, start=out.guess, tried=out.tried)
 
 
 def _finish(req: PlanRequest, tr: Transcription, sol: ShootingSolution,
             signs: np.ndarray | None, origin: str) -> Plan:
     """The verified plan of an NLP answer (the one finishing path of ``shooting``)."""
     timing = {"nlp": 0.0}
-    return finish_solution(req, "shooting", nlp_for(req, tr, deviation="segment"),
-                                     sol, tr, signs, [],
-                                     timing, {"budget": origin})
+    return finish_solution(req, "shooting", _nlp(req, tr), sol, tr, signs, [], timing,
+                           {"budget": origin})
+
+
+def _nlp(req: PlanRequest, tr: Transcription) -> nlp_layer.MultipleShootingNLP:
+    """The budget's NLP of ``req`` under ``tr``: the deviation from the segment, bounded at
+    the nodes and :data:`DEVIATION_POINTS` inner points per interval."""
+    return nlp_for(req, tr, deviation="segment", deviation_points=DEVIATION_POINTS)
 
 
 def runs(signs: np.ndarray, rates: np.ndarray) -> list[tuple[float, int, int, int]]:

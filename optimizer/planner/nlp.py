@@ -160,6 +160,11 @@ class MultipleShootingNLP:
         A rung of :data:`LADDER`.
     region : {"hard", "penalty"}
         How the region enters (see the module docstring).
+    deviation : {"line", "segment"}
+        What the deviation epigraph measures (:data:`DEVIATION_MODES`).
+    deviation_points : int
+        Inner points per interval (equally spaced) whose distance the deviation epigraph
+        bounds too, besides the nodes (0: the nodes alone).
 
     Attributes
     ----------
@@ -175,7 +180,8 @@ class MultipleShootingNLP:
 
     def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
                  intervals: int, substeps: int, region: str = "hard",
-                 deviation: str = "line", terminal: str = "hard") -> None:
+                 deviation: str = "line", deviation_points: int = 0,
+                 terminal: str = "hard") -> None:
         if region not in REGION_MODES:
             raise ValueError(f"region must be one of {REGION_MODES}, not {region!r}")
         if deviation not in DEVIATION_MODES:
@@ -202,6 +208,12 @@ class MultipleShootingNLP:
 
         x, u = ca.SX.sym("x", nx), ca.SX.sym("u", 2)
         step = ca.Function("rk4", [x, u], [rk4_step(field, x, u, h, substeps)])
+        # the states at deviation_points equally spaced inner times of an interval (the
+        # interval's RK4 steps from its node, shortened): the deviation epigraph bounds them
+        # too, so that a path cannot come back to the line at the nodes only (the budget's)
+        inner = [ca.Function(f"rk4_inner{j}", [x, u], [rk4_step(
+            field, x, u, h * j / (deviation_points + 1), substeps)])
+            for j in range(1, deviation_points + 1)]
         # the NLP model's end state as a function of the start and all rates (single shooting)
         # and its Jacobian: the Newton correction (correct_rates) uses them
         q0s, Us = ca.SX.sym("q0", nq), ca.SX.sym("U", 2 * N)
@@ -243,9 +255,21 @@ class MultipleShootingNLP:
             w_sens, rho = P[5 + 2 * n], P[6 + 2 * n]
             lo, hi = P[7 + 2 * n:7 + 3 * n], P[7 + 3 * n:7 + 4 * n]
 
+        def dist2_of(th: Any) -> Any:
+            d = th - a
+            if deviation == "segment":  # (reversal budget) squared distance from the segment
+                s_k = ca.fmin(ca.fmax(ca.dot(d, ell) / ca.fmax(nrm, 1e-300), 0.0), 1.0)
+                return ca.sumsqr(d - s_k * ell)
+            along = ca.if_else(nrm > 0, ca.dot(d, ell) ** 2 / ca.fmax(nrm, 1e-300), 0)
+            return ca.sumsqr(d) - along
+
+        def inner_rows(k: int) -> list[tuple[Any, bool]]:
+            # the interval's inner points (x_k, u_k: one stage), bounded by x_k's epigraph
+            return [(dist2_of(f(X[k], U[k][:2])[1:nq]) - X[k][nq], False) for f in inner]
+
         def stage_rows(k: int) -> list[tuple[Any, bool]]:
             if k == 0:
-                return [(X[0][:nq] - ca.vertcat(phi0, a), True)]
+                return [(X[0][:nq] - ca.vertcat(phi0, a), True)] + inner_rows(0)
             if k == N:
                 if elastic:
                     miss = X[N][1:nq] - b
@@ -255,19 +279,12 @@ class MultipleShootingNLP:
                 if fixed_phi:
                     rows.append((X[N][0] - phi0 - dphi, True))
                 return rows
-            d = X[k][1:nq] - a
-            if deviation == "segment":  # (reversal budget) squared distance from the segment
-                s_k = ca.fmin(ca.fmax(ca.dot(d, ell) / ca.fmax(nrm, 1e-300), 0.0), 1.0)
-                dist2 = ca.sumsqr(d - s_k * ell)
-            else:
-                along = ca.if_else(nrm > 0, ca.dot(d, ell) ** 2 / ca.fmax(nrm, 1e-300), 0)
-                dist2 = ca.sumsqr(d) - along
-            rows = [(dist2 - X[k][nq], False),
+            rows = [(dist2_of(X[k][1:nq]) - X[k][nq], False),
                     ((X[k][1] - (a[0] + (b[0] - a[0]) * k * h)) ** 2 - X[k][nq + 1], False)]
             if penalty:
                 th, s = X[k][1:nq], U[k][2]
                 rows += [(th - s - hi, False), (lo - th - s, False)]
-            return rows
+            return rows + inner_rows(k)
 
         for k in range(N + 1):
             w.append(X[k])
@@ -303,8 +320,8 @@ class MultipleShootingNLP:
         # 1.6 GB to compile, for a rung that runs rarely (and for about a second)
         first = ladder(n)[0]
         self.native_ok = ((intervals, substeps) == (first.intervals, first.substeps)
-                          and deviation == "line" and terminal == default_terminal(n))
-        # (the budget's NLPs are not compiled)
+                          and deviation == "line"  # (the budget's NLPs: not compiled)
+                          and deviation_points == 0 and terminal == default_terminal(n))
         name = "shooting" if region == "hard" else "penalty"
         # how each solver is built, kept so that it can be built anew (see solver_call)
         self._factories: dict[str, Callable[[], Any]] = {}
@@ -509,20 +526,23 @@ def default_terminal(n: int) -> str:
 def multiple_shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
                           intervals: int, substeps: int,
                           region: str = "hard", deviation: str = "line",
+                          deviation_points: int = 0,
                           terminal: str | None = None) -> MultipleShootingNLP:
     """The cached NLP of one robot, transcription, region, deviation and terminal mode (per
     process; ``terminal`` None: :func:`default_terminal`)."""
     return MultipleShootingNLP(gains, exponents, fixed_phi, intervals, substeps, region,
-                               deviation, terminal or default_terminal(len(gains) + 1))
+                               deviation, deviation_points,
+                               terminal or default_terminal(len(gains) + 1))
 
 
 def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard",
-            deviation: str = "line") -> MultipleShootingNLP:
-    """The cached NLP of ``req``'s robot under transcription ``tr``."""
+            deviation: str = "line", deviation_points: int = 0) -> MultipleShootingNLP:
+    """The cached NLP of ``req``'s robot under transcription ``tr`` (``deviation_points``:
+    inner points per interval that the deviation epigraph bounds too, besides the nodes)."""
     return multiple_shooting_nlp(tuple(float(k) for k in req.robot.gains),
                                  tuple(int(m) for m in req.robot.exponents),
                                  req.phi_change is not None, tr.intervals, tr.substeps, region,
-                                 deviation)
+                                 deviation, deviation_points)
 
 
 def node_bounds(req: PlanRequest, limits: tuple[np.ndarray, np.ndarray],

@@ -1,0 +1,111 @@
+"""One NLP solved from a sequence of attempts (a solver and a guess) until one converges.
+
+``shooting`` (:func:`~.shooting.solve_shooting`) and the reversal budget (:mod:`.budget`) both
+run the same loop: stop when the deadline is spent, run a solver (:func:`~.solvers.run_solver`),
+record the attempt, return the first converged answer, raise
+:class:`~optimizer.errors.SolverTimeoutError` when a solver ran out of time and
+:class:`~optimizer.errors.InfeasibleError` when every attempt failed. This module is that loop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Iterable, Protocol
+
+import numpy as np
+
+from ..errors import InfeasibleError, SolverTimeoutError
+from .solvers import SolvableNLP, run_solver
+
+class AttemptableNLP(SolvableNLP, Protocol):
+    """What :func:`first_converged` needs of an NLP: :class:`~.solvers.SolvableNLP` and the
+    names of its solvers (``solvers``: ``(name, solver)`` pairs)."""
+
+    solvers: list[tuple[str, Any]]
+
+
+#: No attempt starts once less than this is left of the deadline (s).
+MIN_ATTEMPT_TIME = 1e-3
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """One try: solver ``solver`` (a name of the NLP's ``solvers``) from ``x0``, the guess
+    ``guess`` describes (for the diagnostics)."""
+
+    solver: str
+    guess: str
+    x0: np.ndarray
+
+
+@dataclass(frozen=True)
+class Converged:
+    """The first converged attempt: its solution vector, solver, status, iterations and guess,
+    and the record of every attempt run (this one last)."""
+
+    x: np.ndarray
+    solver: str
+    status: str
+    iterations: int
+    guess: str
+    tried: tuple[dict[str, Any], ...]
+
+
+def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndarray,
+                    lbx: np.ndarray, ubx: np.ndarray, deadline: Any, what: str,
+                    stage: str) -> Converged:
+    """Run ``attempts`` in order (lazily: an iterable's guesses are built only when tried)
+    until one converges.
+
+    Parameters
+    ----------
+    nlp : AttemptableNLP
+        The NLP (its ``solvers``, ``callback``, ``lbg``, ``ubg``).
+    attempts : iterable of Attempt
+        Solvers the NLP does not have are skipped.
+    p, lbx, ubx : numpy.ndarray
+        Parameters and variable bounds, the same for every attempt.
+    deadline : Deadline
+        ``remaining`` and ``seconds`` (:class:`~optimizer.deadline.Deadline`).
+    what, stage : str
+        The NLP's name in the messages (``"the shooting NLP"``) and the diagnostics' stage.
+
+    Raises
+    ------
+    SolverTimeoutError
+        A solver stopped at the deadline, or the deadline left no time for an attempt
+        (``field="time_limit"``; ``diagnostics["tried"]``).
+    InfeasibleError
+        Every attempt failed (``diagnostics["blocking"] = "nlp_failed"``, ``["tried"]``).
+    NumericalError
+        A solver raised (:func:`~.solvers.run_solver`).
+    """
+    names = {name for name, _ in nlp.solvers}
+    tried: list[dict[str, Any]] = []
+
+    def timeout() -> SolverTimeoutError:
+        return SolverTimeoutError(
+            f"{what} did not converge within the time limit of {deadline.seconds:g} s",
+            field="time_limit", diagnostics={"stage": stage, "tried": tried})
+
+    for at in attempts:
+        if at.solver not in names:
+            continue
+        if deadline.remaining <= MIN_ATTEMPT_TIME:
+            break
+        out = run_solver(nlp, at.solver, at.x0, p, lbx, ubx, deadline.remaining)
+        tried.append({"solver": at.solver, "guess": at.guess, "status": out.status,
+                      "iterations": out.iterations})
+        if out.success and out.x is not None:
+            return Converged(x=out.x, solver=at.solver, status=out.status,
+                             iterations=out.iterations, guess=at.guess, tried=tuple(tried))
+        if out.kind == "timeout":
+            raise timeout()
+    if not tried or deadline.remaining <= MIN_ATTEMPT_TIME:
+        raise timeout()
+    raise InfeasibleError(f"{what} found no path from any start: "
+                          + "; ".join(f"{t['solver']} {t['status']}" for t in tried),
+                          diagnostics={"blocking": "nlp_failed", "tried": tried})
+
+
+__all__ = ["Attempt", "AttemptableNLP", "Converged", "MIN_ATTEMPT_TIME", "first_converged"]

@@ -1,0 +1,103 @@
+"""The one loop of NLP attempts (:mod:`optimizer.planner.attempts`), on a stand-in NLP whose
+solvers answer from a script (so every branch is reached without CasADi)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+
+from optimizer.errors import InfeasibleError, SolverTimeoutError
+from optimizer.planner.attempts import Attempt, first_converged
+
+
+class ScriptedSolver:
+    def __init__(self, status: str, success: bool) -> None:
+        self.status, self.success = status, success
+
+    def __call__(self, x0, p, lbx, ubx, lbg, ubg) -> list[np.ndarray]:
+        return [np.asarray(x0, float) + 1.0]
+
+    def stats(self) -> dict[str, Any]:
+        return {"return_status": self.status, "success": self.success, "iter_count": 7}
+
+
+class Callback:
+    stop_at = math.inf
+
+
+class ScriptedNLP:
+    """Solver ``name`` answers the next (status, success) of its script."""
+
+    def __init__(self, script: dict[str, list[tuple[str, bool]]]) -> None:
+        self.script = {k: list(v) for k, v in script.items()}
+        self.solvers = [(k, None) for k in script]
+        self.callback = Callback()
+        self.lbg = self.ubg = np.zeros(0)
+        self.calls: list[str] = []
+
+    def solver_call(self, name: str) -> ScriptedSolver:
+        self.calls.append(name)
+        return ScriptedSolver(*self.script[name].pop(0))
+
+
+class Clock:
+    def __init__(self, remaining: float = 10.0) -> None:
+        self.remaining, self.seconds = remaining, 10.0
+
+
+def run(nlp: ScriptedNLP, attempts, clock: Clock | None = None):
+    z = np.zeros(2)
+    return first_converged(nlp, attempts, z, z - 1, z + 1, clock or Clock(), "the test NLP",
+                           "test")
+
+
+def test_the_first_converged_attempt_is_returned_with_the_record() -> None:
+    nlp = ScriptedNLP({"fatrop": [("1", False)], "ipopt": [("Solve_Succeeded", True)]})
+    out = run(nlp, [Attempt("fatrop", "a", np.zeros(2)), Attempt("ipopt", "b", np.ones(2)),
+                    Attempt("fatrop", "c", np.zeros(2))])
+    assert out.solver == "ipopt" and out.guess == "b" and out.iterations == 7
+    assert np.array_equal(out.x, np.full(2, 2.0))
+    assert [t["solver"] for t in out.tried] == ["fatrop", "ipopt"]
+    assert nlp.calls == ["fatrop", "ipopt"]  # nothing after the converged one
+
+
+def test_attempts_are_built_lazily_and_unknown_solvers_skipped() -> None:
+    built: list[str] = []
+
+    def attempts():
+        for name in ("knitro", "ipopt", "fatrop"):
+            built.append(name)
+            yield Attempt(name, name, np.zeros(2))
+
+    nlp = ScriptedNLP({"ipopt": [("Solve_Succeeded", True)], "fatrop": []})
+    assert run(nlp, attempts()).solver == "ipopt"
+    assert built == ["knitro", "ipopt"]
+
+
+def test_a_solver_stopped_at_the_deadline_raises_a_timeout() -> None:
+    nlp = ScriptedNLP({"ipopt": [("Maximum_WallTime_Exceeded", False)],
+                       "fatrop": [("success", True)]})
+    with pytest.raises(SolverTimeoutError) as info:
+        run(nlp, [Attempt("ipopt", "a", np.zeros(2)), Attempt("fatrop", "b", np.zeros(2))])
+    assert info.value.field == "time_limit"
+    assert nlp.calls == ["ipopt"]
+    assert "the test NLP" in info.value.message
+
+
+def test_no_time_left_runs_nothing_and_raises_a_timeout() -> None:
+    nlp = ScriptedNLP({"ipopt": [("Solve_Succeeded", True)]})
+    with pytest.raises(SolverTimeoutError):
+        run(nlp, [Attempt("ipopt", "a", np.zeros(2))], Clock(0.0))
+    assert nlp.calls == []
+
+
+def test_every_attempt_failing_is_infeasible_with_the_record() -> None:
+    nlp = ScriptedNLP({"ipopt": [("Infeasible_Problem_Detected", False),
+                                 ("Maximum_Iterations_Exceeded", False)]})
+    with pytest.raises(InfeasibleError) as info:
+        run(nlp, [Attempt("ipopt", "a", np.zeros(2)), Attempt("ipopt", "b", np.zeros(2))])
+    assert info.value.diagnostics["blocking"] == "nlp_failed"
+    assert [t["guess"] for t in info.value.diagnostics["tried"]] == ["a", "b"]
