@@ -79,7 +79,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InfeasibleError, InvalidRequestError, SolverTimeoutError
+from ..errors import InvalidRequestError
 from ..problem import PlanRequest
 from ..results import Plan
 from . import nlp as nlp_layer
@@ -88,7 +88,7 @@ from .nlp import (D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, LADDER_3_JOINTS, MARGIN,
                   MultipleShootingNLP, Transcription, ladder, multiple_shooting_nlp, nlp_for,
                   node_bounds, objective_weights)
 from .rungs import LIGHT_SHARE, ipopt_first, solve_rungs
-from .solvers import run_solver
+from .attempts import Attempt, first_converged
 from .base import Capabilities, Method
 from .context import PlanContext
 from .rules import joint_limits
@@ -168,38 +168,22 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
         w_dev, w_da = w_dev * LIGHT_SHARE, w_da * LIGHT_SHARE
     p = nlp_layer.parameters(req, w_dev, w_energy, w_da)
     nlp.load_native()
-    solvers = dict(nlp.solvers)
-    tried: list[dict[str, Any]] = []
-    for name, sign in attempts:
-        if name not in solvers:
-            continue
-        if deadline.remaining <= 1e-3:
-            break
-        travel = min(max(sign * GUESS_PHI_TRAVEL, lo_phi), hi_phi)
-        if start_nodes is not None:
-            x0 = np.clip(nlp.guess_from_nodes(start_nodes, a, b), lbw, ubw)
-            guess = "the previous solution's nodes"
-        else:
-            x0, guess = nlp.guess(a, b, req.phi_start, travel), f"phi travel {travel:+.3g} rad"
-        out = run_solver(nlp, name, x0, p, lbw, ubw, deadline.remaining)
-        tried.append({"solver": name, "guess": guess, "status": out.status,
-                      "iterations": out.iterations})
-        if out.success and out.x is not None:
-            nodes, rates = nlp.unpack(out.x)
-            return ShootingSolution(nodes=nodes, rates=rates, status=f"{name}: {out.status}",
-                                    iterations=out.iterations, start=guess, tried=tuple(tried))
-        if out.kind == "timeout":
-            raise SolverTimeoutError(
-                f"the shooting NLP did not converge within the time limit of "
-                f"{deadline.seconds:g} s", field="time_limit",
-                diagnostics={"stage": "shooting NLP", "tried": tried})
-    if not tried or deadline.remaining <= 1e-3:
-        raise SolverTimeoutError(
-            f"the shooting NLP did not converge within the time limit of {deadline.seconds:g} s",
-            field="time_limit", diagnostics={"stage": "shooting NLP", "tried": tried})
-    raise InfeasibleError("the shooting NLP found no path from any start: "
-                          + "; ".join(f"{t['solver']} {t['status']}" for t in tried),
-                          diagnostics={"blocking": "nlp_failed", "tried": tried})
+
+    def tries() -> Any:  # lazily: a guess is built only when its attempt runs
+        for name, sign in attempts:
+            if start_nodes is not None:
+                yield Attempt(name, "the previous solution's nodes",
+                              np.clip(nlp.guess_from_nodes(start_nodes, a, b), lbw, ubw))
+            else:
+                travel = min(max(sign * GUESS_PHI_TRAVEL, lo_phi), hi_phi)
+                yield Attempt(name, f"phi travel {travel:+.3g} rad",
+                              nlp.guess(a, b, req.phi_start, travel))
+
+    out = first_converged(nlp, tries(), p, lbw, ubw, deadline, "the shooting NLP",
+                          "shooting NLP")
+    nodes, rates = nlp.unpack(out.x)
+    return ShootingSolution(nodes=nodes, rates=rates, status=f"{out.solver}: {out.status}",
+                            iterations=out.iterations, start=out.guess, tried=out.tried)
 
 
 def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
