@@ -18,7 +18,7 @@ from svc_support import DEG, ROOT, TestClient, running_app
 W3 = [10 * DEG] * 3
 G3 = [30 * DEG] * 3
 #: A cheap request (fixed dphi, few samples).
-CHEAP = {"start": W3, "goal": G3, "method": "polynomial", "phi_change": 34 * DEG, "samples": 21}
+CHEAP = {"start": W3, "goal": G3, "method": "polynomial", "phi_change": 34 * DEG, "samples": 5}
 
 #: The tightened limits of this module's app.
 LIMITS = dict(max_body_bytes=4096, max_joints=5, max_samples=101, max_constraint_points=2,
