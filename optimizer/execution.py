@@ -33,7 +33,6 @@ The samples are corrected until the original model under the form's rule reaches
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import time
 from dataclasses import dataclass

@@ -45,8 +45,8 @@ from .cascade import (CASCADE_ACCEPT, CASCADE_INITIAL_PANELS,  # noqa: F401 (re-
 from .chained_form import ChainedForm
 from .integration import (ATOL, CASCADE_NAME, DOP853_NAME, HALF_PI,  # noqa: F401
                           RTOL, Replay, integrate)
-from .steering import ChainedPath
 from .model import Robot
+from .steering import ChainedPath
 
 
 @dataclass(frozen=True)
