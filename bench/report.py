@@ -291,6 +291,9 @@ every sample goes to `bench/results/`, which is not versioned). It holds the lat
                                                # perturbed plants (docs/closed-loop.md)
     .venv/bin/python -m bench.budget           # reversal budget and front against IPOPT peers:
                                                # writes docs/benchmark-budget.md (--help)
+    .venv/bin/python -m bench.forms            # every handed-out form as a drive runs it,
+                                               # re-integrated by scipy, n = 3..6 (numbers
+                                               # in docs/execution.md#measured)
 
 ## What is measured
 

@@ -19,11 +19,12 @@ Forms (documented for users in ``docs/execution.md``)
     With ``controller_period``: ``t = k * period`` (the last point ``T``; when ``T`` is not a
     multiple the last interval is shorter) and ``u[k]`` held constant on ``[t_k, t_{k+1})``
     (the last row repeats the last interval's rate; nothing is held after ``T``).
-``cubic_hermite``
-    The ROS ``trajectory_msgs/JointTrajectory`` form: positions ``(phi, th1)`` and velocities
-    ``(u1, u2)`` at points; between points the position is the cubic Hermite interpolant of
-    both ends' positions and velocities (what ``joint_trajectory_controller`` does), so the
-    rates executed are its derivative.
+``quintic_hermite``
+    The ROS ``trajectory_msgs/JointTrajectory`` form (:mod:`optimizer.joint_trajectory`):
+    positions ``(phi, th1)``, velocities ``(u1, u2)`` and accelerations at points; between
+    points the position is the quintic Hermite interpolant of both ends' positions, velocities
+    and accelerations (what ``joint_trajectory_controller`` does when all three are given), so
+    the rates executed are its derivative.
 
 The samples are corrected until the original model under the form's rule reaches the goal
 (:func:`optimizer.forms.correct`).
@@ -32,7 +33,6 @@ The samples are corrected until the original model under the form's rule reaches
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import time
 from dataclasses import dataclass
@@ -43,9 +43,10 @@ import numpy as np
 from .chained_form import chained_form
 from .errors import InfeasibleError, InvalidRequestError, NumericalError
 from .forms import (CORRECTION_TARGET, EXECUTION_TOLERANCE, GAUSS,  # noqa: F401
-                    MAX_CORRECTIONS, REPLAY_NODES, ExecutionCheck, Form, correct,
-                    gauss_legendre, hermite_form, linear_form, replay_form, scatter_rows,
-                    zoh_form)
+                    LIMIT_TOLERANCE, MAX_CORRECTIONS, REPLAY_NODES, ExecutionCheck, Form,
+                    correct, dense_times, gauss_legendre, linear_form, replay_form,
+                    scatter_rows, zoh_form)
+from .joint_trajectory import joint_trajectory
 from .indicators import Indicators, compute_indicators
 from .model import Robot
 from .problem import MAX_SAMPLES, PlanRequest
@@ -158,6 +159,9 @@ class Execution:
         points inside every interval), the energy of its rates exactly.
     dense_t, dense_q : ndarray or None
         That replay.
+    samples : int
+        The evenly spaced samples of the linear form (the request's, or more when the
+        planner made it denser: :func:`optimizer.planner.finish.retime_and_execute`).
     """
 
     path: SampledPath
@@ -168,6 +172,7 @@ class Execution:
     indicators: Indicators | None = None
     dense_t: np.ndarray | None = None
     dense_q: np.ndarray | None = None
+    samples: int = 0
 
     def validation(self) -> dict[str, Any]:
         """The ``validation.executed`` (and ``validation.joint_trajectory``) entries."""
@@ -230,17 +235,6 @@ def handed_out_times(req: PlanRequest, T: float, stops: np.ndarray, breaks: np.n
     times = linear_times(T, req.samples, np.union1d(stops, kinks))
     dense, at = dense_times(times)
     return times, dense, at
-
-
-def dense_times(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The form's times and three points inside every interval (where the indicators and the
-    region are measured), and the positions of ``times`` in it."""
-    h = np.diff(times)
-    inner = (times[:-1, None] + h[:, None] * np.array([0.25, 0.5, 0.75])).ravel()
-    dense = np.concatenate([times[:-1, None],
-                            inner.reshape(-1, 3)], axis=1).ravel()
-    dense = np.append(dense, times[-1])
-    return dense, np.arange(times.size) * 4
 
 
 def _energy(form: Form, p: np.ndarray) -> float:
@@ -323,8 +317,12 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
         dense, at = handed_out_times(req, T, stops, breaks, exact)[1:]
     else:
         dense, at = dense_times(times)
+    # a linear form that holds the plan's rates exactly is the plan's path: kept as it is
+    # when it ends within a tenth of the tolerance (a correction would only move it)
+    holds = form.rule == "linear" and exact
     u, qd, check = correct(robot, form, p0, q0, target, region, dense, limits,
-                           initial if form.rule == "linear" and exact else None)
+                           initial if holds else None,
+                           accept_first=0.1 * EXECUTION_TOLERANCE if holds else 0.0)
     q = qd[at]
     if req.controller_period is None:
         _require(check, f"path of {req.samples} samples", "samples",
@@ -343,18 +341,14 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
                                 deviation=ind.deviation, d_a=ind.d_a)
     jt = jt_check = None
     if req.joint_trajectory:
-        jt, jt_check, _ = joint_trajectory(robot, region, form, path, q0, target, req)
+        jt, jt_check, _ = joint_trajectory(robot, region, form, path, q0, target, req,
+                                           qd if form.rule == "linear" else None)
         _require(jt_check, "JointTrajectory form", "joint_trajectory",
                  ": its points are too sparse for this plan (more samples, or a shorter "
                  "controller_period)")
     return Execution(path=path, check=check, joint_trajectory=jt, joint_trajectory_check=jt_check,
                      seconds=time.perf_counter() - t_start, indicators=ind, dense_t=dense,
-                     dense_q=qd)
-
-
-#: The handed-out forms may exceed a limit by this fraction (the correction moves the rates
-#: by ~1e-9 of their size; the time law plans 1e-3 inside the limits).
-LIMIT_TOLERANCE = 1e-2
+                     dense_q=qd, samples=int(req.samples))
 
 
 def _require_limits(req: PlanRequest, form: Form, u: np.ndarray, check: ExecutionCheck) -> None:
@@ -375,136 +369,6 @@ def _require_limits(req: PlanRequest, form: Form, u: np.ndarray, check: Executio
                     f"correction, above {name} = {lim:g}: more samples, or a longer duration",
                     field=name, diagnostics={"execution": check.as_dict(),
                                              "peak": float(peak[c])})
-
-
-def hermite_peaks(form: Form, p: np.ndarray) -> np.ndarray:
-    """``max |u_c|``, ``max |u_c'|`` and ``max |u_c''|`` over ``[0, T]`` of each input of a cubic
-    Hermite form, exactly, shape (3, 2): on an interval ``u`` is a quadratic in ``s``, whose
-    extremes are at the ends or at its vertex; ``u'`` is linear (extremes at the ends) and
-    ``u''`` constant."""
-    K = form.knots.size - 1
-    k = np.repeat(np.arange(K), 3)
-    u = form.local(k, np.tile([0.0, 0.5, 1.0], K), p).reshape(K, 3, 2)
-    u0, uh, u1 = u[:, 0], u[:, 1], u[:, 2]
-    a = 2.0 * (u0 + u1 - 2.0 * uh)                    # u(s) = a s^2 + b s + c
-    b = u1 - u0 - a
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.where(a != 0.0, -b / (2.0 * a), 0.0)
-    inside = (s > 0.0) & (s < 1.0)
-    vertex = np.where(inside, u0 + s * (b + a * s), 0.0)
-    h = np.diff(form.knots)[:, None]
-    rate = np.max(np.abs(np.concatenate([u0, u1, vertex])), axis=0)
-    accel = np.max(np.abs(np.concatenate([b / h, (2.0 * a + b) / h])), axis=0)
-    jerk = np.max(np.abs(2.0 * a / h ** 2), axis=0)
-    return np.stack([rate, accel, jerk])
-
-
-def hermite_peak_rates(form: Form, p: np.ndarray) -> np.ndarray:
-    """``max |u_c(t)|`` of a cubic Hermite form (:func:`hermite_peaks`' first row)."""
-    return hermite_peaks(form, p)[0]
-
-
-#: A JointTrajectory stretched for the actuator limits gets this much more time than their
-#: ratio asks (its rates come out of a new correction, which moves them by ~1e-9).
-STRETCH_MARGIN = 1e-6
-#: The request fields of the limits, by derivative order.
-LIMIT_NAMES = (("max_u1", "max_u2"), ("max_du1", "max_du2"), ("max_ddu1", "max_ddu2"))
-
-
-def _stretch_for(peaks: np.ndarray, req: PlanRequest) -> float:
-    """The smallest ``f >= 1`` that brings peaks of orders 0, 1, 2 within the request's limits
-    (a stretch by ``f`` divides them by ``f``, ``f^2``, ``f^3``)."""
-    f = 1.0
-    for order, pair in enumerate(LIMIT_NAMES):
-        for c, name in enumerate(pair):
-            lim = getattr(req, name, None)
-            if lim is not None and peaks[order, c] > lim:
-                f = max(f, (peaks[order, c] / lim) ** (1.0 / (order + 1)))
-    return f
-
-
-def joint_trajectory(robot: Robot, region: Region, form: Form, path: SampledPath,
-                     q0: np.ndarray, target: np.ndarray, req: PlanRequest
-                     ) -> tuple[dict[str, Any], ExecutionCheck, np.ndarray]:
-    """The ROS ``trajectory_msgs/JointTrajectory`` form of an executable path, corrected for
-    cubic Hermite interpolation.
-
-    Points at the path's distinct times (whole nanoseconds); positions ``(phi, th1)`` of the
-    path, velocities the rates there (for a held path, the mean of the two rates held around
-    the point), zero at the first and last points. The interior positions and velocities are
-    then corrected so that the original model driven by the derivative of the cubic Hermite
-    interpolant ends at the goal (the end positions and velocities are held).
-
-    With limits in ``req`` the interpolant's rates, their derivatives and second derivatives
-    (:func:`hermite_peaks`, exact between the points) are brought within them: the points'
-    times are stretched by the smallest factor that does it (times ``1 +``
-    :data:`STRETCH_MARGIN`; usually 1, the path's own rates are planned inside them), the
-    velocities shrunk by it, and the form is corrected again on those times: the model has no
-    drift, so ``u(t / f) / f`` drives it along the same path (``time_scale`` in the answer).
-
-    Returns
-    -------
-    dict
-        ``joint_names``, ``points`` (``positions``, ``velocities``, empty ``accelerations``,
-        ``time_from_start`` as ``sec`` and ``nanosec``), ``interpolation`` and
-        ``time_scale``.
-    ExecutionCheck
-    ndarray (3, 2)
-        :func:`hermite_peaks` of the form handed out.
-    """
-    t = path.t
-    ns, keep = np.unique(np.rint(t * 1e9).astype(np.int64), return_index=True)
-    times = ns * 1e-9
-    if form.rule == "zoh":
-        held = path.u[:-1]
-        vel = np.vstack([held[:1], 0.5 * (held[:-1] + held[1:]), held[-1:]])[keep]
-    else:
-        vel = path.u[keep].copy()
-    vel[[0, -1]] = 0.0
-    pos = path.q[keep][:, :2]
-    hform = hermite_form(times)
-    dense = dense_times(times)[0]
-    p, qd, check = correct(robot, hform, np.vstack([pos, vel]), q0, target, region, dense)
-    peaks = hermite_peaks(hform, p)
-    m = times.size
-    scale = _stretch_for(peaks, req)
-    if scale > 1.0:
-        scale *= 1.0 + STRETCH_MARGIN
-        ns = np.rint(ns * scale).astype(np.int64)
-        times = ns * 1e-9
-        hform = hermite_form(times)
-        dense = dense_times(times)[0]
-        p, qd, check = correct(robot, hform, np.vstack([p[:m], p[m:] / scale]), q0, target,
-                               region, dense)
-        peaks = hermite_peaks(hform, p)
-    own = compute_indicators(dense, qd, None)
-    check = dataclasses.replace(check, reversals=(own.reversals_phi, own.reversals_th1),
-                                deviation=own.deviation, d_a=own.d_a)
-    for order, pair in enumerate(LIMIT_NAMES):
-        for c, name in enumerate(pair):
-            lim = getattr(req, name, None)
-            if lim is not None and peaks[order, c] > lim * (1.0 + LIMIT_TOLERANCE):
-                raise InfeasibleError(
-                    f"the JointTrajectory form, interpolated between its points as "
-                    f"joint_trajectory_controller does, reaches {peaks[order, c]:.6g}, above "
-                    f"{name} = {lim:g}: more samples, or a longer duration",
-                    field="joint_trajectory",
-                    diagnostics={"joint_trajectory": check.as_dict(),
-                                 "peak": float(peaks[order, c]), "limit": name})
-    pos, vel = p[:m], p[m:]
-    # no accelerations: given positions and velocities only, joint_trajectory_controller
-    # interpolates cubically, the rule verified here (with accelerations it would take a
-    # quintic, another path)
-    points = [{"positions": [float(a), float(b)], "velocities": [float(c), float(d)],
-               "accelerations": [], "effort": [],
-               "time_from_start": {"sec": int(x // 1_000_000_000),
-                                   "nanosec": int(x % 1_000_000_000)}}
-              for (a, b), (c, d), x in zip(pos.tolist(), vel.tolist(), ns.tolist())]
-    out = {"joint_names": ["phi", "th1"], "points": points,
-           "interpolation": "cubic Hermite between consecutive points (positions and "
-                            "velocities), as joint_trajectory_controller",
-           "time_scale": scale}
-    return out, check, peaks
 
 
 class HandedOutInputs:

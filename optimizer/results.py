@@ -74,7 +74,8 @@ class Plan:
     feasible_phi_changes : list of (float, float)
         Singularity-free ``dphi`` intervals of the paper's family (empty when not computed).
     indicators : Indicators
-        Measured on the handed-out path (the default form's replay).
+        Measured on the handed-out path (the default form's replay, re-integrated on the
+        original model): what a controller executes, ``d_a`` included.
     margin : float
         Region margin of the continuous path (rad, full criterion).
     path : SampledPath
@@ -96,6 +97,9 @@ class Plan:
     pareto : tuple of ParetoMember or None
         With ``pareto`` in the request: the non-dominated plans over (reversals, deviation),
         fewest reversals first (:mod:`optimizer.planner.budget`).
+    plan_indicators : Indicators or None
+        The exact plan's indicators on its own schedule (the input segments on ``sigma``): the
+        values the methods optimise and the paper reports (its ``d_a`` is of that timing).
     """
 
     robot: Robot
@@ -114,6 +118,7 @@ class Plan:
     execution: Execution | None = None
     time_law: TimeLaw | None = None
     pareto: tuple[ParetoMember, ...] | None = None
+    plan_indicators: Indicators | None = None
 
     @property
     def b0(self) -> float | None:
@@ -156,19 +161,7 @@ class Plan:
                           "v2 is not a polynomial (empty)"),
                 "segments": self.inputs.physical_coefficients(),
             },
-            "indicators": {
-                "d_a": ind.d_a,
-                "d_a_per_joint": list(ind.d_a_per_joint),
-                "d_a_joint_space": ind.d_a_joint_space,
-                "t_p": ind.t_p,
-                "phi_reversals": ind.phi_reversals,
-                "sensitivity": ind.sensitivity,
-                "sensitivity_max": ind.sensitivity_max,
-                "energy": ind.energy,
-                "margin": self.margin,
-                "deviation": ind.deviation,
-                "reversals": {"phi": ind.reversals_phi, "th1": ind.reversals_th1},
-            },
+            "indicators": indicators_dict(ind, self.margin),
             "path": {
                 "t": self.path.t,
                 "q": self.path.q,
@@ -200,7 +193,26 @@ class Plan:
             out["time_law"] = self.time_law.as_dict()
         if self.pareto is not None:
             out["pareto"] = [m.to_dict() for m in self.pareto]
+        if self.plan_indicators is not None:
+            out["plan_indicators"] = indicators_dict(self.plan_indicators, self.margin)
         return json_safe(out) if plain else out
+
+
+def indicators_dict(ind: Indicators, margin: float) -> dict[str, Any]:
+    """The JSON shape of indicators (``indicators``, ``plan_indicators``)."""
+    return {
+        "d_a": ind.d_a,
+        "d_a_per_joint": list(ind.d_a_per_joint),
+        "d_a_joint_space": ind.d_a_joint_space,
+        "t_p": ind.t_p,
+        "phi_reversals": ind.phi_reversals,
+        "sensitivity": ind.sensitivity,
+        "sensitivity_max": ind.sensitivity_max,
+        "energy": ind.energy,
+        "margin": margin,
+        "deviation": ind.deviation,
+        "reversals": {"phi": ind.reversals_phi, "th1": ind.reversals_th1},
+    }
 
 
 def json_safe(obj: Any) -> Any:

@@ -164,6 +164,9 @@ class _PlanData:
         ind = plan.get("indicators") or {}
         self.d_a = ind.get("d_a")
         self.t_p = ind.get("t_p")
+        # the exact plan's d_a on its own schedule (the paper's number), when the answer has
+        # it: the drawn path runs along the time law, whose d_a is self.d_a
+        self.plan_d_a = (plan.get("plan_indicators") or {}).get("d_a")
         self.breaks = self._breaks(plan)
         u = path.get("u")
         self.u = _array(u, "path.u", 2) if u is not None else None
@@ -189,10 +192,13 @@ class _PlanData:
 
     def title(self) -> str:
         return (f"{self.method} plan: dphi = {_fdeg(self.phi_change)}, "
-                f"d_a = {_fdeg(self.d_a)}, "
+                f"d_a = {_fdeg(self.d_a)}"
+                + (f" (plan {math.degrees(self.plan_d_a):.2f}°)" if self.plan_d_a is not None
+                   else "")
+                + ", "
                 f"t_p = {self.t_p if self.t_p is not None else 'n/a'}, "
                 f"T = {_fmt_num(self.duration, '.4g', ' s')}"
-                + (f", executed path ({self.rule})" if self.rule else ""))
+                + (f", executed ({self.rule})" if self.rule else ""))
 
 
 def _mark_breaks(ax: Any, breaks: Iterable[float]) -> None:

@@ -234,14 +234,14 @@ class Validation(BaseModel):
         None, description="The original model executed from what the answer hands out: "
                           "path.u by path.rule.")
     joint_trajectory: Optional["ExecutedValidation"] = Field(
-        None, description="The same for the joint_trajectory form (cubic Hermite), when "
+        None, description="The same for the joint_trajectory form (quintic Hermite), when "
                           "asked for.")
 
 
 class ExecutedValidation(BaseModel):
     """The original model integrated under a handed-out form, by its documented rule."""
 
-    rule: Literal["linear", "zoh", "cubic_hermite"]
+    rule: Literal["linear", "zoh", "cubic_hermite", "quintic_hermite"]
     terminal_error: Optional[float] = Field(None, description="max |th(T) - goal| (rad).")
     phi_error: Optional[float] = Field(None, description="|phi(T) - the plan's phi(T)| (rad).")
     margin: Optional[float] = Field(None, description="Smallest distance of th1..thn to the "
@@ -265,7 +265,8 @@ class ExecutedValidation(BaseModel):
                           "the straight segment start -> goal.")
     d_a: Optional[float] = Field(
         None, description="Largest distance (rad) of this form's th1(t) from the straight "
-                          "line in time (indicators.d_a is the plan's, on its own schedule).")
+                          "line in time (indicators.d_a is the handed-out path's; plan_indicators.d_a the "
+                          "exact plan's, on its own schedule).")
 
 
 Validation.model_rebuild()
@@ -284,16 +285,18 @@ class JointTrajectoryPoint(BaseModel):
     positions: list[float] = Field(..., description="[phi, th1] (rad).")
     velocities: list[float] = Field(..., description="[u1, u2] (rad/s).")
     accelerations: list[float] = Field(default_factory=list,
-                                       description="Empty: the controller then interpolates "
-                                                   "cubically, the rule verified.")
+                                       description="[u1', u2'] (rad/s^2): with positions and "
+                                                   "velocities, the controller interpolates "
+                                                   "by quintics, the rule verified.")
     effort: list[float] = Field(default_factory=list, description="Empty.")
     time_from_start: TimeFromStart
 
 
 class JointTrajectory(BaseModel):
     """The plan for position-controlled actuators in the shape of ROS 2
-    ``trajectory_msgs/msg/JointTrajectory`` (no header): executed by cubic Hermite
-    interpolation between consecutive points, as ``joint_trajectory_controller`` does."""
+    ``trajectory_msgs/msg/JointTrajectory`` (no header): executed by quintic Hermite
+    interpolation between consecutive points (positions, velocities and accelerations), as
+    ``joint_trajectory_controller`` does."""
 
     joint_names: list[Annotated[str, Field(max_length=64)]] = Field(
         ..., description='["phi", "th1"].')
@@ -301,11 +304,11 @@ class JointTrajectory(BaseModel):
     interpolation: str = Field(..., max_length=64)
     time_scale: float = Field(
         1.0, ge=1.0,
-        description="How much longer than the plan these points take: when the cubic "
+        description="How much longer than the plan these points take: when the quintic "
                     "interpolant would exceed a limit (max_u*, max_du*, max_ddu*) between its "
-                    "points, its times are stretched by the smallest factor that keeps them "
-                    "and its velocities shrunk by it (the same path: the model has no drift); "
-                    "1 otherwise.")
+                    "points, its times are stretched by the smallest factor f that keeps them, "
+                    "its velocities divided by f and accelerations by f^2 (the same path: the "
+                    "model has no drift); 1 otherwise.")
 
 
 class ParetoMember(BaseModel):
@@ -345,7 +348,12 @@ class PlanResponse(BaseModel):
         ..., description="Singularity-free dphi intervals [lo, hi] (rad) of the polynomial "
                          "family (empty when not searched).")
     coefficients: Coefficients
-    indicators: Indicators
+    indicators: Indicators = Field(
+        ..., description="Measured on the handed-out path (path, by its rule, re-integrated on "
+                         "the original model): what a controller executes.")
+    plan_indicators: Optional[Indicators] = Field(
+        None, description="The exact plan's indicators on its own schedule (coefficients on "
+                          "sigma): the values the methods optimise and the paper reports.")
     path: PlanPath
     validation: Validation
     joint_trajectory: Optional[JointTrajectory] = Field(

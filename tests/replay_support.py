@@ -77,6 +77,29 @@ def replay_hermite(robot: Robot, t: np.ndarray, x: np.ndarray, v: np.ndarray,
     return _replay(robot, t, q0, u)
 
 
+def replay_quintic(robot: Robot, t: np.ndarray, x: np.ndarray, v: np.ndarray, a: np.ndarray,
+                   q0: np.ndarray) -> tuple[np.ndarray, float]:
+    """The original model driven by the derivative of the quintic Hermite interpolant of
+    positions ``x``, velocities ``v`` and accelerations ``a`` at ``t``
+    (joint_trajectory_controller's rule when all three are given), built by scipy's
+    ``BPoly.from_derivatives``."""
+    rates = quintic_rates(t, x, v, a)
+    return _replay(robot, t, q0, lambda k, s: rates(t[k] + s * (t[k + 1] - t[k])))
+
+
+def quintic_rates(t: np.ndarray, x: np.ndarray, v: np.ndarray, a: np.ndarray):
+    """``u(t)`` (and, with ``order``, its derivatives) of the quintic Hermite interpolant,
+    from scipy's ``BPoly.from_derivatives`` (independent of the planner's basis)."""
+    from scipy.interpolate import BPoly
+
+    polys = [BPoly.from_derivatives(t, np.stack([x[:, c], v[:, c], a[:, c]], axis=1))
+             for c in range(x.shape[1])]
+
+    def rates(tt, order=0):
+        return np.stack([np.asarray(bp.derivative(order + 1)(tt)) for bp in polys], axis=-1)
+    return rates
+
+
 def _replay(robot, t, q0, u_local):
     q = np.asarray(q0, float)
     margin = math.inf

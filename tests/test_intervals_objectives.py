@@ -115,8 +115,8 @@ def test_objective_optimum_matches_dense_scan(objective, rule):
     assert R2D(p.phi_change) == pytest.approx(d_best, abs=0.01)
     assert p.indicators.t_p == tp == 1
     if rule == "da":
-        assert R2D(p.indicators.d_a) <= R2D(val) + 1e-4
-        assert R2D(p.indicators.d_a) == pytest.approx(21.6, abs=0.05)  # issue 8's figure
+        assert R2D(p.plan_indicators.d_a) <= R2D(val) + 1e-4
+        assert R2D(p.plan_indicators.d_a) == pytest.approx(21.6, abs=0.05)  # issue 8's figure
 
 
 def test_weighted_objective_matches_dense_scan():

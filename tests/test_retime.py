@@ -125,14 +125,14 @@ def test_retimed_plan_verified_and_no_worse_than_polynomial(start, goal):
     n = p.robot.n
     assert np.all((sol.y[1:n] > 0) & (sol.y[1:n] < np.pi / 2))
     assert p.indicators.t_p == poly.indicators.t_p
-    assert p.indicators.d_a <= poly.indicators.d_a + 1e-9
-    assert p.indicators.d_a >= p.diagnostics["time_law"]["d_a_lower_bound"] - D(0.05)
+    assert p.plan_indicators.d_a <= poly.plan_indicators.d_a + 1e-9
+    assert p.plan_indicators.d_a >= p.diagnostics["time_law"]["d_a_lower_bound"] - D(0.05)
 
 
 def test_retimed_d_a_well_below_constant_v1_on_paper_goals():
     # the Fréchet bound of the chosen member is about 4.8 deg; the constant-v1 optimum 23.1 deg
     p = plan(_request([1, 1, 1], [30, 30, 30]))
-    assert math.degrees(p.indicators.d_a) < 12.0
+    assert math.degrees(p.plan_indicators.d_a) < 12.0
     assert p.indicators.t_p == 1
 
 
@@ -158,8 +158,8 @@ def test_auto_under_the_papers_rule_returns_the_best_of_the_family():
     auto = p.diagnostics["auto"]
     assert [t["method"] for t in auto["tried"]] == ["polynomial", "retimed"]
     assert auto["chosen"] == p.method
-    best = min((x.indicators.t_p, x.indicators.d_a) for x in (r, poly))
-    assert (p.indicators.t_p, p.indicators.d_a) == best
+    best = min((x.plan_indicators.t_p, x.plan_indicators.d_a) for x in (r, poly))
+    assert (p.plan_indicators.t_p, p.plan_indicators.d_a) == best
 
 
 def test_retimed_speed_bound_and_actuator_limits():

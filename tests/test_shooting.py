@@ -109,16 +109,18 @@ def test_indicators_are_the_scipy_paths(fallback, monkeypatch):
     ind = p.indicators      # of the handed-out path: the plan's, run along its time law
     assert ind.deviation == pytest.approx(
         segment_distance(th, np.array(OPP_B[0]), np.array(OPP_B[1])), abs=1e-5)
-    # d_a (in time) is the plan's, on its own schedule; the handed-out path's is reported
-    # with its execution
+    # d_a (in time): the plan's on its own schedule in plan_indicators; the handed-out
+    # path's (the same states along the time law) in indicators and its execution
     tau = t / t[-1]
     line1 = OPP_B[0][0] + tau * (OPP_B[1][0] - OPP_B[0][0])
-    assert ind.d_a == pytest.approx(float(np.max(np.abs(th[:, 0] - line1))), abs=1e-6)
+    assert p.plan_indicators.d_a == pytest.approx(float(np.max(np.abs(th[:, 0] - line1))),
+                                                  abs=1e-6)
     th_out = np.linspace(0.0, p.duration, 20001)
     th1 = np.interp(p.time_law.plan_time(th_out), t, th[:, 0])
     line1 = OPP_B[0][0] + th_out / p.duration * (OPP_B[1][0] - OPP_B[0][0])
-    assert p.execution.check.d_a == pytest.approx(float(np.max(np.abs(th1 - line1))),
-                                                  abs=1e-4)
+    handed_out_d_a = float(np.max(np.abs(th1 - line1)))
+    assert p.execution.check.d_a == pytest.approx(handed_out_d_a, abs=1e-4)
+    assert ind.d_a == pytest.approx(handed_out_d_a, abs=1e-4)
     assert ind.reversals_phi == count_reversals(q[:, 0], ACTUATOR_DEAD_BAND)
     assert ind.reversals_th1 == count_reversals(q[:, 1], ACTUATOR_DEAD_BAND)
 

@@ -23,7 +23,8 @@ from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
 from optimizer.timing import (Limits, geometric_path, ramp_profile, scurve_profile,
                               smooth_profile, time_law, trapezoid_profile)
-from replay_support import reachable_goals, replay_hermite, replay_linear, replay_zoh
+from replay_support import (quintic_rates, reachable_goals, replay_linear, replay_quintic,
+                            replay_zoh)
 
 GOALS = {n: reachable_goals(n, 1, 16 + n) for n in (3, 4)}
 REVERSING = (tuple(np.radians([10.0, 20.0, 30.0])), tuple(np.radians([40.0, 25.0, 15.0])))
@@ -163,15 +164,13 @@ def _goal_error(qf, req):
     return float(np.max(np.abs(qf[1:] - np.array(req.goal))))
 
 
-def _hermite_peaks(t, x, v, points=201):
-    """Peaks of the rates and their derivatives of the cubic Hermite interpolant, from its
-    basis on a dense grid per interval."""
-    s = np.linspace(0.0, 1.0, points)[:, None, None]
-    h = np.diff(t)[None, :, None]
-    dx = (x[1:] - x[:-1]) / h
-    u = (6 * s - 6 * s * s) * dx + (3 * s * s - 4 * s + 1) * v[:-1] + (3 * s * s - 2 * s) * v[1:]
-    du = ((6 - 12 * s) * dx + (6 * s - 4) * v[:-1] + (6 * s - 2) * v[1:]) / h
-    return np.max(np.abs(u), axis=(0, 1)), np.max(np.abs(du), axis=(0, 1))
+def _quintic_peaks(t, x, v, a, points=201):
+    """Peaks of the rates, their derivatives and second derivatives of the quintic Hermite
+    interpolant (scipy's BPoly) on a dense grid per interval."""
+    rates = quintic_rates(t, x, v, a)
+    s = np.linspace(0.0, 1.0, points)[:, None]
+    dense = (t[:-1] + s * np.diff(t)).ravel()
+    return tuple(np.max(np.abs(rates(dense, order)), axis=0) for order in range(3))
 
 
 @pytest.mark.parametrize("n, method", LIMITED)
@@ -198,10 +197,11 @@ def test_limited_plans_keep_their_limits_in_every_form(n, method):
                    for x in pts])
     xj = np.array([x["positions"] for x in pts])
     vj = np.array([x["velocities"] for x in pts])
+    aj = np.array([x["accelerations"] for x in pts])
     assert np.array_equal(vj[0], [0.0, 0.0]) and np.array_equal(vj[-1], [0.0, 0.0])
-    peak_u, peak_du = _hermite_peaks(tj, xj, vj)
+    peak_u, peak_du, _ = _quintic_peaks(tj, xj, vj, aj)
     assert peak_u.max() <= 1.0 * 1.01 and peak_du.max() <= 5.0 * 1.01, (peak_u, peak_du)
-    qf, margin = replay_hermite(p.robot, tj, xj, vj, req.q_start())
+    qf, margin = replay_quintic(p.robot, tj, xj, vj, aj, req.q_start())
     assert _goal_error(qf, req) < 1e-6 and margin > 0.0
 
 
@@ -231,10 +231,10 @@ def test_a_jerk_limit_gives_s_curves_the_joint_trajectory_keeps():
                    for x in pts])
     xj = np.array([x["positions"] for x in pts])
     vj = np.array([x["velocities"] for x in pts])
-    h = np.diff(tj)[:, None]
-    ddu = np.abs(12 * (xj[:-1] - xj[1:]) / h ** 3 + 6 * (vj[:-1] + vj[1:]) / h ** 2)
+    aj = np.array([x["accelerations"] for x in pts])
+    _, _, ddu = _quintic_peaks(tj, xj, vj, aj)
     assert ddu.max() <= 40.0 * 1.01
-    qf, margin = replay_hermite(p.robot, tj, xj, vj, req.q_start())
+    qf, margin = replay_quintic(p.robot, tj, xj, vj, aj, req.q_start())
     assert _goal_error(qf, req) < 1e-6 and margin > 0.0
 
 

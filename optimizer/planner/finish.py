@@ -129,11 +129,12 @@ def finish_plan(req: PlanRequest, inputs: InputSchedule, method: str,
     law, exe = retime_and_execute(req, planned.u, planned.breaks, False, req.phi_start + dphi,
                                   ind, method)
     timing["execution"] = exe.seconds
+    _note_samples(req, exe, diagnostics)
     return Plan(robot=robot, method=method, phi_change=float(dphi), duration=law.T,
                 inputs=inputs, chained=chained, feasible_phi_changes=feasible,
                 indicators=_handed_out(exe, ind), margin=float(chk.margin), path=exe.path,
                 verification=ver, timing=timing, diagnostics=diagnostics, execution=exe,
-                time_law=law)
+                time_law=law, plan_indicators=ind)
 
 
 def _plan_duration(req: PlanRequest) -> float:
@@ -177,6 +178,12 @@ def plan_time_law(req: PlanRequest, rates: RatesOf, breaks: np.ndarray, constant
                         max_duration=MAX_DURATION)
 
 
+#: The handed-out path is made denser up to this many samples (doubling the intervals)
+#: before a plan is refused for its form: a coarse linear form can miss a sharp rate peak
+#: (more reversals, a larger deviation, or no correction onto the goal), a denser one holds it.
+DENSIFY_SAMPLES = 4097
+
+
 def retime_and_execute(req: PlanRequest, rates: RatesOf, breaks: np.ndarray, constant: bool,
                        phi_end: float, exact: Indicators, method: str, *,
                        law: TimeLaw | None = None, initial: Replay | None = None
@@ -188,47 +195,97 @@ def retime_and_execute(req: PlanRequest, rates: RatesOf, breaks: np.ndarray, con
     ``rates`` are the plan's exact rates on its own time, which may jump at ``breaks``
     (``constant``: constant between them); ``exact`` its indicators; ``law`` the time law
     when the caller made it (:func:`plan_time_law`), ``initial`` the replay of
-    :func:`optimizer.execution.execute`. The handed-out path's
-    reversals and deviation are compared with them: a correction that adds a reversal or
-    moves the path away from the straight segment (by more than :data:`DEVIATION_TOLERANCE`
-    plus :data:`DEVIATION_RELATIVE` of it) is refused, not handed out.
+    :func:`optimizer.execution.execute`. The handed-out path's (and the JointTrajectory
+    form's) reversals and deviation are compared with them: a form that adds a reversal or
+    lies farther from the straight segment (by more than :data:`DEVIATION_TOLERANCE` plus
+    :data:`DEVIATION_RELATIVE` of it), or that its correction cannot bring onto the goal
+    inside the region and the limits, is not handed out: the linear form is made denser
+    (the intervals halved, up to :data:`DENSIFY_SAMPLES` samples, ``samples`` is a minimum)
+    until it is the plan's; a held form (``controller_period``, the user's) is refused.
 
     Raises
     ------
     InfeasibleError
-        The duration is too short for the limits, or the handed-out path is not the plan's.
+        The duration is too short for the limits, or no handed-out path is the plan's.
+    NumericalError
+        No handed-out path reaches the goal.
     """
     if law is None:
         law = plan_time_law(req, rates, breaks, constant)
-    exe = execute(req, law.rates, law_kinks(law), law.T, phi_end, limits_region(req),
-                  stops=law.stops, exact=law.piecewise_linear, initial=initial)
-    got = exe.indicators
-    assert got is not None
-    worse = []
-    if got.reversals_phi > exact.reversals_phi:
-        worse.append(f"phi reverses {got.reversals_phi} times (the plan {exact.reversals_phi})")
-    if got.reversals_th1 > exact.reversals_th1:
-        worse.append(f"th1 reverses {got.reversals_th1} times (the plan {exact.reversals_th1})")
     held = req.controller_period is not None
-    rel = HELD_DEVIATION_RELATIVE if held else DEVIATION_RELATIVE
-    tol = HELD_DEVIATION_TOLERANCE if held else DEVIATION_TOLERANCE
-    if got.deviation > exact.deviation * (1.0 + rel) + tol:
-        worse.append(f"its deviation is {math.degrees(got.deviation):.4g} deg (the plan "
-                     f"{math.degrees(exact.deviation):.4g} deg)")
-    if worse:
-        field = "samples" if req.controller_period is None else "controller_period"
+    samples = int(req.samples)
+    while True:
+        asked = req if samples == int(req.samples) else dataclasses.replace(req, samples=samples)
+        denser = min(2 * samples - 1, max(DENSIFY_SAMPLES, int(req.samples)))
+        can_densify = not held and denser > samples
+        try:
+            exe = execute(asked, law.rates, law_kinks(law), law.T, phi_end, limits_region(req),
+                          stops=law.stops, exact=law.piecewise_linear,
+                          initial=initial if asked is req else None)
+        except (InfeasibleError, NumericalError) as err:
+            if can_densify and err.field in FORM_FIELDS:
+                samples = denser
+                continue
+            raise
+        worse = _not_the_plans(exe, exact, held)
+        if not worse:
+            return law, exe
+        if can_densify:
+            samples = denser
+            continue
+        field = "controller_period" if held else "samples"
+        got = exe.indicators
+        assert got is not None
         raise InfeasibleError(
             f"the handed-out path, corrected onto the goal, is not the {method} plan's: "
-            + "; ".join(worse) + (" (ask for more samples)" if field == "samples" else
-                                  " (a shorter controller_period)"), field=field,
+            + "; ".join(worse) + (" (a shorter controller_period)" if held else
+                                  f" (also at {samples} samples)"), field=field,
             diagnostics={"execution": exe.check.as_dict(),
                          "handed_out": {"reversals": {"phi": got.reversals_phi,
                                                       "th1": got.reversals_th1},
-                                        "deviation": got.deviation},
+                                        "deviation": got.deviation, "samples": samples},
                          "plan": {"reversals": {"phi": exact.reversals_phi,
                                                 "th1": exact.reversals_th1},
                                   "deviation": exact.deviation}})
-    return law, exe
+
+
+#: The fields of the handed-out forms' refusals that a denser linear form can fix.
+FORM_FIELDS = frozenset({"samples", "joint_trajectory", "max_u1", "max_u2", "max_du1",
+                         "max_du2"})
+
+
+def _not_the_plans(exe: Execution, exact: Indicators, held: bool) -> list[str]:
+    """What makes the handed-out forms (the path, and the JointTrajectory form when asked
+    for) another path than the plan's: more reversals, or a larger deviation beyond the
+    tolerance."""
+    rel = HELD_DEVIATION_RELATIVE if held else DEVIATION_RELATIVE
+    tol = HELD_DEVIATION_TOLERANCE if held else DEVIATION_TOLERANCE
+    forms: list[tuple[str, tuple[int, int], float]] = []
+    got = exe.indicators
+    assert got is not None
+    forms.append(("the path", (got.reversals_phi, got.reversals_th1), got.deviation))
+    jt = exe.joint_trajectory_check
+    if jt is not None and jt.reversals is not None and jt.deviation is not None:
+        forms.append(("the JointTrajectory", jt.reversals, jt.deviation))
+    worse = []
+    for what, (rp, rt), dev in forms:
+        if rp > exact.reversals_phi:
+            worse.append(f"{what}: phi reverses {rp} times (the plan {exact.reversals_phi})")
+        if rt > exact.reversals_th1:
+            worse.append(f"{what}: th1 reverses {rt} times (the plan {exact.reversals_th1})")
+        if dev > exact.deviation * (1.0 + rel) + tol:
+            worse.append(f"{what}: its deviation is {math.degrees(dev):.4g} deg (the plan "
+                         f"{math.degrees(exact.deviation):.4g} deg)")
+    return worse
+
+
+def _note_samples(req: PlanRequest, exe: Execution, diagnostics: dict[str, Any]) -> None:
+    """Say so in the diagnostics when the handed-out path has more samples than asked."""
+    if req.controller_period is None and exe.samples > int(req.samples):
+        diagnostics["samples"] = {
+            "asked": int(req.samples), "handed_out": exe.samples,
+            "why": "a linear form of the samples asked for is not the plan's path (more "
+                   "reversals, a larger deviation, or no correction onto the goal)"}
 
 
 def law_kinks(law: TimeLaw) -> np.ndarray:
@@ -237,15 +294,10 @@ def law_kinks(law: TimeLaw) -> np.ndarray:
 
 
 def _handed_out(exe: Execution, exact: Indicators) -> Indicators:
-    """The indicators of the handed-out path (the default form): its reversals, deviation,
-    ``t_p``, sensitivity and energy. ``d_a`` (the distance from the straight line IN TIME,
-    the paper's Definition 4) stays the plan's, on its own schedule: the paper's numbers
-    are of that timing; the handed-out path's is ``validation.executed.d_a``."""
-    if exe.indicators is None:
-        return exact
-    return dataclasses.replace(exe.indicators, d_a=exact.d_a,
-                               d_a_per_joint=exact.d_a_per_joint,
-                               d_a_joint_space=exact.d_a_joint_space)
+    """The indicators of the handed-out path (the default form's replay on the original
+    model): all of them, ``d_a`` included (measured on the time the path is handed out
+    with). The exact plan's, on its own schedule, are the plan's ``plan_indicators``."""
+    return exact if exe.indicators is None else exe.indicators
 
 
 def actuator_schedule(req: PlanRequest, rates: np.ndarray) -> ActuatorSchedule:
@@ -360,7 +412,8 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
     if req.via_points:  # the handed-out path through every via point, measured
         diagnostics["via_points"] = check_handed_out(req, exe.path, exe.check.rule)
     timing["execution"] = exe.seconds
+    _note_samples(req, exe, diagnostics)
     return Plan(robot=robot, method=method, phi_change=dphi, duration=law.T, inputs=schedule,
                 chained=None, feasible_phi_changes=[], indicators=_handed_out(exe, ind),
                 margin=margin, path=exe.path, verification=ver, timing=timing,
-                diagnostics=diagnostics, execution=exe, time_law=law)
+                diagnostics=diagnostics, execution=exe, time_law=law, plan_indicators=ind)

@@ -57,9 +57,21 @@ def rank_key(ind: Indicators, objective: str = DEFAULT_OBJECTIVE,
 def better(a: Plan, b: Plan, objective: str = DEFAULT_OBJECTIVE,
            weights: Weights | None = None) -> Plan:
     """The better of two plans (ties keep ``a``)."""
-    if rank_key(b.indicators, objective, weights) < rank_key(a.indicators, objective, weights):
+    if rank_key(ranked_indicators(b, objective), objective, weights) < \
+            rank_key(ranked_indicators(a, objective), objective, weights):
         return b
     return a
+
+
+def ranked_indicators(plan: Plan, objective: str = DEFAULT_OBJECTIVE) -> Indicators:
+    """The indicators a plan is ranked by: the handed-out path's (``plan.indicators``) for
+    the default objective; for the paper's objectives (``t_p``, ``d_a``, sensitivity, their
+    weights) the exact plan's on its own schedule (``plan.plan_indicators``), which the
+    methods optimise: ``d_a`` and the energy depend on the timing, and the handed-out path
+    runs the plan along its time law."""
+    if objective == "reversals_then_deviation" or plan.plan_indicators is None:
+        return plan.indicators
+    return plan.plan_indicators
 
 
 def best(plans: Iterable[Plan | None], objective: str = DEFAULT_OBJECTIVE,

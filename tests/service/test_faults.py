@@ -39,7 +39,7 @@ from service.settings import Limits
 from svc_support import (DEG, LAG, ROOT, WORKED, assert_problem, free_port, running_app,
                          server_process)
 
-CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 21}
+CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 5}
 #: ~1 s of work for one worker: a plan, then 40 open-loop v-replays (DOP853 with the input
 #: map at the actual state, ~20 ms each; the u-replays of the handed-out form take ~1 ms).
 #: Under the largest time limit: at load 16 on 2 cores a job run again after its worker was

@@ -18,7 +18,7 @@ from svc_support import DEG, ROOT, TestClient, running_app
 W3 = [10 * DEG] * 3
 G3 = [30 * DEG] * 3
 #: A cheap request (fixed dphi, few samples).
-CHEAP = {"start": W3, "goal": G3, "method": "polynomial", "phi_change": 34 * DEG, "samples": 21}
+CHEAP = {"start": W3, "goal": G3, "method": "polynomial", "phi_change": 34 * DEG, "samples": 5}
 
 #: The tightened limits of this module's app. The time limits are tightened too, but not so far
 #: that an accepted request runs out of time on a loaded machine: the constraint-points plan at

@@ -79,7 +79,7 @@ def test_the_middleware_releases_memory_after_large_answers_only(monkeypatch):
     calls: list[int] = []
     monkeypatch.setattr(memory, "release_soon", lambda *a: calls.append(1))
     with running_app(workers=1, queue_size=4) as client:
-        r = client.post("/v1/plans", json={**WORKED, "phi_change": 34 * DEG, "samples": 21})
+        r = client.post("/v1/plans", json={**WORKED, "phi_change": 34 * DEG, "samples": 5})
         assert r.status_code == 200 and len(r.content) < memory.MMAP_THRESHOLD
         assert calls == []
         # (the largest time limit: at load 10 on 2 cores this plan ran past the default 10 s)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from optimizer.model import Robot
-from replay_support import reachable_goals, replay_hermite, replay_linear, replay_zoh
+from replay_support import reachable_goals, replay_quintic, replay_linear, replay_zoh
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -47,7 +47,7 @@ def test_controller_period_path_replays_by_zero_order_hold(client):
     assert _err(qf) < 1e-6 and margin > 0.0
 
 
-def test_joint_trajectory_replays_by_cubic_hermite(client):
+def test_joint_trajectory_replays_by_quintic_hermite(client):
     r = client.post("/v1/plans", json={**BODY, "method": "shooting", "joint_trajectory": True})
     assert r.status_code == 200, r.text
     body = r.json()
@@ -58,7 +58,8 @@ def test_joint_trajectory_replays_by_cubic_hermite(client):
                   for p in pts])
     x = np.array([p["positions"] for p in pts])
     v = np.array([p["velocities"] for p in pts])
-    qf, margin = replay_hermite(ROBOT, t, x, v, Q0)
+    a = np.array([p["accelerations"] for p in pts])
+    qf, margin = replay_quintic(ROBOT, t, x, v, a, Q0)
     assert _err(qf) < 1e-4 and margin > 0.0
     assert body["validation"]["joint_trajectory"]["terminal_error"] <= 1e-6
 

@@ -25,7 +25,7 @@ import pytest
 from svc_support import DEG, LAG, WORKED, TestClient, assert_problem, running_app
 
 GRACE = 0.5
-CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 21}
+CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 5}
 SLOW = {"plan": {**WORKED, "phi_change": 34 * DEG, "samples": 51},
         "random": {"count": 200, "spread": 0.01, "seed": 3}, "replay": "v"}
 

@@ -385,9 +385,12 @@
     $("out-dphi").textContent = `${fmtDeg(plan.phi_change, 2)} deg`;
     $("out-duration").textContent = `${fmtNum(plan.duration, 3)} s`;
     const ind = plan.indicators || {};
-    $("ind-d_a").textContent = fmtDeg(ind.d_a, 2);
-    $("ind-t_p").textContent = ind.t_p === null || ind.t_p === undefined ? "n/a" : String(ind.t_p);
-    $("ind-sensitivity").textContent = fmtNum(ind.sensitivity, 3);
+    // the paper's indicators of the exact plan on its own schedule (plan_indicators; the
+    // handed-out path's, run along its time law, are in indicators)
+    const paper = plan.plan_indicators || ind;
+    $("ind-d_a").textContent = fmtDeg(paper.d_a, 2);
+    $("ind-t_p").textContent = paper.t_p === null || paper.t_p === undefined ? "n/a" : String(paper.t_p);
+    $("ind-sensitivity").textContent = fmtNum(paper.sensitivity, 3);
     $("ind-margin").textContent = fmtDeg(ind.margin, 2);
     $("ind-terminal_error").textContent = fmtExp((plan.validation || {}).terminal_error);
 
