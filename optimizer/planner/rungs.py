@@ -97,16 +97,18 @@ def run_signs(rates: np.ndarray) -> np.ndarray:
     merged = wiggle_free_signs(rates)
     if merged is not None:
         return merged
-    out = np.zeros(rates.shape)
-    index = np.arange(rates.shape[0])
-    for c in (0, 1):
-        sign = np.sign(np.asarray(rates[:, c], float))
-        nz = np.flatnonzero(sign)
-        if nz.size == 0:
-            out[:, c] = 1.0
-            continue
-        out[:, c] = sign[np.maximum.accumulate(np.where(sign != 0.0, index, nz[0]))]
-    return out
+    return np.stack([_own_signs(np.asarray(rates[:, c], float)) for c in (0, 1)], axis=1)
+
+
+def _own_signs(col: np.ndarray) -> np.ndarray:
+    """The signs of one actuator's rates, a zero rate taking the sign of the run before it
+    (the first run's at the start; all positive when every rate is 0)."""
+    sign = np.sign(col)
+    nz = np.flatnonzero(sign)
+    if nz.size == 0:
+        return np.ones_like(col)
+    index = np.arange(col.size)
+    return sign[np.maximum.accumulate(np.where(sign != 0.0, index, nz[0]))]
 
 
 def wiggle_free_signs(rates: np.ndarray) -> np.ndarray | None:
@@ -122,16 +124,9 @@ def wiggle_free_signs(rates: np.ndarray) -> np.ndarray | None:
     h = 1.0 / N
     out = np.zeros((N, 2))
     found = False
-    index = np.arange(N)
     for c in (0, 1):
         col = np.asarray(rates[:, c], float)
-        sign = np.sign(col)
-        nz = np.flatnonzero(sign)
-        if nz.size == 0:
-            sign[:] = 1.0
-        else:  # a zero rate belongs to the run before it (the first run, at the start)
-            last = np.maximum.accumulate(np.where(sign != 0.0, index, nz[0]))
-            sign = sign[last]
+        sign = _own_signs(col)
         size = np.abs(col) * h
         total = float(np.sum(size))
         while True:
