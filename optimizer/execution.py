@@ -250,7 +250,8 @@ def _energy(form: Form, p: np.ndarray) -> float:
 def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
             phi_end: float, region: Region | None = None, *,
             stops: np.ndarray | None = None, exact: bool = False,
-            initial: Replay | None = None) -> Execution:
+            initial: Replay | None = None,
+            grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> Execution:
     """The handed-out forms of a verified plan: sampled, corrected onto the goal, re-integrated.
 
     Parameters
@@ -280,6 +281,8 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
         of :func:`handed_out_times` (the plan's own replay at the plan times the time law
         reaches there: the same path, so not integrated twice). Ignored on a controller
         period.
+    grid : tuple of ndarray, optional
+        :func:`handed_out_times` of these arguments when the caller computed it already.
 
     Raises
     ------
@@ -301,7 +304,9 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
     stops = np.array([0.0, T]) if stops is None else np.asarray(stops, float)
     check_period(req, T)
     if req.controller_period is None:
-        times = handed_out_times(req, T, stops, breaks, exact)[0]
+        if grid is None:
+            grid = handed_out_times(req, T, stops, breaks, exact)
+        times = grid[0]
         held = np.searchsorted(times, stops)
         form = linear_form(times, held)
         # point samples of continuous rates: the linear interpolant's values and slopes are
@@ -314,7 +319,8 @@ def execute(req: PlanRequest, u_exact: Uexact, breaks: np.ndarray, T: float,
         p0 = _projection(form, u_exact, times.size, np.union1d(breaks, stops))
     limits = (req.max_u1, req.max_u2)
     if form.rule == "linear":
-        dense, at = handed_out_times(req, T, stops, breaks, exact)[1:]
+        assert grid is not None
+        dense, at = grid[1], grid[2]
     else:
         dense, at = dense_times(times)
     # a linear form that holds the plan's rates exactly is the plan's path: kept as it is

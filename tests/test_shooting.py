@@ -6,6 +6,7 @@ by interval (the rates jump at the breaks); energies of piecewise-constant rates
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -14,6 +15,7 @@ import pytest
 from optimizer.analysis import robustness
 from optimizer.errors import InfeasibleError, InvalidRequestError, SolverTimeoutError
 from optimizer.model import Robot
+from optimizer.reachable import generate
 from optimizer.planner.context import Deadline
 from optimizer.planner.nlp import ladder
 from optimizer.planner.plan import plan
@@ -253,6 +255,34 @@ def test_fatrop_and_ipopt_find_the_same_solution(monkeypatch):
         out[name] = sol
     assert np.max(np.abs(out["fatrop"].nodes - out["ipopt"].nodes)) < 1e-5
     assert np.max(np.abs(out["fatrop"].rates - out["ipopt"].rates)) < 1e-4
+
+
+def test_the_polish_solver_finds_the_default_ipopt_solution(monkeypatch):
+    """A polish from a solution's nodes runs IPOPT with the adaptive barrier update
+    (``ipopt_warm``); it must reach the optimum the default IPOPT reaches from those nodes,
+    in fewer iterations (why it exists)."""
+    import optimizer.planner.shooting as shooting
+    from optimizer.planner.rungs import run_signs
+
+    n = 5
+    g = generate(n, 1, seed=4242)[0]
+    req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(n))
+    light = solve_shooting(req, Deadline(60.0), light=True)
+    signs = run_signs(light.rates)
+    warm = solve_shooting(req, Deadline(60.0), None, signs, light.nodes)
+    assert warm.status.startswith("ipopt_warm")
+    first_converged = shooting.first_converged
+
+    def default_ipopt(nlp, attempts, *args):  # the same attempts, on the default IPOPT
+        return first_converged(nlp, [dataclasses.replace(at, solver="ipopt")
+                                     for at in attempts], *args)
+
+    monkeypatch.setattr(shooting, "first_converged", default_ipopt)
+    plain = solve_shooting(req, Deadline(60.0), None, signs, light.nodes)
+    assert plain.status.startswith("ipopt")
+    assert np.max(np.abs(warm.nodes - plain.nodes)) < 1e-5
+    assert np.max(np.abs(warm.rates - plain.rates)) < 1e-4
+    assert warm.iterations < plain.iterations
 
 
 def test_random_goals_beyond_the_family_are_planned_and_verified():

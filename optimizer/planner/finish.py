@@ -42,6 +42,10 @@ from .family import SEARCH_SAMPLES
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region, make_region
 from .via import check_handed_out, via_schedule, via_time_law_errors
 
+#: The linear form's times, its dense grid and the times' positions in it
+#: (:func:`optimizer.execution.handed_out_times`).
+Grid = tuple[np.ndarray, np.ndarray, np.ndarray]
+
 #: Points of the dense grid the indicators are measured on (the searches' own density, so
 #: that t_p and d_a agree with what was optimised).
 INDICATOR_SAMPLES = SEARCH_SAMPLES
@@ -186,8 +190,8 @@ DENSIFY_SAMPLES = 4097
 
 def retime_and_execute(req: PlanRequest, rates: RatesOf, breaks: np.ndarray, constant: bool,
                        phi_end: float, exact: Indicators, method: str, *,
-                       law: TimeLaw | None = None, initial: Replay | None = None
-                       ) -> tuple[TimeLaw, Execution]:
+                       law: TimeLaw | None = None, initial: Replay | None = None,
+                       grid: Grid | None = None) -> tuple[TimeLaw, Execution]:
     """The plan's path along its time law (:func:`optimizer.timing.time_law`: rest to rest,
     continuous rates, within the request's limits), handed out and verified
     (:func:`optimizer.execution.execute`).
@@ -195,7 +199,8 @@ def retime_and_execute(req: PlanRequest, rates: RatesOf, breaks: np.ndarray, con
     ``rates`` are the plan's exact rates on its own time, which may jump at ``breaks``
     (``constant``: constant between them); ``exact`` its indicators; ``law`` the time law
     when the caller made it (:func:`plan_time_law`), ``initial`` the replay of
-    :func:`optimizer.execution.execute`. The handed-out path's (and the JointTrajectory
+    :func:`optimizer.execution.execute` and ``grid`` the linear form's times on which it was
+    made (:func:`optimizer.execution.handed_out_times`). The handed-out path's (and the JointTrajectory
     form's) reversals and deviation are compared with them: a form that adds a reversal or
     lies farther from the straight segment (by more than :data:`DEVIATION_TOLERANCE` plus
     :data:`DEVIATION_RELATIVE` of it), or that its correction cannot bring onto the goal
@@ -221,7 +226,8 @@ def retime_and_execute(req: PlanRequest, rates: RatesOf, breaks: np.ndarray, con
         try:
             exe = execute(asked, law.rates, law_kinks(law), law.T, phi_end, limits_region(req),
                           stops=law.stops, exact=law.piecewise_linear,
-                          initial=initial if asked is req else None)
+                          initial=initial if asked is req else None,
+                          grid=grid if asked is req else None)
         except (InfeasibleError, NumericalError) as err:
             if can_densify and err.field in FORM_FIELDS:
                 samples = denser
@@ -343,28 +349,29 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
     goal = np.array(req.goal)
     t0 = time.perf_counter()
 
-    def replay(U: np.ndarray) -> tuple[ActuatorSchedule, TimeLaw, Replay]:
+    def replay(U: np.ndarray) -> tuple[ActuatorSchedule, TimeLaw, Replay, Grid | None]:
         sched = actuator_schedule(req, U)
         law = plan_time_law(req, sched.u, sched.breaks, True)
         t_eval = sched.breaks
+        grid = None
         if law.piecewise_linear and req.controller_period is None:
             # the handed-out linear form holds the law's rates exactly: its replay is this
             # path at the plan times the law reaches on the form's dense grid
-            dense = handed_out_times(req, law.T, law.stops, law_kinks(law), True)[1]
-            t_eval = np.concatenate([sched.breaks, law.plan_time(dense)])
+            grid = handed_out_times(req, law.T, law.stops, law_kinks(law), True)
+            t_eval = np.concatenate([sched.breaks, law.plan_time(grid[1])])
         rep = integrate_cascade(robot, sched.u, q0, sched.duration, t_eval,
                                 sched.breaks, nodes=REPLAY_NODES, initial_panels=1,
                                 fallback=sched.u_scalar, constant_pieces=True)
-        return sched, law, rep
+        return sched, law, rep, grid
 
     def miss(r: Replay) -> float:
         return float(np.max(np.abs(r.final[1:] - goal))) if r.success else math.inf
 
-    schedule, law, rep = replay(rates)
+    schedule, law, rep, grid = replay(rates)
     if refine is not None and rep.success and miss(rep) > CORRECTION_TARGET:
         again = replay(refine(rep.final))
         if miss(again[2]) < miss(rep):
-            schedule, law, rep = again
+            schedule, law, rep, grid = again
     T, breaks = schedule.duration, schedule.breaks
     if not rep.success:
         raise NumericalError(f"the re-integration failed: {rep.message}",
@@ -408,7 +415,7 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
     # the handed-out path is the plan's path along its time law (stop and go at every
     # change of direction), corrected for its rule and verified by it
     law, exe = retime_and_execute(req, schedule.u, breaks, True, float(final[0]), ind, method,
-                                  law=law, initial=rep)
+                                  law=law, initial=rep, grid=grid)
     if req.via_points:  # the handed-out path through every via point, measured
         diagnostics["via_points"] = check_handed_out(req, exe.path, exe.check.rule)
     timing["execution"] = exe.seconds

@@ -59,8 +59,8 @@ from ..dynamics import rk4_step, vector_field
 from ..errors import InvalidRequestError
 from ..problem import PlanRequest
 from . import via
-from .solvers import (SPENT_MEMORY_BYTES, BufferedCall, DeadlineCallback, fatrop_options,
-                      ipopt_options, memory_bytes)
+from .solvers import (IPOPT_WARM_OPTIONS, SPENT_MEMORY_BYTES, BufferedCall, DeadlineCallback,
+                      fatrop_options, ipopt_options, memory_bytes)
 
 
 @dataclass(frozen=True)
@@ -169,7 +169,8 @@ class MultipleShootingNLP:
     Attributes
     ----------
     solvers : list of (name, nlpsol)
-        fatrop (when CasADi has it) then IPOPT.
+        fatrop (when CasADi has it), IPOPT, and IPOPT for starts at a solution's nodes
+        (``ipopt_warm``: :data:`~.solvers.IPOPT_WARM_OPTIONS`).
     end_jacobian : casadi.Function
         ``(q0, U) -> d q_N / d U`` of the NLP's RK4 model (single shooting; the Newton
         correction of :func:`correct_rates`).
@@ -333,6 +334,10 @@ class MultipleShootingNLP:
             self._native_opts = {k: v for k, v in fatrop_opts.items() if k != "expand"}
         self._factories["ipopt"] = functools.partial(
             ca.nlpsol, f"{name}_ipopt", "ipopt", nlp, ipopt_options(self.callback))
+        # IPOPT for starts at another solution's nodes (see solvers.IPOPT_WARM_OPTIONS)
+        self._factories["ipopt_warm"] = functools.partial(
+            ca.nlpsol, f"{name}_ipopt_warm", "ipopt", nlp,
+            ipopt_options(self.callback, **IPOPT_WARM_OPTIONS))
         self.solvers = [(key, build()) for key, build in self._factories.items()]
         self._spent: dict[str, list[BufferedCall]] = {key: [] for key in self._factories}
         self._name = name

@@ -234,7 +234,8 @@ def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription | None = No
         starts = [st for st in starts if st[0] == "warm_start"] + keep
     if start_nodes is not None:
         if rate_signs is not None and ipopt_first(req.n):
-            solvers = [s for s in SOLVERS if s == "ipopt"] or solvers  # (as shooting's polish)
+            # (as shooting's polish: IPOPT with the barrier update for such starts)
+            solvers = ["ipopt_warm"] if "ipopt_warm" in dict(nlp.solvers) else solvers
         a, b = np.array(req.start), np.array(req.goal)
         starts = [("previous_solution", "the previous solution's nodes (its rates' signs "
                    "held: see nlp.solve_rungs)",

@@ -161,8 +161,9 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
         attempts = (("fatrop", sign),)
         if start_nodes is not None and ipopt_first(req.n):
             # a polish from a solution's nodes (rungs.LIGHT_FROM_JOINTS) where fatrop fails
-            # on most NLPs (the goal's rows hard): IPOPT from those nodes
-            attempts = (("ipopt", sign),)
+            # on most NLPs (the goal's rows hard): IPOPT from those nodes, with the barrier
+            # update for such starts (solvers.IPOPT_WARM_OPTIONS)
+            attempts = (("ipopt_warm", sign),)
     w_dev, w_energy, w_da = objective_weights(req, "shooting")
     if light:  # nearly the minimum-energy plan (see rungs.LIGHT_FROM_JOINTS)
         w_dev, w_da = w_dev * LIGHT_SHARE, w_da * LIGHT_SHARE
