@@ -107,3 +107,32 @@ def test_every_attempt_failing_is_infeasible_with_the_record() -> None:
         run(nlp, [Attempt("ipopt", "a", np.zeros(2)), Attempt("ipopt", "b", np.zeros(2))])
     assert info.value.diagnostics["blocking"] == "nlp_failed"
     assert [t["guess"] for t in info.value.diagnostics["tried"]] == ["a", "b"]
+
+
+class ElasticNLP(ScriptedNLP):
+    """Every round converges; round ``k`` misses the goal by ``misses[k]`` (rad)."""
+
+    def __init__(self, misses: list[float]) -> None:
+        super().__init__({"fatrop": [("Solve_Succeeded", True)] * len(misses)})
+        self.misses = list(misses)
+
+    def goal_miss(self, x: np.ndarray, p: np.ndarray) -> float:
+        return self.misses[len(self.calls) - 1]
+
+
+@pytest.mark.parametrize("misses, rounds, kind", [
+    ([1e-9], 1, "success"),                   # on the goal at once
+    ([1e-5, 1e-8], 2, "success"),             # the heavier round reaches it
+    ([1e-5, 5e-7, 1e-9], 3, "success"),       # each round ten times closer: all three run
+    ([6e-5, 3.3e-5, 3.3e-5], 2, "failure"),   # stalled: no third round, and no answer
+    ([2e-3, 1.9e-3, 1e-9], 2, "infeasible"),  # far and stalled: out of reach
+])
+def test_elastic_rounds_run_while_each_comes_ten_times_closer(misses, rounds, kind):
+    from optimizer.planner.solvers import ELASTIC_ROUNDS, run_solver
+    assert len(misses) <= ELASTIC_ROUNDS + 1
+    nlp = ElasticNLP(misses)
+    z = np.zeros(2)
+    out = run_solver(nlp, "fatrop", z, z, z - 1, z + 1, 10.0)  # type: ignore[arg-type]
+    assert len(nlp.calls) == rounds
+    assert out.kind == kind
+    assert out.iterations == 7 * rounds

@@ -47,7 +47,8 @@ class SolvableNLP(Protocol):
 #: solution ends this close to it (rad: a tenth of the plan's terminal tolerance; the Newton
 #: correction removes the model's error, and the quadrature proves what is left); else the
 #: NLP is solved again from that solution with
-#: the goal's penalty :data:`ELASTIC_STEP` times heavier, at most :data:`ELASTIC_ROUNDS` times.
+#: the goal's penalty :data:`ELASTIC_STEP` times heavier, at most :data:`ELASTIC_ROUNDS` times
+#: and only while each round comes ten times closer than the one before.
 #: The Newton correction cannot remove a miss along the end map's weak directions (at 7
 #: joints its singular values span 0.35 to 1e-11), so the NLP itself must end on the goal.
 ELASTIC_MISS = 3e-7
@@ -312,9 +313,12 @@ def run_solver(nlp: "SolvableNLP", name: str, x0: np.ndarray, p: np.ndarray,
             kind, status = "infeasible", f"{status} (the goal missed by {miss:.2g} rad)"
             best = None
             break
+        stalled = best is not None and miss > 0.1 * best[0]
         if best is None or miss < best[0]:
             best = (miss, status, x)
-        if not miss > ELASTIC_MISS:
+        if not miss > ELASTIC_MISS or stalled:
+            # on the goal; or a round 100 times heavier that did not come ten times closer
+            # (a third round did not either: 6e-5, 3.3e-5, 3.3e-5 rad on a 6-joint rung)
             break
         x0, p = x, nlp.tightened(p, ELASTIC_STEP)
     if best is not None and kind != "timeout":
