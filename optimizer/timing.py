@@ -589,8 +589,12 @@ def time_law(path: GeometricPath, limits: Limits, duration: float | None, nomina
     if not limits.any or fixed_times:
         T = nominal if duration is None else float(duration)
         scale = T / float(hs.sum())
-        parts = [_plan_timed(path, int(a), int(b), scale) for a, b in zip(seg[:-1], seg[1:])]
-        law = _assemble(path, parts, None, None, limits)
+        if seg.size == path.lam.size:  # a stop at every knot: one ramp law per piece
+            law = _one_piece_segments(path, scale, limits)
+        else:
+            parts = [_plan_timed(path, int(a), int(b), scale)
+                     for a, b in zip(seg[:-1], seg[1:])]
+            law = _assemble(path, parts, None, None, limits)
         if limits.any:
             _check_fixed(law, limits)
         return law
@@ -670,6 +674,32 @@ def _plan_timed(path: GeometricPath, first: int, last: int, scale: float,
         pieces += [(r, (cruise - v_in) / r, 0.0), (D[k] - 2.0 * r, 0.0, 0.0),
                    (r, (v_out - cruise) / r, 0.0)]
     return phases_from(pieces)
+
+
+def _one_piece_segments(path: GeometricPath, scale: float, limits: Limits,
+                        ramp: float = RAMP) -> TimeLaw:
+    """The law of :func:`_plan_timed` where every knot is a stop (a plan of constant rates
+    whose direction changes at every break: each segment is one knot piece), for all segments
+    at once: per segment a ramp up over ``ramp D``, a cruise and a ramp down, the same
+    arithmetic as :func:`phases_from` of those three pieces."""
+    L = np.diff(path.lam)
+    D = np.diff(path.sigma) * scale
+    cruise = (L / D - 0.0) / (1.0 - ramp)
+    r = ramp * D
+    acc = cruise / r
+    mid = D - 2.0 * r
+    x1 = r * (r * (acc / 2.0))
+    v1 = r * acc
+    x2 = x1 + mid * (v1 + mid * 0.0)
+    ends = np.cumsum((r + mid) + r)   # (each segment's duration as phases_from sums it)
+    t0 = np.concatenate([[0.0], ends[:-1]])
+    lam0 = path.lam[:-1]
+    zero = np.zeros_like(L)
+    stack = lambda *cols: np.column_stack(cols).ravel()  # noqa: E731 - phases in time order
+    phases = Phases(start=stack(t0, t0 + r, t0 + (r + mid)), length=stack(r, mid, r),
+                    x0=stack(lam0, lam0 + x1, lam0 + x2), v0=stack(zero, v1, v1),
+                    a0=stack(acc, zero, -acc), jerk=np.zeros(3 * L.size))
+    return TimeLaw(path, phases, np.concatenate([[0.0], ends]), None, None, limits)
 
 
 def _assemble(path: GeometricPath, parts: Sequence[Phases], shortest: float | None,

@@ -118,6 +118,35 @@ def test_the_law_stops_only_where_the_direction_turns():
     assert np.allclose(disp, [0.5 + 0.4 + 0.3, 1.0 + 0.8 - 0.3], atol=1e-6)
 
 
+def test_a_stop_at_every_break_keeps_the_plans_timing_and_path():
+    """Constant rates turning at every break (the shooting plans): a stop at every break, at
+    the plan's own times scaled to T; in each piece the speed ramps over a quarter of it and
+    cruises at the piece's mean speed / 0.75; the rates integrate to the plan's
+    displacement; the same law as the segment-by-segment construction."""
+    from optimizer.timing import RAMP, _assemble, _plan_timed
+
+    rates = np.array([[1.0, 2.0], [-0.5, 1.0], [2.0, -1.0], [0.3, 0.3], [-1.0, -2.0]])
+    breaks = np.array([0.0, 0.1, 0.35, 0.5, 0.8, 1.0])
+    path = geometric_path(_steps(rates, breaks), breaks, constant=True)
+    assert path.stop.all()
+    T = 2.0
+    law = time_law(path, Limits(), None, T)
+    assert np.allclose(law.stops, T * breaks, atol=1e-15)
+    mids = 0.5 * (law.stops[:-1] + law.stops[1:])
+    D, d = np.diff(law.stops), np.diff(breaks)
+    assert np.allclose(law.rates(mids), rates * (d / D / (1.0 - RAMP))[:, None], rtol=1e-12)
+    assert np.allclose(law.rates(law.stops), 0.0, atol=1e-12)
+    t = np.linspace(0.0, T, 200001)
+    disp = np.trapezoid(law.rates(t), t, axis=0)
+    assert np.allclose(disp, d @ rates, atol=1e-8)
+    scale = T / breaks[-1]
+    parts = [_plan_timed(path, k, k + 1, scale) for k in range(rates.shape[0])]
+    ref = _assemble(path, parts, None, None, Limits())
+    for f in ("start", "length", "x0", "v0", "a0", "jerk"):
+        assert np.array_equal(getattr(law.phases, f), getattr(ref.phases, f)), f
+    assert np.array_equal(law.stops, ref.stops)
+
+
 def test_the_shortest_duration_within_limits_and_a_too_short_one():
     u = _steps([[1, 2], [1, -1]], [0, 0.5, 1.0])
     path = geometric_path(u, np.array([0, 0.5, 1.0]), constant=True)
