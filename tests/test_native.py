@@ -67,7 +67,7 @@ def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(tmp_path)
     assert shooting.prepare(req.robot.gains, req.robot.exponents, wait=True).compiled
     p = plan(req)
     assert p.diagnostics["shooting"]["compiled"] is True
-    assert len(list(tmp_path.glob("*.so"))) == 1
+    assert len(list(tmp_path.glob("*.so"))) == 2   # the free NLP and the soft-sign one
     # the same iterates from the same arithmetic, up to the compiler's reordering
     assert p.diagnostics["shooting"]["iterations"] == vm.diagnostics["shooting"]["iterations"]
     assert np.max(np.abs(p.inputs.rates - vm.inputs.rates)) < 1e-9
@@ -122,12 +122,14 @@ def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp
     p = plan(req)
     # the first answer does not wait for the compiler
     assert p.diagnostics["shooting"]["compiled"] is False
-    assert len(native._builds) == 1
+    # (the NLPs the plan solved on: the free one, the soft-sign one of the sign-held rungs)
+    builds = len(native._builds)
+    assert 1 <= builds <= 2
     # a detached build: not a child of this process
     import psutil
     assert not any("optimizer.native" in " ".join(c.cmdline())
                    for c in psutil.Process().children(recursive=True))
-    assert len(wait_for("*.so", tmp_path)) == 1
+    assert len(wait_for("*.so", tmp_path, 300.0)) == builds
     assert not list(tmp_path.glob("*.c"))  # the source goes once its library is built
     assert not list(tmp_path.glob("*.lock")) and not list(tmp_path.glob("*.tmp"))
     time.sleep(1.05)                         # the library is looked for at most once a second
@@ -160,11 +162,11 @@ def test_a_failed_build_falls_back_and_is_not_retried(tmp_path):
     assert not shooting.prepare(Robot().gains, Robot().exponents, wait=True).compiled
     p = plan(_request())
     assert p.diagnostics["shooting"]["compiled"] is False
-    failed = list(cache.glob("*.failed"))
-    assert len(failed) == 1 and "no such luck" in failed[0].read_text()
+    failed = list(cache.glob("*.failed"))   # the free NLP's and the soft-sign NLP's
+    assert len(failed) == 2 and all("no such luck" in f.read_text() for f in failed)
     # nor does a second process try again
-    src = next(cache.glob("*.c")).read_text()
-    assert native.library_for(src) is None
+    for c in cache.glob("*.c"):
+        assert native.library_for(c.read_text()) is None
     assert not native._builds
 
 

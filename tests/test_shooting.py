@@ -285,6 +285,60 @@ def test_the_polish_solver_finds_the_default_ipopt_solution(monkeypatch):
     assert warm.iterations < plain.iterations
 
 
+#: 4-joint goals: one reachable with neither actuator reversing, one that is not (IPOPT
+#: proves the NLP with the signs as bounds infeasible).
+MONOTONE_OK = ((0.9485153467317612, 0.7200382259123649, 0.7404923089260628, 0.24007215453742564),
+               (0.5781184339994246, 0.8924807223845889, 0.9173855726001914, 0.3287104424261839))
+MONOTONE_OUT = ((0.41864712364490614, 1.2321804006447563, 0.471919569842823, 0.538971259274377),
+                (1.3440324777976511, 1.4237918195040955, 0.48722684443946523,
+                 0.6697966938744493))
+
+
+def test_soft_signs_find_the_solution_of_the_signs_as_bounds(monkeypatch):
+    """The sign-held rung's NLP with the signs as penalised rows (an exact penalty) has the
+    solution of the NLP with the signs as bounds, and its rates keep the signs."""
+    import optimizer.planner.shooting as shooting
+    from optimizer.planner.rules import monotone_signs
+
+    req = PlanRequest(start=MONOTONE_OK[0], goal=MONOTONE_OK[1], robot=Robot.default(4))
+    signs = monotone_signs(req)
+    assert signs is not None and all(signs)
+    soft = solve_shooting(req, Deadline(60.0), None, signs)
+    monkeypatch.setattr(shooting, "SOFT_SIGNS", False)
+    hard = solve_shooting(req, Deadline(60.0), None, signs)
+    assert np.all(soft.rates * np.array(signs) >= 0.0)
+    assert np.max(np.abs(soft.nodes - hard.nodes)) < 1e-5
+    assert np.max(np.abs(soft.rates - hard.rates)) < 1e-4
+
+
+def test_soft_signs_certify_signs_out_of_reach(monkeypatch):
+    """Where no path with rates of fixed signs exists (IPOPT's certificate on the NLP with the
+    signs as bounds), the soft NLP converges with a slack and the rung is refused as
+    infeasible, before fatrop's iteration cap."""
+    import optimizer.planner.shooting as shooting
+    from optimizer.planner.rules import monotone_signs
+    from optimizer.planner.solvers import FATROP_MAX_ITER
+
+    req = PlanRequest(start=MONOTONE_OUT[0], goal=MONOTONE_OUT[1], robot=Robot.default(4))
+    signs = monotone_signs(req)
+    with pytest.raises(InfeasibleError) as exc:
+        solve_shooting(req, Deadline(60.0), None, signs)
+    last = exc.value.diagnostics["tried"][-1]
+    assert "leave their signs" in last["status"] and last["iterations"] < FATROP_MAX_ITER
+    # the independent proof: IPOPT on the signs as bounds detects infeasibility
+    monkeypatch.setattr(shooting, "SOFT_SIGNS", False)
+    first_converged = shooting.first_converged
+
+    def on_ipopt(nlp, attempts, *args):
+        return first_converged(nlp, [dataclasses.replace(at, solver="ipopt")
+                                     for at in attempts], *args)
+
+    monkeypatch.setattr(shooting, "first_converged", on_ipopt)
+    with pytest.raises(InfeasibleError) as exc:
+        solve_shooting(req, Deadline(60.0), None, signs)
+    assert "Infeasible_Problem_Detected" in exc.value.diagnostics["tried"][-1]["status"]
+
+
 def test_random_goals_beyond_the_family_are_planned_and_verified():
     """Seeded random 3- and 4-joint goals (joints moving either way, up to 15 deg): every one
     planned, and the tests' own scipy integration lands on the goal inside the region."""

@@ -50,7 +50,8 @@ def finish_solution(req: PlanRequest, method: str, nlp: MultipleShootingNLP, sol
               "status": sol.status, "iterations": sol.iterations, "start": sol.start,
               "tried": tried + list(sol.tried),
               # the answering solver evaluated compiled C (optimizer.native)
-              "compiled": nlp.compiled and sol.status.startswith("fatrop"),
+              "compiled": getattr(sol, "compiled",
+                                  nlp.compiled and sol.status.startswith("fatrop")),
               "terminal_error_per_correction": errors, **details}
 
     def refine(exact_end: np.ndarray) -> np.ndarray:

@@ -79,14 +79,14 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InvalidRequestError
+from ..errors import InfeasibleError, InvalidRequestError
 from ..problem import PlanRequest
 from ..results import Plan
 from . import nlp as nlp_layer
 from .correction import CORRECTION_TARGET, correct_rates, finish_solution
 from .nlp import (D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, LADDER_3_JOINTS, MARGIN,
-                  MultipleShootingNLP, Transcription, ladder, multiple_shooting_nlp, nlp_for,
-                  node_bounds, objective_weights)
+                  SIGN_SLACK_TOL, MultipleShootingNLP, Transcription, ladder,
+                  multiple_shooting_nlp, nlp_for, node_bounds, objective_weights)
 from .rungs import LIGHT_SHARE, ipopt_first, solve_rungs
 from .attempts import Attempt, first_converged
 from .base import Capabilities, Method
@@ -98,6 +98,10 @@ from .rules import joint_limits
 #: where fatrop reaches its iteration cap.
 ATTEMPTS: tuple[tuple[str, float], ...] = (("fatrop", 1.0), ("ipopt", 1.0), ("fatrop", -1.0),
                                            ("ipopt", -1.0))
+
+#: Rates held to signs from a cold start (the sign-held rungs) take the NLP with soft signs
+#: (:data:`~.nlp.SIGN_PENALTY`); a polish from a solution's nodes keeps them as bounds.
+SOFT_SIGNS = True
 
 #: Net travel of phi (rad) of the initial guesses (both signs, see :data:`ATTEMPTS`).
 GUESS_PHI_TRAVEL = 0.6
@@ -113,19 +117,22 @@ class ShootingSolution:
     iterations: int
     start: str
     tried: tuple[dict[str, Any], ...] = ()
+    #: The answering solver evaluated compiled functions (optimizer.native).
+    compiled: bool = False
 
 
 def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: bool = False,
             wait: bool = False) -> MultipleShootingNLP:
-    """Build (and cache) the first rung's NLP of a robot ahead of its first request; with
-    compiled functions configured (:mod:`optimizer.native`) this also starts their build
-    (``wait``: builds them before it returns)."""
+    """Build (and cache) the first rung's NLPs of a robot (free, and with soft signs) ahead of
+    its first request; with compiled functions configured (:mod:`optimizer.native`) this also
+    starts their build (``wait``: builds them before it returns). Returns the free one."""
     tr = ladder(len(gains) + 1)[0]
-    nlp = multiple_shooting_nlp(tuple(float(k) for k in gains),
-                                tuple(int(m) for m in exponents), fixed_phi, tr.intervals,
-                                tr.substeps)
-    nlp.load_native(every=0.0, wait=wait)
-    return nlp
+    nlps = [multiple_shooting_nlp(tuple(float(k) for k in gains),
+                                  tuple(int(m) for m in exponents), fixed_phi, tr.intervals,
+                                  tr.substeps, soft_signs=soft) for soft in (False, True)]
+    for nlp in nlps:  # (the sign-held rungs' NLP too: nlp.SIGN_PENALTY)
+        nlp.load_native(every=0.0, wait=wait)
+    return nlps[0]
 
 
 def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = None,
@@ -143,10 +150,13 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
     """
     if tr is None:
         tr = ladder(req.n)[0]
-    nlp = nlp_for(req, tr)
+    # rates held to signs from a cold start: the signs as penalised rows (nlp.SIGN_PENALTY)
+    soft = SOFT_SIGNS and monotone is not None and start_nodes is None
+    nlp = nlp_for(req, tr, soft_signs=soft)
     a, b = np.array(req.start), np.array(req.goal)
     lo, hi = node_bounds(req, joint_limits(req))
-    lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi, monotone)
+    lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi,
+                                                           None if soft else monotone)
     attempts = ATTEMPTS
     if ipopt_first(req.n):
         attempts = tuple(at for at in ATTEMPTS if at[0] == "ipopt")
@@ -167,7 +177,9 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
     w_dev, w_energy, w_da = objective_weights(req, "shooting")
     if light:  # nearly the minimum-energy plan (see rungs.LIGHT_FROM_JOINTS)
         w_dev, w_da = w_dev * LIGHT_SHARE, w_da * LIGHT_SHARE
-    p = nlp_layer.parameters(req, w_dev, w_energy, w_da)
+    signs = (np.broadcast_to(np.asarray(monotone, float), (tr.intervals, 2)) if soft
+             else None)
+    p = nlp_layer.parameters(req, w_dev, w_energy, w_da, signs=signs)
     nlp.load_native()
 
     def tries() -> Any:  # lazily: a guess is built only when its attempt runs
@@ -182,9 +194,18 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
 
     out = first_converged(nlp, tries(), p, lbw, ubw, deadline, "the shooting NLP",
                           "shooting NLP")
+    slack = nlp.sign_slack(out.x)
+    if slack > SIGN_SLACK_TOL:  # converged, but only by leaving the signs: out of reach
+        tried = [*out.tried[:-1], {**out.tried[-1], "status": f"{out.status} (the rates "
+                                   f"leave their signs by {slack:.2g})"}]
+        raise InfeasibleError("the rates cannot keep their signs on the way to the goal",
+                              diagnostics={"blocking": "nlp_failed", "tried": tried})
     nodes, rates = nlp.unpack(out.x)
+    if soft:  # within the slack tolerance of their signs: onto them
+        rates = np.where(signs * rates < 0.0, 0.0, rates)
     return ShootingSolution(nodes=nodes, rates=rates, status=f"{out.solver}: {out.status}",
-                            iterations=out.iterations, start=out.guess, tried=out.tried)
+                            iterations=out.iterations, start=out.guess, tried=out.tried,
+                            compiled=nlp.compiled and out.solver == "fatrop")
 
 
 def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
