@@ -130,13 +130,13 @@ ELASTIC_WEIGHT = 1e5
 #: From this many joints the goal is elastic by default.
 ELASTIC_FROM_JOINTS = 6
 #: Rates held to signs (the sign-held rungs of :mod:`.rungs`) from a cold start enter as
-#: penalised rows, not bounds: ``sign_j U_j + t_j >= 0``, ``t_j >= 0``, ``SIGN_PENALTY t_j``
-#: in the objective (an exact penalty: where the signs can be kept the solution is the one
+#: penalised rows, not bounds: ``sign_j U_j + t >= 0``, ``t >= 0`` (one slack per interval),
+#: ``SIGN_PENALTY t`` in the objective (an exact penalty: where the signs can be kept the solution is the one
 #: with bounds, to 1e-7 rad on 24 four-joint goals). With bounds, an NLP whose signs cannot
 #: reach the goal left fatrop wandering to its iteration cap (IPOPT proved 4 of 6 such
 #: four-joint NLPs infeasible, after 100-166 iterations); with the penalty it converges with
-#: a slack instead, the certificate that those signs are out of reach (8 of 14 such NLPs,
-#: in 32-53 iterations; 2 more now converged to sign-keeping plans): 31 % less time on the
+#: a slack instead, the certificate that those signs are out of reach (6 of 13 such NLPs,
+#: in 28-58 iterations; 1 more now converged to a sign-keeping plan): 27 % less time on the
 #: sign-held rungs of those goals.
 SIGN_PENALTY = 1e3
 #: A soft-sign solution whose largest slack is above this (rad per unit of normalised time)
@@ -181,8 +181,8 @@ class MultipleShootingNLP:
     terminal : {"hard", "elastic"}
         How the goal enters (:data:`TERMINAL_MODES`).
     soft_signs : bool
-        The rates' signs (parameters) as penalised rows with slacks ``t`` (two more inputs
-        per interval), see :data:`SIGN_PENALTY`.
+        The rates' signs (parameters) as penalised rows with a slack ``t`` per interval (one
+        more input), see :data:`SIGN_PENALTY`.
 
     Attributes
     ----------
@@ -220,7 +220,7 @@ class MultipleShootingNLP:
         self.soft_signs = soft_signs
         if soft_signs and penalty:
             raise ValueError("soft_signs is for the hard region")
-        nu = self.nu = 3 if penalty else (4 if soft_signs else 2)
+        nu = self.nu = 3 if penalty or soft_signs else 2
         h = 1.0 / N
 
         def field(y: Any, rates: Any) -> Any:
@@ -311,11 +311,12 @@ class MultipleShootingNLP:
             return rows + inner_rows(k) + sign_rows(k)
 
         def sign_rows(k: int) -> list[tuple[Any, bool]]:
-            # soft signs: sign_j U_j + t_j >= 0 with t_j >= 0 and rho_s t_j in the objective
+            # soft signs: sign_j U_j + t >= 0 (j = 1, 2) with one slack t >= 0 per interval
+            # and rho_s t in the objective
             if not soft_signs or k >= N:
                 return []
             sg = P[P.shape[0] - 2 * N - 1 + 2 * k:P.shape[0] - 2 * N - 1 + 2 * k + 2]
-            return [(-(sg[j] * U[k][j] + U[k][2 + j]), False) for j in (0, 1)]
+            return [(-(sg[j] * U[k][j] + U[k][2]), False) for j in (0, 1)]
 
         for k in range(N + 1):
             w.append(X[k])
@@ -325,7 +326,7 @@ class MultipleShootingNLP:
                 if penalty:
                     f += rho * U[k][2]
                 if soft_signs:
-                    f += P[P.shape[0] - 1] * (U[k][2] + U[k][3])
+                    f += P[P.shape[0] - 1] * U[k][2]
                 g.append(X[k + 1] - step(X[k], U[k][:2]))  # fatrop: x_{k+1} - F(x_k, u_k)
                 eq += [True] * nx
             rows = stage_rows(k)
@@ -471,7 +472,7 @@ class MultipleShootingNLP:
             lb[:, self.nx + 2] = 0.0
             ub[0, self.nx + 2] = 0.0
         if self.soft_signs:
-            lb[:, self.nx + 2:self.nx + 4] = 0.0
+            lb[:, self.nx + 2] = 0.0
         return lb, ub
 
     def flat(self, W: np.ndarray) -> np.ndarray:
@@ -544,7 +545,7 @@ class MultipleShootingNLP:
         if not self.soft_signs:
             return 0.0
         W = np.concatenate([w, np.zeros(self.nu)]).reshape(self.N + 1, self.stride)
-        return float(np.max(W[:self.N, self.nx + 2:self.nx + 4]))
+        return float(np.max(W[:self.N, self.nx + 2]))
 
     def slacks(self, w: np.ndarray) -> np.ndarray:
         """The penalty's slacks ``s_0..s_{N-1}`` of a solution vector (zeros when hard)."""
