@@ -3,7 +3,7 @@ the settings)."""
 
 from typing import Any
 
-from ..schemas import Problem
+from ..responses import Problem
 
 #: Error answers every ``/v1`` operation may give (documented as application/problem+json).
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {

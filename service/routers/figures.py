@@ -44,7 +44,9 @@ from starlette.responses import Response
 from ..dispatch import run_job
 from ..formats import FORMATS
 from ..problems import ServiceProblem
-from ..schemas import MIN_JOINTS, PlanResponse, Schemas, SweepFigureRequest
+from ..schemas import Schemas, SweepFigureRequest
+from ..responses import PlanResponse
+from ..schema_fields import MIN_JOINTS
 from . import ERROR_RESPONSES
 from .common import checked_plan, checked_robustness, checked_sweep
 

@@ -4,7 +4,7 @@ from fastapi import APIRouter, Request
 from starlette.responses import Response
 
 from ..problems import SafeJSONResponse
-from ..schemas import Health, Readiness
+from ..responses import Health, Readiness
 
 
 def build_router() -> APIRouter:

@@ -9,7 +9,8 @@ from starlette.responses import Response
 from ..dispatch import answer_plan, check_plan, overloaded, request_id, run_job
 from ..encoding import finite_json
 from ..problems import SafeJSONResponse, ServiceProblem
-from ..schemas import BatchResponse, PlanResponse, Schemas
+from ..schemas import Schemas
+from ..responses import BatchResponse, PlanResponse
 from ..workers import Overloaded
 from . import ERROR_RESPONSES
 

@@ -3,7 +3,8 @@
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from ..schemas import ReplanRequest, ReplanResponse
+from ..schemas import ReplanRequest
+from ..responses import ReplanResponse
 from . import ERROR_RESPONSES
 from .common import json_answer
 

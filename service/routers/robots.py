@@ -6,7 +6,8 @@ from starlette.responses import Response
 from optimizer.model import Robot
 
 from ..problems import SafeJSONResponse
-from ..schemas import MAX_JOINTS, MIN_JOINTS, DefaultRobot
+from ..responses import DefaultRobot
+from ..schema_fields import MAX_JOINTS, MIN_JOINTS
 from . import ERROR_RESPONSES
 
 ASSUMED_NOTE = ("The paper gives constants for n = 3 only; for other n these are the assumed "

@@ -3,7 +3,8 @@
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from ..schemas import RobustnessResponse, Schemas
+from ..schemas import Schemas
+from ..responses import RobustnessResponse
 from . import ERROR_RESPONSES
 from .common import checked_robustness, json_answer
 

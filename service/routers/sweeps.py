@@ -3,7 +3,8 @@
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from ..schemas import Schemas, SweepResponse
+from ..schemas import Schemas
+from ..responses import SweepResponse
 from . import ERROR_RESPONSES
 from .common import checked_sweep, json_answer
 

@@ -4,7 +4,8 @@ from fastapi import APIRouter, Request
 from starlette.responses import Response
 
 from ..dispatch import check_robot
-from ..schemas import Schemas, TransformResponse
+from ..schemas import Schemas
+from ..responses import TransformResponse
 from . import ERROR_RESPONSES
 from .common import json_answer
 

@@ -31,7 +31,7 @@ def test_bad_budget_values_name_the_field(client) -> None:
 
 
 def test_a_front_answer_matches_its_schema(client) -> None:
-    from service.schemas import PlanResponse
+    from service.responses import PlanResponse
     r = client.post("/v1/plans", json={**OPPOSED, "pareto": True})
     assert r.status_code == 200, r.text
     body = r.json()
