@@ -319,7 +319,7 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
     sol, tr, signs, tried = solve_rungs(
         req, lambda tr, rate_signs, start=None, light=False: solve_penalty(
             req, deadline, tr, warm_start=warm_start, rate_signs=rate_signs, start_nodes=start,
-            **({"light": True} if light else {})), light_first=True)
+            light=light), light_first=True)
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the penalty NLP")
     region = penalised_region(req)
