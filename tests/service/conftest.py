@@ -11,8 +11,7 @@ import pytest
 # the helpers module sits beside this file; make it importable whatever pytest's import mode
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from svc_support import (TestClient, free_port, running_app, server_process,  # noqa: E402
-                         warm_figures)
+from svc_support import TestClient, free_port, running_app, server_process  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -21,7 +20,6 @@ def client() -> Iterator[TestClient]:
     largest default time limit (what these tests check is not how fast a plan is: at load 10
     on 2 cores a plan of 20001 samples ran past the default 10 s)."""
     with running_app(workers=2, queue_size=64, default_time_limit=60.0) as c:
-        warm_figures(c.post, 2)
         yield c
 
 

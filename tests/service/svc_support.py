@@ -60,26 +60,6 @@ def running_app(**overrides: Any) -> Iterator[TestClient]:
         yield client
 
 
-def warm_figures(post: Any, workers: int) -> None:
-    """Have each of ``workers`` idle workers draw one figure, as a server that has been up a
-    while has: a worker's first figure imports matplotlib inside the drawing allowance
-    (``service.routers.figures.RENDER_SECONDS``, 15 s), which took more than that at load 10
-    on 2 cores (504, and the replacement of the killed worker started cold again). Tests that
-    draw check what is drawn, not a cold worker's speed. ``post(path, json=..., params=...)``
-    sends a request (a TestClient's or an httpx client's ``post``); the figures are computed
-    under the largest time limit, so the import has the whole of it."""
-    from concurrent.futures import ThreadPoolExecutor
-    body = {**WORKED, "samples": 11, "time_limit": 60}
-
-    def one(_: int) -> int:
-        return int(post("/v1/figures/joint_angles", json=body, params={"format": "svg"})
-                   .status_code)
-
-    with ThreadPoolExecutor(max_workers=workers) as ex:  # at once: one figure per worker
-        statuses = list(ex.map(one, range(workers)))
-    assert statuses == [200] * workers, statuses
-
-
 def free_port() -> int:
     """A free TCP port on 127.0.0.1."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
