@@ -8,6 +8,7 @@ import math
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from bench.reintegrate import joint_trajectory_arrays  # noqa: F401 - the tests decode with it too
 from optimizer.model import Robot
 
 HALF_PI = 0.5 * math.pi
