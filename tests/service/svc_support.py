@@ -98,12 +98,29 @@ def server_process(argv: list[str], env: dict[str, str], port: int, log_path: Pa
                 time.sleep(0.1)
             yield base
         finally:
-            proc.terminate()
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=10)
+            stop_process(proc, 20.0)
+
+
+def stop_process(proc: subprocess.Popen[Any], grace: float) -> None:
+    """SIGTERM ``proc``; SIGKILL it if it has not exited ``grace`` seconds later; reap it."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=grace)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=10)
+
+
+def read_until_closed(sock: socket.socket) -> bytes:
+    """Everything the peer sends on ``sock`` until it closes the connection (a reset ends it
+    too: a server that drops a connection with unread data resets it)."""
+    out = b""
+    try:
+        while chunk := sock.recv(65536):
+            out += chunk
+    except ConnectionResetError:
+        pass
+    return out
 
 
 def assert_problem(response: Any, status: int, code: str) -> dict[str, Any]:
