@@ -36,7 +36,7 @@ import pytest
 
 from service.schemas import build_schemas
 from service.settings import Limits
-from svc_support import (DEG, LAG, ROOT, WORKED, assert_problem, free_port,
+from svc_support import (DEG, KEYS, LAG, ROOT, WORKED, assert_problem, free_port,
                          read_until_closed, running_app, server_process)
 
 CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 5}
@@ -781,17 +781,16 @@ def test_a_shutdown_that_cannot_drain_answers_503_shutting_down(tmp_path):
 
 
 # ---------------------------------------------------------------------- smaller items
-def test_two_different_api_keys_are_refused_by_middleware_and_route_alike():
-    with running_app(workers=1, queue_size=4, api_keys=["k1", "k2"]) as client:
-        for path, body in (("/v1/plans", CHEAP), ("/v1/sweeps", {})):
-            r = client.post(path, json=body, headers=[("X-API-Key", "k1"), ("X-API-Key", "k2")])
-            assert_problem(r, 401, "unauthorized")
-            r = client.post(path, json=body, headers=[("Authorization", "Bearer k1"),
-                                                      ("Authorization", "Bearer zz")])
-            assert_problem(r, 401, "unauthorized")
-        r = client.post("/v1/plans", json=CHEAP, headers=[("X-API-Key", "k1"),
-                                                          ("X-API-Key", "k1")])
-        assert r.status_code == 200, r.text
+def test_two_different_api_keys_are_refused_by_middleware_and_route_alike(keyed_client):
+    client, (k1, k2) = keyed_client, KEYS[:2]
+    for path, body in (("/v1/plans", CHEAP), ("/v1/sweeps", {})):
+        r = client.post(path, json=body, headers=[("X-API-Key", k1), ("X-API-Key", k2)])
+        assert_problem(r, 401, "unauthorized")
+        r = client.post(path, json=body, headers=[("Authorization", f"Bearer {k1}"),
+                                                  ("Authorization", "Bearer zz")])
+        assert_problem(r, 401, "unauthorized")
+    r = client.post("/v1/plans", json=CHEAP, headers=[("X-API-Key", k1), ("X-API-Key", k1)])
+    assert r.status_code == 200, r.text
 
 
 def test_the_robustness_time_limit_is_not_capped_by_the_plans_default():
