@@ -36,11 +36,11 @@ DEG = math.pi / 180.0
 #: docs/reliability.md.
 LAG = 2.5
 
-#: The paper's 3-joint worked example (NOTES §5): 10 deg -> 30 deg on every joint.
 #: The API keys and the CORS origin of the shared keyed app (``keyed_client`` in conftest).
 KEYS = ["k-one-7d1e", "k-two-90fa", "k-three-c3b2"]
 ORIGIN = "http://ui.example.test"
 
+#: The paper's 3-joint worked example (NOTES §5): 10 deg -> 30 deg on every joint.
 WORKED = {"start": [10 * DEG] * 3, "goal": [30 * DEG] * 3, "method": "polynomial",
           "objective": "tp_then_da"}
 
