@@ -49,7 +49,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench.goals import Goal, generate  # noqa: E402
-from bench.reintegrate import Segment, integrate, path_metrics  # noqa: E402
+from bench.reintegrate import (Segment, integrate, joint_trajectory_arrays,  # noqa: E402
+                               path_metrics)
 
 #: Goals per number of joints (n = 6 plans take seconds each).
 COUNTS = {3: 12, 4: 6, 5: 4, 6: 2}
@@ -185,12 +186,7 @@ def limited_row(g: Goal) -> dict[str, Any]:
     out["linear"].update({k: v for k, v in _form_checks(g, tt, x).items() if k != "metrics"})
     # the JointTrajectory: scipy's quintic Hermite interpolant of its points
     jt = p.to_dict()["joint_trajectory"]
-    pts = jt["points"]
-    tj = np.array([q["time_from_start"]["sec"] + 1e-9 * q["time_from_start"]["nanosec"]
-                   for q in pts])
-    X = np.array([q["positions"] for q in pts])
-    V = np.array([q["velocities"] for q in pts])
-    A = np.array([q["accelerations"] for q in pts])
+    tj, X, V, A = joint_trajectory_arrays(jt)
     polys = [BPoly.from_derivatives(tj, np.stack([X[:, c], V[:, c], A[:, c]], axis=1))
              for c in range(2)]
     tdj = _dense(tj)

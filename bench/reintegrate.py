@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from scipy.integrate import solve_ivp
@@ -115,6 +115,22 @@ class PathMetrics:
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly copy."""
         return asdict(self)
+
+
+def joint_trajectory_arrays(jt: Mapping[str, Any]
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The points of a handed-out ``joint_trajectory`` (a ROS ``JointTrajectory`` as JSON) as
+    arrays: times (s, from ``time_from_start``'s ``sec`` and ``nanosec``), positions,
+    velocities and accelerations (one row a point, one column a joint of ``joint_names``).
+
+    What the benchmark and the tests replay a JointTrajectory from: decoded here once, from
+    the message as a client receives it."""
+    pts = jt["points"]
+    t = np.array([p["time_from_start"]["sec"] + 1e-9 * p["time_from_start"]["nanosec"]
+                  for p in pts])
+    x, v, a = (np.array([p[key] for p in pts], float)
+               for key in ("positions", "velocities", "accelerations"))
+    return t, x, v, a
 
 
 def model_rhs(gains: Sequence[float], exponents: Sequence[int]

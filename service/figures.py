@@ -31,6 +31,7 @@ from __future__ import annotations
 import io
 import math
 import threading
+import time
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import matplotlib
@@ -70,6 +71,8 @@ _RC: dict[str, Any] = {
     "savefig.facecolor": "white",
 }
 _LOCK = threading.RLock()
+#: Whether :func:`warm_up` has run in this process (or in the parent it was forked from).
+_WARM = False
 
 _FORBIDDEN: dict[str, Any] = dict(color="tab:red", alpha=0.12, lw=0, zorder=0)
 _FEASIBLE: dict[str, Any] = dict(color="tab:green", alpha=0.15, lw=0, zorder=0)
@@ -250,6 +253,41 @@ def render_figure(build: Callable[[], Figure], fmt: str) -> bytes:
     with _LOCK, matplotlib.rc_context(_RC):  # type: ignore[arg-type]
         fig = build()
         return _save(fig, f)
+
+
+def warm_up() -> float:
+    """Load what a process's first figure would otherwise load inside its drawing allowance.
+
+    Importing this module imports matplotlib; this draws one small figure (a title, a legend,
+    degree and Greek labels) as PNG and as SVG, which loads the font list and the font, the
+    layout engine and both writers. The worker pool's forkserver calls it at start
+    (:func:`service.jobs.warm_up`), so every worker forked from it, replacements included,
+    starts with all of it loaded, and a figure's allowance
+    (``service.routers.figures.RENDER_SECONDS``) is spent on drawing. A second call in the
+    process (or in a child forked after the first) does nothing.
+
+    Returns
+    -------
+    float
+        CPU seconds this call took (0.0 when the process was warm already).
+    """
+    global _WARM
+    if _WARM:
+        return 0.0
+    t0 = time.process_time()
+
+    def build() -> Figure:
+        fig, (ax,) = _new_figure(2.0, 1)
+        ax.plot([0.0, 1.0], [0.0, 1.0], label=f"{_GREEK['theta']}1")
+        ax.set_title(f"warm-up: {_GREEK['phi']} ({DEG})")
+        ax.set_xlabel("t (s)")
+        _legend_right(ax)
+        return fig
+
+    for fmt in FORMATS:
+        render_figure(build, fmt)
+    _WARM = True
+    return time.process_time() - t0
 
 
 # ------------------------------------------------------------------ figures

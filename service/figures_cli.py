@@ -39,14 +39,44 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
+def output_format(fmt: str | None, output: str | None) -> str:
+    """The format to write: ``fmt`` when given, else the extension of ``output`` when it is a
+    known format (not for ``-``, standard output), else png."""
+    if fmt is not None:
+        return fmt
+    if output is None or output == "-":
+        return "png"
+    ext = Path(output).suffix.lower().lstrip(".")
+    return ext if ext in FORMATS else "png"
+
+
+def write_figure(content: bytes, output: str | Path, fmt: str) -> int:
+    """Write ``content`` (a figure in format ``fmt``) to ``output`` (``-``: standard output)
+    and say so on standard error.
+
+    Returns
+    -------
+    int
+        The exit status: 0, or 2 when the file cannot be written (the reason on standard
+        error).
+    """
+    if str(output) == "-":
+        sys.stdout.buffer.write(content)
+        sys.stdout.buffer.flush()
+        return 0
+    try:
+        Path(output).write_bytes(content)
+    except OSError as exc:
+        print(f"error: cannot write {output}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {output} ({FORMATS[fmt]}, {len(content)} bytes)", file=sys.stderr)
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = _parser()
     args = ap.parse_args(argv)
-    fmt = args.format
-    if fmt is None:
-        ext = Path(args.output).suffix.lower().lstrip(".") if args.output not in (None, "-") \
-            else ""
-        fmt = ext if ext in FORMATS else "png"
+    fmt = output_format(args.format, args.output)
     try:
         if args.input == "-":
             data = json.load(sys.stdin)
@@ -60,26 +90,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {args.input} is not valid JSON: {exc}", file=sys.stderr)
         return 2
     try:
-        content, media_type = render(args.kind, data, fmt)
+        content, _media_type = render(args.kind, data, fmt)
     except ValueError as exc:
         print(f"error: cannot draw {args.kind} from {args.input}: {exc}", file=sys.stderr)
         return 2
-    if args.output == "-":
-        sys.stdout.buffer.write(content)
-        sys.stdout.buffer.flush()
-        return 0
     if args.output is None:
         stem = "figure" if args.input == "-" else str(Path(args.input).with_suffix(""))
-        out = Path(f"{stem}.{args.kind}.{fmt}")
-    else:
-        out = Path(args.output)
-    try:
-        out.write_bytes(content)
-    except OSError as exc:
-        print(f"error: cannot write {out}: {exc.strerror or exc}", file=sys.stderr)
-        return 2
-    print(f"wrote {out} ({media_type}, {len(content)} bytes)", file=sys.stderr)
-    return 0
+        return write_figure(content, f"{stem}.{args.kind}.{fmt}", fmt)
+    return write_figure(content, args.output, fmt)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -34,6 +33,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from optimizer.study_io import read_rows
 
 from .figures import DEG, DPI, WIDTH, render_figure
+from .figures_cli import output_format, write_figure
 from .formats import FORMATS
 
 #: Mechanisms drawn at most (one row of panels each).
@@ -117,26 +117,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m service.figures_study",
                                  description="Draw a study's success and deviation maps.")
     ap.add_argument("rows", help="the study's rows (.csv or .parquet)")
-    ap.add_argument("-o", "--output", required=True, help="figure file (.png or .svg)")
+    ap.add_argument("-o", "--output", required=True,
+                    help="figure file (.png or .svg; '-' for stdout)")
     ap.add_argument("--x", default="goal_1", help="horizontal coordinate (default goal_1)")
     ap.add_argument("--y", default="goal_2", help="vertical coordinate (default goal_2)")
     ap.add_argument("--mechanism", default=None, help="only this mechanism")
     ap.add_argument("--format", "-f", choices=sorted(FORMATS), default=None,
                     help="default: from the extension of -o, else png")
     args = ap.parse_args(argv)
-    ext = Path(args.output).suffix.lower().lstrip(".")
-    fmt = args.format or (ext if ext in FORMATS else "png")
+    fmt = output_format(args.format, args.output)
     try:
         _, rows = read_rows(args.rows)
         if not rows:
             raise ValueError(f"{args.rows} holds no rows")
         content = study_map(rows, fmt, args.x, args.y, args.mechanism)
-        Path(args.output).write_bytes(content)
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"wrote {args.output} ({len(content)} bytes)", file=sys.stderr)
-    return 0
+    return write_figure(content, args.output, fmt)
 
 
 if __name__ == "__main__":

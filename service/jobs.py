@@ -42,13 +42,14 @@ Payload = dict[str, Any]
 
 def warm_up() -> dict[str, Any]:
     """Build the default robot's chained form (CasADi functions) and its shooting NLP once,
-    in this process.
+    and draw a first figure (:func:`service.figures.warm_up`), in this process.
 
     Returns
     -------
     dict
-        ``robot`` (n), ``seconds`` spent and whether the shooting NLP's compiled functions
-        are in use (``shooting_compiled``).
+        ``robot`` (n), ``seconds`` spent, whether the shooting NLP's compiled functions
+        are in use (``shooting_compiled``) and the CPU seconds of the figure warm-up
+        (``figures_cpu_seconds``, 0 where a parent process had done it).
     """
     t0 = time.perf_counter()
     robot = Robot.default(3)
@@ -61,8 +62,14 @@ def warm_up() -> dict[str, Any]:
     shooting = prepare(robot.gains, robot.exponents)
     # the replans' compiled continuation maps (about 0.3 s): not paid by the first replan
     continuation_map.prepare(robot.gains, robot.exponents)
+    # matplotlib, its fonts and writers (about 0.9 s of CPU): loaded once in the forkserver
+    # and shared by every worker forked from it, so that a figure's drawing allowance is spent
+    # on drawing, not on a cold worker's import (6 s at load 10-14 on two cores)
+    from . import figures
+
+    figure_seconds = figures.warm_up()
     return {"robot": robot.n, "seconds": time.perf_counter() - t0,
-            "shooting_compiled": shooting.compiled}
+            "shooting_compiled": shooting.compiled, "figures_cpu_seconds": figure_seconds}
 
 
 def job_plan(payload: Payload) -> dict[str, Any]:
@@ -190,9 +197,8 @@ def job_figure(payload: Payload) -> bytes:
     ``chained_state``), of the ``sweep`` job (``sweep``) or of the ``robustness`` job
     (``robustness``; the runs' paths are always computed, they are what the figure draws).
 
-    matplotlib is imported here, by a worker's first figure (about 0.5 s, within the figure's
-    drawing allowance), not when the workers start: it would double their start time and add
-    some 40 MB to each of them.
+    matplotlib is loaded and warmed up before the workers start (:func:`warm_up`, in the
+    forkserver), so the drawing allowance is spent on drawing.
 
     Returns
     -------

@@ -8,6 +8,7 @@ import math
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from bench.reintegrate import joint_trajectory_arrays  # noqa: F401 - the tests decode with it too
 from optimizer.model import Robot
 
 HALF_PI = 0.5 * math.pi
@@ -94,9 +95,14 @@ def quintic_rates(t: np.ndarray, x: np.ndarray, v: np.ndarray, a: np.ndarray):
 
     polys = [BPoly.from_derivatives(t, np.stack([x[:, c], v[:, c], a[:, c]], axis=1))
              for c in range(x.shape[1])]
+    # each derivative built once: a replay evaluates the rates some 20,000 times, and building
+    # the derivative polynomial at every call was most of a replay's time
+    derivatives: dict[int, list[BPoly]] = {}
 
     def rates(tt, order=0):
-        return np.stack([np.asarray(bp.derivative(order + 1)(tt)) for bp in polys], axis=-1)
+        if order not in derivatives:
+            derivatives[order] = [bp.derivative(order + 1) for bp in polys]
+        return np.stack([np.asarray(d(tt)) for d in derivatives[order]], axis=-1)
     return rates
 
 

@@ -17,7 +17,8 @@ from optimizer.errors import InvalidRequestError
 from optimizer.model import Robot
 from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
-from replay_support import quintic_rates, reachable_goals, replay_linear, replay_quintic, replay_zoh
+from replay_support import (joint_trajectory_arrays, quintic_rates, reachable_goals, replay_linear,
+                            replay_quintic, replay_zoh)
 
 GOALS = {n: reachable_goals(n, 1, 16 + n) for n in (3, 4, 5)}
 FAST = ["polynomial", "retimed", "constraint_points", "shooting"]
@@ -64,14 +65,9 @@ def test_controller_period_replays_by_zero_order_hold(n, method):
 def _check_joint_trajectory(p, req, tol):
     jt = p.to_dict()["joint_trajectory"]
     assert jt["joint_names"] == ["phi", "th1"]
-    pts = jt["points"]
-    t = np.array([pt["time_from_start"]["sec"] + 1e-9 * pt["time_from_start"]["nanosec"]
-                  for pt in pts])
+    t, x, v, a = joint_trajectory_arrays(jt)
     assert np.all(np.diff(t) > 0) and all(0 <= pt["time_from_start"]["nanosec"] < 10 ** 9
-                                          for pt in pts)
-    x = np.array([pt["positions"] for pt in pts])
-    v = np.array([pt["velocities"] for pt in pts])
-    a = np.array([pt["accelerations"] for pt in pts])
+                                          for pt in jt["points"])
     assert np.allclose(x[0], req.q_start()[:2], atol=1e-12)
     assert np.array_equal(v[0], [0.0, 0.0]) and np.array_equal(v[-1], [0.0, 0.0])
     qf, margin = replay_quintic(p.robot, t, x, v, a, req.q_start())
@@ -98,12 +94,7 @@ def test_joint_trajectory_keeps_the_actuator_limits_between_its_points(n):
     assert np.max(np.abs(p.inputs.rates), axis=0).max() > 0.99 * min(lim)  # at a limit
     _check_joint_trajectory(p, req, 1e-4)
     jt = p.to_dict()["joint_trajectory"]
-    pts = jt["points"]
-    t = np.array([pt["time_from_start"]["sec"] + 1e-9 * pt["time_from_start"]["nanosec"]
-                  for pt in pts])
-    x = np.array([pt["positions"] for pt in pts])
-    v = np.array([pt["velocities"] for pt in pts])
-    a = np.array([pt["accelerations"] for pt in pts])
+    t, x, v, a = joint_trajectory_arrays(jt)
     s = np.linspace(0.0, 1.0, 101)[:, None]
     dense = (t[:-1] + s * np.diff(t)).ravel()
     peak = np.max(np.abs(quintic_rates(t, x, v, a)(dense)), axis=0)

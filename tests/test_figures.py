@@ -289,47 +289,62 @@ def test_threads(plan_dict, sweep_dict):
 
 # ------------------------------------------------------------------ CLI
 def run_cli(*args: str, stdin: bytes | None = None) -> subprocess.CompletedProcess:
+    """``python -m service.figures_cli`` as a process (its entry point, standard input and
+    output as bytes)."""
     env = dict(os.environ, MPLBACKEND="Agg")
     return subprocess.run([PYTHON, "-m", "service.figures_cli", *args], cwd=REPO, input=stdin,
                           capture_output=True, timeout=60, env=env)
 
 
-def test_cli_end_to_end(tmp_path, all_inputs):
+def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
+    """The CLI's ``main`` in this process (each process would import numpy and matplotlib
+    again: 1-2 s of CPU a call): its exit status (argparse's exit included) and standard
+    error."""
+    from service import figures_cli
+    try:
+        code = figures_cli.main(list(args))
+    except SystemExit as exc:  # argparse refusing the arguments
+        code = int(exc.code or 0)
+    return code, capsys.readouterr().err
+
+
+def test_cli_end_to_end(tmp_path, all_inputs, capsys):
     files = {}
     for kind, data in all_inputs.items():
         files[kind] = tmp_path / f"{kind}.json"
         files[kind].write_text(json.dumps(data))
     # png, explicit format
     out = tmp_path / "ja.png"
-    r = run_cli("joint_angles", str(files["joint_angles"]), "--format", "png", "-o", str(out))
-    assert r.returncode == 0, r.stderr.decode()
+    code, err = cli(capsys, "joint_angles", str(files["joint_angles"]), "--format", "png", "-o",
+                    str(out))
+    assert code == 0 and f"wrote {out} (image/png" in err, err
     assert png_size(out.read_bytes())[0] >= 800
     # svg, format from the extension; the robustness wrapper
     out = tmp_path / "rob.svg"
-    r = run_cli("robustness", str(files["robustness"]), "-o", str(out))
-    assert r.returncode == 0, r.stderr.decode()
+    code, err = cli(capsys, "robustness", str(files["robustness"]), "-o", str(out))
+    assert code == 0, err
     assert "joint angle [deg]" in joined(svg_texts(out.read_bytes()))
     # default output name, next to the input
-    r = run_cli("sweep", str(files["sweep"]), "--format", "svg")
-    assert r.returncode == 0, r.stderr.decode()
+    code, err = cli(capsys, "sweep", str(files["sweep"]), "--format", "svg")
+    assert code == 0, err
     assert "dphi [deg]" in joined(svg_texts((tmp_path / "sweep.sweep.svg").read_bytes()))
-    # stdin -> stdout
+    # stdin -> stdout, through the module's entry point in a process of its own
     r = run_cli("chained_state", "-", "--format", "png", "-o", "-",
                 stdin=files["chained_state"].read_bytes())
     assert r.returncode == 0, r.stderr.decode()
     assert r.stdout[:8] == PNG_MAGIC
 
 
-def test_cli_errors(tmp_path, sweep_dict):
+def test_cli_errors(tmp_path, sweep_dict, capsys):
     f = tmp_path / "sweep.json"
     f.write_text(json.dumps(sweep_dict))
-    r = run_cli("joint_angles", str(f), "-o", str(tmp_path / "x.png"))
-    assert r.returncode == 2 and b"error" in r.stderr
+    code, err = cli(capsys, "joint_angles", str(f), "-o", str(tmp_path / "x.png"))
+    assert code == 2 and "error" in err
     assert not (tmp_path / "x.png").exists()
-    r = run_cli("pie", str(f))
-    assert r.returncode == 2
-    r = run_cli("sweep", str(tmp_path / "missing.json"))
-    assert r.returncode == 2 and b"cannot read" in r.stderr
+    code, err = cli(capsys, "pie", str(f))
+    assert code == 2 and "invalid choice: 'pie'" in err
+    code, err = cli(capsys, "sweep", str(tmp_path / "missing.json"))
+    assert code == 2 and "cannot read" in err
     (tmp_path / "bad.json").write_text("{")
-    r = run_cli("sweep", str(tmp_path / "bad.json"))
-    assert r.returncode == 2 and b"not valid JSON" in r.stderr
+    code, err = cli(capsys, "sweep", str(tmp_path / "bad.json"))
+    assert code == 2 and "not valid JSON" in err

@@ -44,6 +44,14 @@ def fresh():
     native._builds.clear()
 
 
+@pytest.fixture(scope="module")
+def default_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One cache directory for the tests of the default robot's shooting library: the first
+    of them compiles it (25-30 s at load 8), the others find it there, as a second process
+    would (each compiled the same library into a directory of its own before)."""
+    return tmp_path_factory.mktemp("native_default")
+
+
 def wait_for(pattern: str, where: Path, timeout: float = 120.0) -> list[Path]:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -58,16 +66,16 @@ def _request(robot: Robot = Robot(), pair=OPP_A) -> PlanRequest:
     return PlanRequest(start=pair[0], goal=pair[1], method="shooting", robot=robot)
 
 
-def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(tmp_path):
+def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(default_cache):
     req = _request()
     vm = plan(req)
     assert vm.diagnostics["shooting"]["compiled"] is False
     nlp.multiple_shooting_nlp.cache_clear()
-    assert native.configure(tmp_path) is not None
+    assert native.configure(default_cache) is not None
     assert shooting.prepare(req.robot.gains, req.robot.exponents, wait=True).compiled
     p = plan(req)
     assert p.diagnostics["shooting"]["compiled"] is True
-    assert len(list(tmp_path.glob("*.so"))) == 1   # (3 joints: no soft-sign NLP)
+    assert len(list(default_cache.glob("*.so"))) == 1   # (3 joints: no soft-sign NLP)
     # the same iterates from the same arithmetic, up to the compiler's reordering
     assert p.diagnostics["shooting"]["iterations"] == vm.diagnostics["shooting"]["iterations"]
     assert np.max(np.abs(p.inputs.rates - vm.inputs.rates)) < 1e-9
@@ -76,11 +84,11 @@ def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(tmp_path)
     assert np.all((q[:, 1:3] > 0.0) & (q[:, 1:3] < np.pi / 2))
 
 
-def test_the_correction_maps_are_compiled_with_the_nlp(tmp_path):
+def test_the_correction_maps_are_compiled_with_the_nlp(default_cache):
     """The library also holds the correction's fine end map and RK4 end Jacobian: once loaded
     they are the compiled ones, with the virtual machine's values."""
     req = _request()
-    native.configure(tmp_path)
+    native.configure(default_cache)
     m = shooting.prepare(req.robot.gains, req.robot.exponents, wait=True)
     assert m.compiled
     q0 = req.q_start()
@@ -143,11 +151,11 @@ def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp
     assert np.max(np.abs(q.inputs.rates - p.inputs.rates)) < 1e-9
 
 
-def test_an_nlp_built_before_configure_gets_its_library(tmp_path):
+def test_an_nlp_built_before_configure_gets_its_library(default_cache):
     """The service's forkserver builds the NLP before a worker configures the cache."""
     nlp = shooting.prepare(Robot().gains, Robot().exponents)
     assert nlp.compiled is False
-    native.configure(tmp_path)
+    native.configure(default_cache)
     assert shooting.prepare(Robot().gains, Robot().exponents, wait=True) is nlp
     assert nlp.compiled is True
 

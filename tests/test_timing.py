@@ -23,8 +23,8 @@ from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
 from optimizer.timing import (Limits, geometric_path, ramp_profile, scurve_profile,
                               smooth_profile, time_law, trapezoid_profile)
-from replay_support import (quintic_rates, reachable_goals, replay_linear, replay_quintic,
-                            replay_zoh)
+from replay_support import (joint_trajectory_arrays, quintic_rates, reachable_goals, replay_linear,
+                            replay_quintic, replay_zoh)
 
 GOALS = {n: reachable_goals(n, 1, 16 + n) for n in (3, 4)}
 REVERSING = (tuple(np.radians([10.0, 20.0, 30.0])), tuple(np.radians([40.0, 25.0, 15.0])))
@@ -221,12 +221,7 @@ def test_limited_plans_keep_their_limits_in_every_form(n, method):
     r, dr = p.rates_at(np.linspace(0.0, p.duration, 50001))
     assert np.abs(r).max() <= 1.0 * 1.01 and np.abs(dr).max() <= 5.0 * 1.01
     # the JointTrajectory form between its points
-    pts = p.to_dict()["joint_trajectory"]["points"]
-    tj = np.array([x["time_from_start"]["sec"] + 1e-9 * x["time_from_start"]["nanosec"]
-                   for x in pts])
-    xj = np.array([x["positions"] for x in pts])
-    vj = np.array([x["velocities"] for x in pts])
-    aj = np.array([x["accelerations"] for x in pts])
+    tj, xj, vj, aj = joint_trajectory_arrays(p.to_dict()["joint_trajectory"])
     assert np.array_equal(vj[0], [0.0, 0.0]) and np.array_equal(vj[-1], [0.0, 0.0])
     peak_u, peak_du, _ = _quintic_peaks(tj, xj, vj, aj)
     assert peak_u.max() <= 1.0 * 1.01 and peak_du.max() <= 5.0 * 1.01, (peak_u, peak_du)
@@ -255,12 +250,7 @@ def test_a_jerk_limit_gives_s_curves_the_joint_trajectory_keeps():
     assert np.abs(r).max() <= 1.01 and np.abs(dr).max() <= 5.05
     ddr = np.diff(dr, axis=0) / np.diff(t)[:, None]
     assert np.abs(ddr).max() <= 40.0 * 1.01
-    pts = p.to_dict()["joint_trajectory"]["points"]
-    tj = np.array([x["time_from_start"]["sec"] + 1e-9 * x["time_from_start"]["nanosec"]
-                   for x in pts])
-    xj = np.array([x["positions"] for x in pts])
-    vj = np.array([x["velocities"] for x in pts])
-    aj = np.array([x["accelerations"] for x in pts])
+    tj, xj, vj, aj = joint_trajectory_arrays(p.to_dict()["joint_trajectory"])
     _, _, ddu = _quintic_peaks(tj, xj, vj, aj)
     assert ddu.max() <= 40.0 * 1.01
     qf, margin = replay_quintic(p.robot, tj, xj, vj, aj, req.q_start())

@@ -164,36 +164,30 @@ def build_router(S: Schemas) -> APIRouter:
     """The figure routes for the request models ``S``."""
     router = APIRouter(tags=["figures"])
 
-    @router.post("/figures/joint_angles", response_class=Response, responses=IMAGE_RESPONSES,
-                 summary="Figure: joint angles and phi against time",
-                 description="Plans the request like `POST /v1/plans`, then draws th1..thn "
-                             "(top) and phi (bottom) against time in degrees, with the straight "
-                             "start-to-goal references that d_a measures against." + COMMON)
-    async def figure_joint_angles(body: S.PlanRequest, request: Request,  # type: ignore[name-defined]
-                                  format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
-        return await _figure(request, "joint_angles", checked_plan(body), body.time_limit,
-                             format)
+    def plan_figure(kind: str, summary: str, description: str, **extra: Any) -> None:
+        """Add ``POST /v1/figures/{kind}``: plan the request like ``POST /v1/plans`` (its
+        payload with the fields ``extra``), then draw figure ``kind`` of the answer."""
+        async def handler(body: S.PlanRequest, request: Request,  # type: ignore[name-defined]
+                          format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
+            return await _figure(request, kind, checked_plan(body, **extra), body.time_limit,
+                                 format)
 
-    @router.post("/figures/chained_state", response_class=Response, responses=IMAGE_RESPONSES,
-                 summary="Figure: chained-form state against time",
-                 description="Plans the request like `POST /v1/plans`, then draws z2..z_{n+1} "
-                             "against time with the regions where the inverse transform does "
-                             "not exist shaded and the request's constraint points marked."
-                             + COMMON)
-    async def figure_chained_state(body: S.PlanRequest, request: Request,  # type: ignore[name-defined]
-                                   format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
-        return await _figure(request, "chained_state", checked_plan(body), body.time_limit,
-                             format)
+        router.post(f"/figures/{kind}", response_class=Response, responses=IMAGE_RESPONSES,
+                    name=f"figure_{kind}", summary=summary,
+                    description=description + COMMON)(handler)
 
-    @router.post("/figures/pareto", response_class=Response, responses=IMAGE_RESPONSES,
-                 summary="Figure: the trade-off between reversals and deviation",
-                 description="Plans the request like `POST /v1/plans` with `pareto: true`, "
-                             "then draws each non-dominated plan's deviation (deg) against its "
-                             "actuator reversals, the main plan starred." + COMMON)
-    async def figure_pareto(body: S.PlanRequest, request: Request,  # type: ignore[name-defined]
-                            format: Optional[FigureFormat] = FORMAT_QUERY) -> Response:
-        return await _figure(request, "pareto", checked_plan(body, pareto=True),
-                             body.time_limit, format)
+    plan_figure("joint_angles", "Figure: joint angles and phi against time",
+                "Plans the request like `POST /v1/plans`, then draws th1..thn (top) and phi "
+                "(bottom) against time in degrees, with the straight start-to-goal references "
+                "that d_a measures against.")
+    plan_figure("chained_state", "Figure: chained-form state against time",
+                "Plans the request like `POST /v1/plans`, then draws z2..z_{n+1} against time "
+                "with the regions where the inverse transform does not exist shaded and the "
+                "request's constraint points marked.")
+    plan_figure("pareto", "Figure: the trade-off between reversals and deviation",
+                "Plans the request like `POST /v1/plans` with `pareto: true`, then draws each "
+                "non-dominated plan's deviation (deg) against its actuator reversals, the main "
+                "plan starred.", pareto=True)
 
     @router.post("/figures/sweep", response_class=Response, responses=IMAGE_RESPONSES,
                  summary="Figure: indicators against dphi",

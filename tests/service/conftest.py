@@ -11,8 +11,8 @@ import pytest
 # the helpers module sits beside this file; make it importable whatever pytest's import mode
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from svc_support import (TestClient, free_port, running_app, server_process,  # noqa: E402
-                         warm_figures)
+from svc_support import (KEYS, ORIGIN, TestClient, free_port, running_app,  # noqa: E402
+                         server_process)
 
 
 @pytest.fixture(scope="session")
@@ -21,7 +21,14 @@ def client() -> Iterator[TestClient]:
     largest default time limit (what these tests check is not how fast a plan is: at load 10
     on 2 cores a plan of 20001 samples ran past the default 10 s)."""
     with running_app(workers=2, queue_size=64, default_time_limit=60.0) as c:
-        warm_figures(c.post, 2)
+        yield c
+
+
+@pytest.fixture(scope="session")
+def keyed_client() -> Iterator[TestClient]:
+    """One app with API keys (``KEYS``) and a CORS origin (``ORIGIN``) configured, one worker,
+    for every test of keys and CORS (each had started its own worker pool)."""
+    with running_app(workers=1, queue_size=8, api_keys=KEYS, cors_origins=[ORIGIN]) as c:
         yield c
 
 

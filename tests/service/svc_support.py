@@ -36,6 +36,10 @@ DEG = math.pi / 180.0
 #: docs/reliability.md.
 LAG = 2.5
 
+#: The API keys and the CORS origin of the shared keyed app (``keyed_client`` in conftest).
+KEYS = ["k-one-7d1e", "k-two-90fa", "k-three-c3b2"]
+ORIGIN = "http://ui.example.test"
+
 #: The paper's 3-joint worked example (NOTES §5): 10 deg -> 30 deg on every joint.
 WORKED = {"start": [10 * DEG] * 3, "goal": [30 * DEG] * 3, "method": "polynomial",
           "objective": "tp_then_da"}
@@ -58,26 +62,6 @@ def running_app(**overrides: Any) -> Iterator[TestClient]:
     with TestClient(app, raise_server_exceptions=False) as client:
         wait_ready(client)
         yield client
-
-
-def warm_figures(post: Any, workers: int) -> None:
-    """Have each of ``workers`` idle workers draw one figure, as a server that has been up a
-    while has: a worker's first figure imports matplotlib inside the drawing allowance
-    (``service.routers.figures.RENDER_SECONDS``, 15 s), which took more than that at load 10
-    on 2 cores (504, and the replacement of the killed worker started cold again). Tests that
-    draw check what is drawn, not a cold worker's speed. ``post(path, json=..., params=...)``
-    sends a request (a TestClient's or an httpx client's ``post``); the figures are computed
-    under the largest time limit, so the import has the whole of it."""
-    from concurrent.futures import ThreadPoolExecutor
-    body = {**WORKED, "samples": 11, "time_limit": 60}
-
-    def one(_: int) -> int:
-        return int(post("/v1/figures/joint_angles", json=body, params={"format": "svg"})
-                   .status_code)
-
-    with ThreadPoolExecutor(max_workers=workers) as ex:  # at once: one figure per worker
-        statuses = list(ex.map(one, range(workers)))
-    assert statuses == [200] * workers, statuses
 
 
 def free_port() -> int:
@@ -118,12 +102,29 @@ def server_process(argv: list[str], env: dict[str, str], port: int, log_path: Pa
                 time.sleep(0.1)
             yield base
         finally:
-            proc.terminate()
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=10)
+            stop_process(proc, 20.0)
+
+
+def stop_process(proc: subprocess.Popen[Any], grace: float) -> None:
+    """SIGTERM ``proc``; SIGKILL it if it has not exited ``grace`` seconds later; reap it."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=grace)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=10)
+
+
+def read_until_closed(sock: socket.socket) -> bytes:
+    """Everything the peer sends on ``sock`` until it closes the connection (a reset ends it
+    too: a server that drops a connection with unread data resets it)."""
+    out = b""
+    try:
+        while chunk := sock.recv(65536):
+            out += chunk
+    except ConnectionResetError:
+        pass
+    return out
 
 
 def assert_problem(response: Any, status: int, code: str) -> dict[str, Any]:

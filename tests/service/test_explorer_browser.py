@@ -26,10 +26,9 @@ from pathlib import Path
 from typing import Any, Iterator
 from urllib.parse import urlsplit
 
-import httpx
 import pytest
 
-from svc_support import free_port, server_process, warm_figures
+from svc_support import free_port, server_process
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -125,10 +124,6 @@ def _server(tmp_path_factory: pytest.TempPathFactory, name: str,
     full = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port),
             "PLANNER_DEFAULT_TIME_LIMIT": "60", **env}
     with server_process([sys.executable, "-m", "service"], full, port, log) as base:
-        key = env.get("PLANNER_API_KEYS")
-        with httpx.Client(base_url=base, timeout=120,
-                          headers={"X-API-Key": key} if key else {}) as http:
-            warm_figures(http.post, int(full.get("PLANNER_WORKERS", "1")))
         yield base
 
 

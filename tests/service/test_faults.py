@@ -36,8 +36,8 @@ import pytest
 
 from service.schemas import build_schemas
 from service.settings import Limits
-from svc_support import (DEG, LAG, ROOT, WORKED, assert_problem, free_port, running_app,
-                         server_process)
+from svc_support import (DEG, KEYS, LAG, ROOT, WORKED, assert_problem, free_port,
+                         read_until_closed, running_app, server_process)
 
 CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 5}
 #: ~1 s of work for one worker: a plan, then 40 open-loop v-replays (DOP853 with the input
@@ -83,6 +83,18 @@ BOUNDS = {"PLANNER_HEADER_TIMEOUT": "1", "PLANNER_BODY_TIMEOUT": "1", "PLANNER_S
           "PLANNER_MAX_CONNECTIONS": "40", "PLANNER_MAX_HEADER_BYTES": "16384"}
 
 
+def _bounded_server(tmp_path_factory: pytest.TempPathFactory, name: str,
+                    **env: str) -> Iterator[str]:
+    """``python -m service`` with :data:`BOUNDS`, one worker and the settings ``env``; yields
+    its base URL."""
+    port = free_port()
+    log = tmp_path_factory.mktemp(name) / "server.log"
+    full = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "1",
+            "PLANNER_LOG_LEVEL": "warning", **BOUNDS, **env}
+    with server_process([sys.executable, "-m", "service"], full, port, log) as base:
+        yield base
+
+
 @pytest.fixture(scope="module")
 def two_workers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, int]]:
     """``python -m service`` with 2 workers; yields the base URL and the server's pid."""
@@ -106,12 +118,7 @@ def bounded(request: pytest.FixtureRequest, two_workers: tuple[str, int],
     if request.param == "httptools":  # the default: the module's server
         yield two_workers[0]
         return
-    port = free_port()
-    log = tmp_path_factory.mktemp("faults_h11") / "server.log"
-    env = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "1",
-           "PLANNER_LOG_LEVEL": "warning", "PLANNER_HTTP": "h11", **BOUNDS}
-    with server_process([sys.executable, "-m", "service"], env, port, log) as base:
-        yield base
+    yield from _bounded_server(tmp_path_factory, "faults_h11", PLANNER_HTTP="h11")
 
 
 # ---------------------------------------------------------------------- the pool heals
@@ -302,20 +309,30 @@ def test_a_replacement_that_fails_to_start_is_retried_whatever_the_error():
 
 
 def test_a_request_waits_for_a_worker_at_most_queue_timeout():
-    with running_app(workers=1, queue_size=4, queue_timeout=0.5) as client:
+    # no liveness pings: the test needs its one worker busy with the slow job, and at load 12
+    # a niced idle worker that misses a 1 s ping is replaced, so the slow job itself may wait
+    # past the 0.5 s queue timeout (suspected in a CI run at load 11-12; pings have tests of
+    # their own)
+    with running_app(workers=1, queue_size=4, queue_timeout=0.5,
+                     worker_ping_interval=0) as client:
+        slow_answer: list[Any] = []
+
         def slow() -> None:
-            client.post("/v1/robustness", json=SLOWISH)
+            slow_answer.append(client.post("/v1/robustness", json=SLOWISH))
 
         t = threading.Thread(target=slow)
         t.start()
         pool = client.app.state.pool
         deadline = time.monotonic() + 20
         while pool.stats().idle:
-            assert time.monotonic() < deadline
+            assert time.monotonic() < deadline, (pool.stats(), slow_answer)
             time.sleep(0.01)
         t0 = time.perf_counter()
         r = client.post("/v1/plans", json=CHEAP)
         elapsed = time.perf_counter() - t0
+        restarts = [line for line in client.get("/metrics").text.splitlines()
+                    if line.startswith("planner_worker_restarts_total")]
+        assert r.status_code == 503, (r.status_code, elapsed, restarts, slow_answer)
         body = assert_problem(r, 503, "overloaded")
         assert "retry-after" in r.headers and "no worker became free" in body["detail"]
         # a request that waited for the worker would be answered 200 once the ~1 s job (far
@@ -328,17 +345,6 @@ def test_a_request_waits_for_a_worker_at_most_queue_timeout():
 def _raw(port: int) -> socket.socket:
     s = socket.create_connection(("127.0.0.1", port), timeout=10)
     return s
-
-
-def _read_all(s: socket.socket) -> bytes:
-    """Everything the server sends until it closes the connection."""
-    out = b""
-    try:
-        while chunk := s.recv(65536):
-            out += chunk
-    except ConnectionResetError:
-        pass
-    return out
 
 
 def _port(base: str) -> int:
@@ -365,11 +371,11 @@ def test_an_oversized_header_is_refused_431_and_malformed_http_400(bounded):
         for _ in range(5):
             s.sendall(b"X-Piece: " + b"b" * 4000 + b"\r\n")
             time.sleep(0.01)
-        status, body = _problem_of(_read_all(s))
+        status, body = _problem_of(read_until_closed(s))
     assert status == 431 and body["code"] == "invalid_request"
     with _raw(_port(base)) as s:
         s.sendall(b"NOT HTTP AT ALL\r\n\r\n")
-        status, body = _problem_of(_read_all(s))
+        status, body = _problem_of(read_until_closed(s))
     assert status == 400 and body["code"] == "invalid_request"
 
 
@@ -380,7 +386,7 @@ def test_a_connection_without_a_complete_head_is_closed_after_header_timeout(bou
     with _raw(_port(base)) as s:
         s.sendall(sent)
         t0 = time.monotonic()
-        assert _read_all(s) == b""
+        assert read_until_closed(s) == b""
         elapsed = time.monotonic() - t0
     # header timeout 1 s; without it the connection stays open until the socket's 10 s
     assert 0.9 <= elapsed < 1.0 + LAG, elapsed
@@ -403,7 +409,7 @@ def test_a_body_that_does_not_arrive_in_time_is_answered_408(bounded, trickle):
                 except (TimeoutError, BrokenPipeError, ConnectionResetError):
                     continue
             s.settimeout(10)
-        raw = _read_all(s)
+        raw = read_until_closed(s)
         elapsed = time.monotonic() - t0
     status, body = _problem_of(raw)
     assert status == 408 and body["code"] == "request_timeout", body
@@ -472,12 +478,7 @@ def test_a_body_trickled_after_a_413_is_cut_off(bounded, head):
 @pytest.fixture(scope="module")
 def keyed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """A server with API keys and :data:`BOUNDS`."""
-    port = free_port()
-    log = tmp_path_factory.mktemp("faults_keyed") / "server.log"
-    env = {"PLANNER_HOST": "127.0.0.1", "PLANNER_PORT": str(port), "PLANNER_WORKERS": "1",
-           "PLANNER_LOG_LEVEL": "warning", "PLANNER_API_KEYS": "k1", **BOUNDS}
-    with server_process([sys.executable, "-m", "service"], env, port, log) as base:
-        yield base
+    yield from _bounded_server(tmp_path_factory, "faults_keyed", PLANNER_API_KEYS="k1")
 
 
 def test_trickled_bodies_after_a_401_cannot_lock_out_new_clients(keyed):
@@ -790,17 +791,16 @@ def test_a_shutdown_that_cannot_drain_answers_503_shutting_down(tmp_path):
 
 
 # ---------------------------------------------------------------------- smaller items
-def test_two_different_api_keys_are_refused_by_middleware_and_route_alike():
-    with running_app(workers=1, queue_size=4, api_keys=["k1", "k2"]) as client:
-        for path, body in (("/v1/plans", CHEAP), ("/v1/sweeps", {})):
-            r = client.post(path, json=body, headers=[("X-API-Key", "k1"), ("X-API-Key", "k2")])
-            assert_problem(r, 401, "unauthorized")
-            r = client.post(path, json=body, headers=[("Authorization", "Bearer k1"),
-                                                      ("Authorization", "Bearer zz")])
-            assert_problem(r, 401, "unauthorized")
-        r = client.post("/v1/plans", json=CHEAP, headers=[("X-API-Key", "k1"),
-                                                          ("X-API-Key", "k1")])
-        assert r.status_code == 200, r.text
+def test_two_different_api_keys_are_refused_by_middleware_and_route_alike(keyed_client):
+    client, (k1, k2) = keyed_client, KEYS[:2]
+    for path, body in (("/v1/plans", CHEAP), ("/v1/sweeps", {})):
+        r = client.post(path, json=body, headers=[("X-API-Key", k1), ("X-API-Key", k2)])
+        assert_problem(r, 401, "unauthorized")
+        r = client.post(path, json=body, headers=[("Authorization", f"Bearer {k1}"),
+                                                  ("Authorization", "Bearer zz")])
+        assert_problem(r, 401, "unauthorized")
+    r = client.post("/v1/plans", json=CHEAP, headers=[("X-API-Key", k1), ("X-API-Key", k1)])
+    assert r.status_code == 200, r.text
 
 
 def test_the_robustness_time_limit_is_not_capped_by_the_plans_default():

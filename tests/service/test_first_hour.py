@@ -3,7 +3,7 @@ metrics labels, the served OpenAPI document, errors that teach."""
 
 from __future__ import annotations
 
-from svc_support import DEG, WORKED, assert_problem, running_app
+from svc_support import DEG, WORKED, assert_problem
 
 
 def test_head_healthz_and_readyz_answer_200(client):
@@ -31,11 +31,10 @@ def _key_schemes(doc: dict) -> tuple[dict, list]:
         op["security"] for op in ops if "security" in op]
 
 
-def test_the_served_openapi_requires_a_key_only_when_keys_are_set(client):
+def test_the_served_openapi_requires_a_key_only_when_keys_are_set(client, keyed_client):
     schemes, secured = _key_schemes(client.get("/openapi.json").json())
     assert schemes == {} and secured == []
-    with running_app(workers=1, queue_size=2, api_keys=["k1"]) as keyed:
-        schemes, secured = _key_schemes(keyed.get("/openapi.json").json())
+    schemes, secured = _key_schemes(keyed_client.get("/openapi.json").json())
     assert "APIKeyHeader" in schemes and secured
 
 

@@ -28,7 +28,8 @@ from typing import Any, Iterator
 
 import pytest
 
-from svc_support import DEG, ROOT, WORKED, free_port, server_process
+from svc_support import (DEG, ROOT, WORKED, free_port, read_until_closed, server_process,
+                         stop_process)
 
 CONF = ROOT / "deploy" / "nginx.conf"
 PROBLEM_KEYS = {"type", "title", "status", "code", "detail", "field", "diagnostics",
@@ -127,12 +128,7 @@ def nginx_front(directory: Path, upstream_port: int | list[int],
                 time.sleep(0.05)
         yield port
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
+        stop_process(proc, 10.0)
 
 
 def request(port: int, method: str, path: str, body: bytes | None = None,
@@ -282,12 +278,7 @@ def test_nginx_refusals_are_problem_documents(front_of_nothing, raw, status):
     """What nginx refuses itself, before any replica, is a problem document (it was HTML)."""
     with socket.create_connection(("127.0.0.1", front_of_nothing), timeout=30) as s:
         s.sendall(raw)
-        got = b""
-        try:
-            while chunk := s.recv(65536):
-                got += chunk
-        except ConnectionResetError:
-            pass
+        got = read_until_closed(s)
     head, _, body = got.partition(b"\r\n\r\n")
     lines = head.decode("latin-1").split("\r\n")
     headers = {k.lower(): v.strip() for k, _, v in (li.partition(":") for li in lines[1:])}

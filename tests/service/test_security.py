@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 import sys
-from typing import Any, Iterator
+from typing import Any
 
 import httpx
 import pytest
@@ -14,24 +14,21 @@ import pytest
 import service.auth
 from service.main import create_app
 from service.settings import default_settings
-from svc_support import (DEG, ROOT, WORKED, TestClient, assert_problem, free_port, running_app,
+from svc_support import (DEG, KEYS, ORIGIN, ROOT, WORKED, TestClient, assert_problem, free_port,
                          server_process)
 
 #: A start inside the region but outside its joint bound: the library refuses it.
 OUTSIDE_BOUND = {"start": [0.2, 0.2, 0.2], "joint_bounds": [[0.3, 1.0], None, None]}
 
-KEYS = ["k-one-7d1e", "k-two-90fa", "k-three-c3b2"]
-ORIGIN = "http://ui.example.test"
 CHEAP = {**WORKED, "phi_change": 34 * DEG, "samples": 5}
 LEAKS = ("Traceback", "/work/", str(ROOT), ".py\"", ".py'", "site-packages", 'File "',
          "line ", "RuntimeError", "KeyError")
 
 
-@pytest.fixture(scope="module")
-def keyed() -> Iterator[TestClient]:
-    """API keys and a CORS origin configured."""
-    with running_app(workers=1, api_keys=KEYS, cors_origins=[ORIGIN]) as c:
-        yield c
+@pytest.fixture
+def keyed(keyed_client: TestClient) -> TestClient:
+    """API keys and a CORS origin configured (the shared keyed app)."""
+    return keyed_client
 
 
 def _v1_operations() -> list[tuple[str, str]]:

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from optimizer.model import Robot
-from replay_support import reachable_goals, replay_quintic, replay_linear, replay_zoh
+from replay_support import (joint_trajectory_arrays, reachable_goals, replay_linear,
+                            replay_quintic, replay_zoh)
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -53,12 +54,7 @@ def test_joint_trajectory_replays_by_quintic_hermite(client):
     body = r.json()
     jt = body["joint_trajectory"]
     assert jt["joint_names"] == ["phi", "th1"]
-    pts = jt["points"]
-    t = np.array([p["time_from_start"]["sec"] + 1e-9 * p["time_from_start"]["nanosec"]
-                  for p in pts])
-    x = np.array([p["positions"] for p in pts])
-    v = np.array([p["velocities"] for p in pts])
-    a = np.array([p["accelerations"] for p in pts])
+    t, x, v, a = joint_trajectory_arrays(jt)
     qf, margin = replay_quintic(ROBOT, t, x, v, a, Q0)
     assert _err(qf) < 1e-4 and margin > 0.0
     assert body["validation"]["joint_trajectory"]["terminal_error"] <= 1e-6

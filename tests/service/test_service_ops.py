@@ -12,7 +12,7 @@ import pytest
 from service.encoding import finite_json
 from service.logs import JSONFormatter
 from service.settings import Settings
-from svc_support import DEG, WORKED, assert_problem, running_app
+from svc_support import DEG, KEYS, ORIGIN, WORKED, assert_problem
 
 
 def test_health_and_readiness(client):
@@ -64,20 +64,19 @@ def test_unknown_route_and_method_are_problems(client):
     assert_problem(client.get("/v1/plans"), 405, "method_not_allowed")
 
 
-def test_api_keys_and_cors():
-    with running_app(workers=1, api_keys=["k-one", "k-two"],
-                     cors_origins=["http://ui.example.test"]) as c:
-        body = assert_problem(c.get("/v1/robots/default"), 401, "unauthorized")
-        assert "API key" in body["detail"]
-        assert_problem(c.get("/v1/robots/default", headers={"X-API-Key": "wrong"}), 401,
-                       "unauthorized")
-        assert c.get("/v1/robots/default", headers={"X-API-Key": "k-two"}).status_code == 200
-        assert c.get("/v1/robots/default",
-                     headers={"Authorization": "Bearer k-one"}).status_code == 200
-        assert c.get("/healthz").status_code == 200  # operations stay open
-        pre = c.options("/v1/plans", headers={"Origin": "http://ui.example.test",
-                                              "Access-Control-Request-Method": "POST"})
-        assert pre.headers["access-control-allow-origin"] == "http://ui.example.test"
+def test_api_keys_and_cors(keyed_client):
+    c = keyed_client
+    body = assert_problem(c.get("/v1/robots/default"), 401, "unauthorized")
+    assert "API key" in body["detail"]
+    assert_problem(c.get("/v1/robots/default", headers={"X-API-Key": "wrong"}), 401,
+                   "unauthorized")
+    assert c.get("/v1/robots/default", headers={"X-API-Key": KEYS[1]}).status_code == 200
+    assert c.get("/v1/robots/default",
+                 headers={"Authorization": f"Bearer {KEYS[0]}"}).status_code == 200
+    assert c.get("/healthz").status_code == 200  # operations stay open
+    pre = c.options("/v1/plans", headers={"Origin": ORIGIN,
+                                          "Access-Control-Request-Method": "POST"})
+    assert pre.headers["access-control-allow-origin"] == ORIGIN
 
 
 def test_settings_from_the_environment(monkeypatch):
