@@ -32,8 +32,10 @@ geometry and the timing are corrected separately.
    The rates of the later pieces start at the plan's (the warm start) and take weighted
    least-norm Gauss-Newton steps onto the goal (``th_1..th_n``; ``phi`` is free), each
    halved until the miss shrinks, with one compiled CasADi end map and Jacobian per robot
-   and size (:mod:`.continuation_map`). First every rate keeps its sign (no reversal of
-   ``phi`` or ``th1`` added); unless ``keep_reversals``, any sign when that fails. The
+   and size (:mod:`.continuation_map`). First every rate keeps its sign (each step restricted
+   to the rates' signs, an active set; Levenberg-Marquardt damping when the plain step
+   overshoots): no reversal of ``phi`` or ``th1`` is added; unless ``keep_reversals``, any
+   sign when that fails. The
    remaining law is kept when nothing was split or stopped early; otherwise every piece runs
    rest to rest in equal times (:func:`~.plan_state.law_after_stop`).
 3. **Proof.** The continuation's pieces are integrated by cascade quadrature on the original
@@ -41,8 +43,8 @@ geometry and the timing are corrected separately.
    break (monotone on a constant-rate piece), the handed-out samples replayed by their rule.
 4. **Fallback: the full planner.** A correction that fails (near a reversal the end map's
    Jacobian is ill-conditioned), or a plan of chained inputs (braked first): the full
-   planner (method ``shooting``, then ``penalty``) plans from the stop; its pieces run rest to
-   rest until the end.
+   planner (method ``shooting``, then ``penalty``) plans from the stop; its last piece is
+   split into the same geometric tail, and its pieces run rest to rest until the end.
 
 Why not change the current piece: its direction changed mid-motion would jump the rates; a
 stop is where the direction may change. The motion after the last replan is what no replan
@@ -72,12 +74,10 @@ from ..verify import integrate_cascade
 from .plan import plan as full_plan
 from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array,
                          invalid, law_after_stop, read_plan)
-from .continuation_map import (WEIGHT_FLOOR, PieceMap, correct_pieces, piece_end,
+from .continuation_map import (WEIGHT_FLOOR, PieceMap, correct_pieces, correct_signed, piece_end,
                                piece_weights, weighted_step)
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
 
-#: Rounds of holding at 0 the rates that a correction would reverse.
-MAX_HOLDS = 3
 #: The continuation's last piece is split into this many parts and one more...
 TAIL_PIECES = 4
 #: ... each this fraction of the rest: run in equal times, the motion slows geometrically.
@@ -396,32 +396,21 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
 
 def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
              keep_reversals: bool) -> tuple[float, np.ndarray, int, np.ndarray, bool]:
-    """The later pieces' rates moved onto the goal (:func:`~.continuation_map.correct_pieces`):
-    first keeping every rate's sign (a rate at rest stays at rest, one that would change sign
-    is held at rest and the rest solved again): no reversal of ``phi`` or ``th1`` is added;
-    then, unless ``keep_reversals``, with any sign (weighted, then the plain least-norm step).
-    Returns the map's miss, the rates, the steps, the weights used (for the defect step) and
-    whether the signs were kept.
+    """The later pieces' rates moved onto the goal: first with no rate changing sign
+    (:func:`~.continuation_map.correct_signed`: a rate at rest stays at rest, one may come to
+    rest and no further): no reversal of ``phi`` or ``th1`` is added; then, unless
+    ``keep_reversals``, with any sign (:func:`~.continuation_map.correct_pieces`, weighted,
+    then the plain least-norm step). Returns the map's miss, the rates, the steps, the
+    weights used (for the defect step) and whether the signs were kept.
 
     Raises
     ------
     NumericalError
         No correction reached the goal.
     """
-    scale = float(np.max(np.abs(W0), initial=0.0))
-    signs = np.where(np.abs(W0) > 1e-9 * scale, np.sign(W0), 0.0)
-    held = signs == 0.0
-    err = math.inf
-    for _ in range(MAX_HOLDS + 1):
-        if held.all():
-            break
-        err, W, steps = correct_pieces(emap, q0, goal, W0, held=held)
-        if err > 1e-6:
-            break
-        flipped = (signs != 0.0) & (np.sign(W) == -signs) & ~held
-        if not flipped.any():
-            return err, W, steps, piece_weights(W0, held), True
-        held |= flipped
+    err, W, steps = correct_signed(emap, q0, goal, W0)
+    if err <= 1e-6:
+        return err, W, steps, piece_weights(W0, W == 0.0), True
     if not keep_reversals:
         for floor in (WEIGHT_FLOOR, None):
             err, W, steps = correct_pieces(emap, q0, goal, W0, floor=floor)
@@ -504,7 +493,10 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
     sched = p.inputs
     breaks = kept.s_stop + np.asarray(sched.breaks, float)   # its plan time after the stop
     rates = np.asarray(sched.rates, float)                    # type: ignore[union-attr]
-    later = law_after_stop(t_stop, T_end, breaks)
+    # it ends in a geometric tail too: little is left for the plant's error after the last
+    # replan (a fresh plan's last piece is 1/12 to 1/20 of its path)
+    breaks, rates, tailed = _tail(breaks, rates)
+    later = law_after_stop(t_stop, T_end, breaks, equal=tailed)
     return _assemble(kept, breaks, rates, later, kept.s_stop + float(sched.breaks[-1]),
                      "full_planner", 0)
 
