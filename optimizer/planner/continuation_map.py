@@ -45,6 +45,9 @@ HALVINGS = tuple(0.5 ** k for k in range(9))
 DAMPINGS = (0.0, 1e-4, 1e-2, 1.0)
 #: Most steps of the sign-keeping correction.
 SIGNED_STEPS = 30
+#: A step that leaves more than this fraction of the squared miss is a stall (three in a row:
+#: stop).
+STALL = 0.9
 #: Rounds of the active set of :func:`signed_step`.
 MAX_ACTIVE = 6
 
@@ -239,7 +242,7 @@ def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
     r = end[1:] - goal
     err = float(np.max(np.abs(r)))
     size = float(r @ r)
-    steps = 0
+    steps = stalls = 0
     mu = 0.0
     while err > target and steps < max_steps:
         accepted = False
@@ -248,7 +251,7 @@ def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
                 dx = signed_step(J[1:], r, D2, W.ravel(), signs, damping).reshape(W.shape)
             except np.linalg.LinAlgError:
                 continue
-            for alpha in HALVINGS[:5]:
+            for alpha in HALVINGS[:5] if damping == 0.0 else HALVINGS[:2]:
                 V = W - alpha * dx
                 end2, J2 = emap(q0, V)
                 r2 = end2[1:] - goal
@@ -262,9 +265,14 @@ def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
                 break
         if not accepted:
             break
+        # Gauss-Newton that can reach the goal converges fast: a step that removes little of
+        # the miss (twice) says the signs keep the goal out of reach
+        stalls = stalls + 1 if s2 > STALL * size else 0
         W, J, r, size = V, J2, r2, s2
         err = float(np.max(np.abs(r)))
         steps += 1
+        if stalls >= 3:
+            break
     return err, W, steps
 
 
