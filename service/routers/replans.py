@@ -1,5 +1,7 @@
 """``POST /v1/replans``: the continuation of a plan from a measured state (stateless)."""
 
+from typing import Any
+
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
@@ -24,8 +26,15 @@ def build_router() -> APIRouter:
                              "back for the next replan. A state outside the region, a time past "
                              "the end, a plan that is not one of ours: 422 naming the field.")
     async def create_replan(body: ReplanRequest, request: Request) -> Response:
-        payload = body.to_library()
-        payload["time_limit"] = body.time_limit
+        # the fields as validated, the plan as parsed: model_dump would copy the whole
+        # earlier answer value by value (2.5 ms of a 40 kB answer; the replan takes about as
+        # long), and the library checks the plan itself
+        payload: dict[str, Any] = {"plan": body.plan, "time": body.time, "state": body.state,
+                                   "keep_reversals": body.keep_reversals,
+                                   "time_limit": body.time_limit}
+        for name in ("rates", "duration"):
+            if getattr(body, name) is not None:
+                payload[name] = getattr(body, name)
         return await json_answer(request, "replan", payload, body.time_limit, method="replan")
 
     return router
