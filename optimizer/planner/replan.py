@@ -314,7 +314,8 @@ def _braked(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
     """The commanded motion braked to rest now: ``sigma'`` from its value down to 0 at a
     constant rate within :data:`BRAKE_TIME` (the rates stay continuous, their slope jumps),
     inside the current piece; what is left of that piece and the later pieces follow. Used
-    when no piece is left after the next stop (the plan's last segment)."""
+    when no piece is left after the next stop (the plan's last segment), and when the rates
+    cannot keep their signs with the motion under way run to its piece's end."""
     assert ps.rates is not None
     sig, ds, _ = ps.law.evaluate(np.array([t]))
     s_t, v = float(sig[0]), float(ds[0])
@@ -346,15 +347,32 @@ def _pieces_end(robot: Robot, q0: np.ndarray, breaks: np.ndarray, rates: np.ndar
     return q
 
 
-def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
-          T_end: float, keep_reversals: bool = False) -> Continuation:
-    """Steps 1-2 of the module: the kept motion, then Gauss-Newton on the later pieces."""
+@dataclass(frozen=True)
+class _Setup:
+    """The kept motion and the correctable pieces after it (plan time ``free``, start rates
+    ``W0`` as unit-piece displacements) from the state ``q_stop`` at its stop."""
+
+    kept: Kept
+    free: np.ndarray
+    W0: np.ndarray
+    q_stop: np.ndarray
+    emap: PieceMap
+    plain_law: bool             # the plan's own law can run the rest
+    braked: bool                # the motion under way is braked now
+
+
+def _setup(ps: PlanState, t: float, q_m: np.ndarray, u_c: np.ndarray, T_end: float,
+           brake: bool) -> _Setup:
+    """Step 1-2's pieces: the motion under way run to its piece's end (``brake`` False, not
+    the last piece) or braked now (the rest of its piece correctable too), the later pieces
+    split when few are left, and the geometric tail."""
     assert ps.rates is not None
     kept = _kept(ps, t, u_c)
     n = ps.robot.n
-    braked = kept.k >= ps.rates.shape[0]
-    if braked:      # the last segment: stop early, what follows is corrected
+    braked = brake or kept.k >= ps.rates.shape[0]
+    if braked:      # stop early, what follows is corrected
         kept = _braked(ps, t, u_c, T_end)
+        braked = kept.pieces > 0        # (at rest: nothing to brake, kept as it is)
     free = np.concatenate([[kept.s_stop], ps.breaks[kept.k + 1:]]) if braked else \
         ps.breaks[kept.k:]
     rates0 = ps.rates[kept.k:]
@@ -367,19 +385,48 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
         free = np.concatenate([(free[:-1, None] + np.diff(free)[:, None] * w).ravel(),
                                free[-1:]])
         rates0 = np.repeat(rates0, split, axis=0)
-        M *= split
     free, rates0, tailed = _tail(free, rates0)
-    M = free.size - 1
-    emap = PieceMap(tuple(ps.robot.gains), tuple(ps.robot.exponents), M)
+    emap = PieceMap(tuple(ps.robot.gains), tuple(ps.robot.exponents), free.size - 1)
     # a piece of plan time L at geometric rate g moves as the unit piece at rate g L
-    L = np.diff(free)[:, None]
+    W0 = rates0 * np.diff(free)[:, None]
     q_stop = _pieces_end(ps.robot, q_m, kept.breaks, kept.rates)
+    plain_law = T_end == ps.end_time and split == 1 and not braked and kept.own and not tailed
+    return _Setup(kept, free, W0, q_stop, emap, plain_law, braked)
+
+
+def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
+          T_end: float, keep_reversals: bool = False) -> Continuation:
+    """Steps 1-2 of the module: the kept motion, then Gauss-Newton on the later pieces.
+
+    The rates keep their signs first with the motion under way run to its piece's end, then
+    with it braked now (its piece's rest correctable too: near the end the piece under way
+    holds most of what is left); then, unless ``keep_reversals``, any sign (run to the end).
+    """
+    assert ps.rates is not None
     goal = ps.goal
-    W0 = rates0 * L
-    err, W, steps, weights, signs_kept = _correct(emap, q_stop, goal, W0, keep_reversals)
+    first = _setup(ps, t, q_m, u_c, T_end, brake=False)
+    found = None
+    try:
+        found = first, _correct(first.emap, first.q_stop, goal, first.W0, True)
+    except NumericalError:
+        if first.kept.pieces and not first.braked:
+            try:
+                braked = _setup(ps, t, q_m, u_c, T_end, brake=True)
+                found = braked, _correct(braked.emap, braked.q_stop, goal, braked.W0, True)
+            except NumericalError:
+                pass
+        if found is None:
+            if keep_reversals:
+                raise
+            found = first, _correct(first.emap, first.q_stop, goal, first.W0, False,
+                                    signed_first=False)
+    st, (err, W, steps, weights, signs_kept) = found
+    kept, free, emap, q_stop = st.kept, st.free, st.emap, st.q_stop
+    L = np.diff(free)[:, None]
+    M = free.size - 1
     new_rates = W / L
     t_stop = kept.law.end if kept.law.phases.size else t
-    if T_end == ps.end_time and split == 1 and not braked and kept.own and not tailed:
+    if st.plain_law:
         later = ps.law.after(t_stop).phases
     else:
         later = law_after_stop(t_stop, T_end, free, equal=True)
@@ -395,7 +442,8 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
 
 
 def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
-             keep_reversals: bool) -> tuple[float, np.ndarray, int, np.ndarray, bool]:
+             keep_reversals: bool, signed_first: bool = True
+             ) -> tuple[float, np.ndarray, int, np.ndarray, bool]:
     """The later pieces' rates moved onto the goal: first with no rate changing sign
     (:func:`~.continuation_map.correct_signed`: a rate at rest stays at rest, one may come to
     rest and no further): no reversal of ``phi`` or ``th1`` is added; then, unless
@@ -408,9 +456,11 @@ def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
     NumericalError
         No correction reached the goal.
     """
-    err, W, steps = correct_signed(emap, q0, goal, W0)
-    if err <= 1e-6:
-        return err, W, steps, piece_weights(W0, W == 0.0), True
+    err = math.inf
+    if signed_first:
+        err, W, steps = correct_signed(emap, q0, goal, W0)
+        if err <= 1e-6:
+            return err, W, steps, piece_weights(W0, W == 0.0), True
     if not keep_reversals:
         for floor in (WEIGHT_FLOOR, None):
             err, W, steps = correct_pieces(emap, q0, goal, W0, floor=floor)
