@@ -98,6 +98,7 @@ class Continuation:
     kept: int = 0               # 1: the first piece is the commanded motion run on
     refine: Any = None          # (exact end, free rates) -> free rates (one defect step)
     signs_kept: bool = False    # every corrected rate kept its sign (no reversal added)
+    braked: bool = False        # the motion under way braked now (not run to its piece's end)
 
 
 def _commanded(ps: PlanState, t: float) -> np.ndarray:
@@ -438,7 +439,7 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
         return current - weighted_step(J[1:], exact_end[1:] - goal, weights).reshape(M, 2) / L
 
     return replace(_assemble(kept, free, new_rates, later, ps.plan_duration, "gauss_newton",
-                             steps, refine), signs_kept=signs_kept)
+                             steps, refine), signs_kept=signs_kept, braked=st.braked)
 
 
 def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
@@ -696,7 +697,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         "timing": dict(timing),
         "diagnostics": {"replan": {
             "route": cont.route, "gauss_newton_steps": cont.steps,
-            "signs_kept": cont.signs_kept,
+            "signs_kept": cont.signs_kept, "braked": cont.braked,
             "kept_piece": bool(cont.kept), "pieces": int(rates.shape[0]),
             "commanded_rates": [float(x) for x in u_c],
             "start_state": q_m.tolist()}},
