@@ -259,3 +259,21 @@ def test_a_braked_continuation_starts_at_the_rates_and_reaches_the_goal(answer: 
         end = run_plant(out, q, t, out["duration"], PROTOTYPE_K)
         assert np.max(np.abs(end[1:] - GOAL)) < 1e-8
     assert braked >= 1      # the braking path was taken (and checked) at least once
+
+
+def test_a_replan_a_hair_before_a_stop(answer: dict) -> None:
+    """At 1e-7 s before a stop of the plan's law the motion is still under way but its stop
+    lies within rounding of plan time: the continuation still starts at the commanded rates
+    and reaches the goal (once an IndexError escaped here)."""
+    from optimizer.planner.replan import read_plan
+    P = read_plan(answer).law.phases
+    stops = P[(np.abs(P[:, 3]) <= 1e-12) & (P[:, 0] > 0.0), 0]
+    assert stops.size >= 3
+    for ts in stops[:3]:
+        t = float(ts) - 1e-7
+        i = int(np.searchsorted(answer["path"]["t"], t))
+        q = np.array(answer["path"]["q"][i])
+        out = replan(answer, t, q)
+        assert np.array_equal(out["path"]["u"][0], rates_of(answer, t))
+        end = run_plant(out, q, t, out["duration"], PROTOTYPE_K)
+        assert np.max(np.abs(end[1:] - GOAL)) < 1e-8

@@ -199,6 +199,9 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
             cont = _fast(ps, req, t, q_m, u_c, T_end, keep_reversals)
         except PlannerError as exc:
             errors.append(f"{exc.code}: {exc.message}")
+        except (ArithmeticError, ValueError, IndexError, np.linalg.LinAlgError) as exc:
+            # a defect of the fast path on an edge case: the full planner still answers
+            errors.append(f"fast path: {type(exc).__name__}: {exc}")
     timing["correction"] = time.perf_counter() - t_start
     result: dict[str, Any] | None = None
     if cont is not None:
@@ -277,6 +280,8 @@ def _kept(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
     j = int(np.argmin(np.abs(ps.breaks - s_stop)))
     if abs(ps.breaks[j] - s_stop) > 1e-7 * max(1.0, ps.plan_duration):
         raise NumericalError("the time law stops between the plan's breaks")
+    if j <= k:      # the stop lies within rounding ahead of t, at the start of piece k
+        k = j - 1
     if j > k + 1:
         return _to_piece_end(ps, t, s_t, v, k, u_c)
     inner = ps.breaks[k + 1:j]
