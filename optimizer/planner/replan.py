@@ -22,8 +22,8 @@ geometry and the timing are corrected separately.
 1. **Kept motion.** The motion under way runs on to the end of its piece at the commanded
    rates (the current piece's direction is the commanded rate over ``lam'(t)``): where the
    plan's law stops there, as planned; where it runs on to a later stop, ``lam'`` is brought
-   to rest at the piece's end (:func:`_to_piece_end`), so that every later piece can change
-   direction. In the last piece, where nothing would be left, it is braked to rest within
+   to rest at the piece's end (:func:`~.kept_motion.to_piece_end`), so that every later
+   piece can change direction (:mod:`.kept_motion`). In the last piece, where nothing would be left, it is braked to rest within
    :data:`BRAKE_TIME` instead (``lam'`` falls linearly; the rest of the piece becomes
    correctable). The rates stay continuous.
 2. **Tail and correction.** The last piece is split into a geometric tail
@@ -74,6 +74,7 @@ from ..verify import integrate_cascade
 from .plan import plan as full_plan
 from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array,
                          invalid, law_after_stop, read_plan)
+from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
 from .continuation_map import (WEIGHT_FLOOR, PieceMap, correct_pieces, correct_signed, piece_end,
                                piece_weights, weighted_step)
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
@@ -82,8 +83,6 @@ from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
 TAIL_PIECES = 4
 #: ... each this fraction of the rest: run in equal times, the motion slows geometrically.
 TAIL_RATIO = 0.35
-#: Seconds over which a chained plan's commanded rates are braked to rest (fallback).
-BRAKE_TIME = 0.05
 # ------------------------------------------------------------------ the replanner
 @dataclass(frozen=True)
 class Continuation:
@@ -230,116 +229,6 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
     return json_safe(result) if plain else result
 
 
-@dataclass(frozen=True)
-class Kept:
-    """The motion that runs on as commanded: from plan time ``breaks[0]`` (now) to the next
-    stop ``breaks[-1]`` (empty at rest), its pieces' rates (the first: the commanded rates
-    over ``sigma'``), its law, and ``k``: the first of the plan's pieces after it."""
-
-    k: int
-    breaks: np.ndarray
-    rates: np.ndarray
-    law: TimeLaw
-    own: bool = True            # the plan's own law (False: brought to rest early)
-
-    @property
-    def pieces(self) -> int:
-        return self.rates.shape[0]
-
-    @property
-    def s_stop(self) -> float:
-        return float(self.breaks[-1])
-
-
-def _kept(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
-    """What runs on from ``t`` to the next stop (see :class:`Kept`). A plan without a time law
-    jumps at every break: there its next break is the stop."""
-    assert ps.rates is not None
-    sig, ds, _ = ps.law.evaluate(np.array([t]))
-    s_t, v = float(sig[0]), float(ds[0])
-    tol = 1e-9 * max(1.0, ps.plan_duration)
-    k = int(np.clip(np.searchsorted(ps.breaks, s_t + tol, side="right") - 1, 0,
-                    ps.rates.shape[0] - 1))
-    if v <= REST:
-        if float(np.max(np.abs(u_c))) > 1e-9:
-            raise NumericalError("the plan is at rest at this time but rates were given",
-                                 field="rates")
-        if abs(s_t - ps.breaks[k]) > tol:
-            raise NumericalError("the plan is at rest inside a piece")
-        return Kept(k, np.array([s_t]), np.zeros((0, 2)), TimeLaw(np.zeros((0, 6))))
-    P = ps.law.phases
-    if ps.jumps:
-        s_stop = float(ps.breaks[k + 1])
-        t_stop = float(P[np.argmin(np.abs(P[:, 2] - s_stop)), 0]) if s_stop < ps.breaks[-1] \
-            else ps.law.end
-    else:
-        at_rest = P[(P[:, 0] > t) & (np.abs(P[:, 3]) <= REST), 0]
-        t_stop = float(at_rest[0]) if at_rest.size else ps.law.end
-        s_stop = float(ps.law.evaluate(np.array([t_stop]))[0][0]) if at_rest.size \
-            else float(ps.law.sigma_ends()[-1])
-    j = int(np.argmin(np.abs(ps.breaks - s_stop)))
-    if abs(ps.breaks[j] - s_stop) > 1e-7 * max(1.0, ps.plan_duration):
-        raise NumericalError("the time law stops between the plan's breaks")
-    if j <= k:      # the stop lies within rounding ahead of t, at the start of piece k
-        k = j - 1
-    if j > k + 1:
-        return _to_piece_end(ps, t, s_t, v, k, u_c)
-    inner = ps.breaks[k + 1:j]
-    kb = np.concatenate([[s_t], inner, [ps.breaks[j]]])
-    kr = ps.rates[k:j].copy()
-    kr[0] = np.asarray(u_c, float) / v
-    law = ps.law.after(t)
-    kept_rows = law.phases[law.phases[:, 0] < t_stop - 1e-12]
-    return Kept(j, kb, kr, TimeLaw(kept_rows))
-
-
-def _to_piece_end(ps: PlanState, t: float, s_t: float, v: float, k: int, u_c: np.ndarray
-                  ) -> Kept:
-    """The commanded motion brought to rest at the end of its piece (where the plan's law runs
-    on to a later stop): ``sigma'`` linear from ``v`` to a peak and down to 0, in about the
-    time the plan takes to that break (at most ``3.5 l / v``, so the peak stays above
-    ``v / 14``). The rates stay continuous; every later piece becomes correctable."""
-    assert ps.rates is not None
-    s_end = float(ps.breaks[k + 1])
-    ell = s_end - s_t
-    # the plan's own time to the break (its sigma is increasing: a grid and interpolation)
-    grid = np.linspace(t, ps.law.end, 64)
-    sg = ps.law.evaluate(grid)[0]
-    D_plan = float(np.interp(s_end, sg, grid)) - t if sg[-1] >= s_end else ps.law.end - t
-    D = min(max(D_plan, 1e-6), 3.5 * ell / v)
-    h = 0.5 * D
-    peak = 0.5 * (4.0 * ell / D - v)
-    s_mid = s_t + 0.5 * (v + peak) * h
-    law = np.array([[t, h, s_t, v, (peak - v) / h, 0.0],
-                    [t + h, h, s_mid, peak, -peak / h, 0.0]])
-    rates = (np.asarray(u_c, float) / v)[None, :]
-    return Kept(k + 1, np.array([s_t, s_end]), rates, TimeLaw(law), own=False)
-
-
-def _braked(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
-    """The commanded motion braked to rest now: ``sigma'`` from its value down to 0 at a
-    constant rate within :data:`BRAKE_TIME` (the rates stay continuous, their slope jumps),
-    inside the current piece; what is left of that piece and the later pieces follow. Used
-    when no piece is left after the next stop (the plan's last segment), and when the rates
-    cannot keep their signs with the motion under way run to its piece's end."""
-    assert ps.rates is not None
-    sig, ds, _ = ps.law.evaluate(np.array([t]))
-    s_t, v = float(sig[0]), float(ds[0])
-    if v <= REST:
-        return _kept(ps, t, u_c)
-    k = int(np.clip(np.searchsorted(ps.breaks, s_t, side="right") - 1, 0,
-                    ps.rates.shape[0] - 1))
-    room = float(ps.breaks[k + 1]) - s_t
-    D = min(BRAKE_TIME, 0.25 * (T_end - t), room / v)   # travels v D / 2 <= room / 2
-    if D <= 0.0:
-        raise NumericalError("no room left to brake the current motion")
-    s_b = s_t + 0.5 * v * D
-    law = np.array([[t, D, s_t, v, -v / D, 0.0]])
-    rates = (np.asarray(u_c, float) / v)[None, :]
-    # the rest of the current piece is free: ps.breaks[k + 1:] follow s_b
-    return Kept(k, np.array([s_t, s_b]), rates, TimeLaw(law))
-
-
 def _pieces_end(robot: Robot, q0: np.ndarray, breaks: np.ndarray, rates: np.ndarray
                 ) -> np.ndarray:
     """The state after constant-rate pieces: RK4 (:func:`~.continuation_map.piece_end`) (as
@@ -373,11 +262,11 @@ def _setup(ps: PlanState, t: float, q_m: np.ndarray, u_c: np.ndarray, T_end: flo
     the last piece) or braked now (the rest of its piece correctable too), the later pieces
     split when few are left, and the geometric tail."""
     assert ps.rates is not None
-    kept = _kept(ps, t, u_c)
+    kept = run_on(ps, t, u_c)
     n = ps.robot.n
     braked = brake or kept.k >= ps.rates.shape[0]
     if braked:      # stop early, what follows is corrected
-        kept = _braked(ps, t, u_c, T_end)
+        kept = brake_now(ps, t, u_c, T_end)
         braked = kept.pieces > 0        # (at rest: nothing to brake, kept as it is)
     free = np.concatenate([[kept.s_stop], ps.breaks[kept.k + 1:]]) if braked else \
         ps.breaks[kept.k:]
@@ -522,9 +411,9 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
               T_end: float) -> Continuation:
     """Step 4 of the module: the kept motion (or a braking), then the full planner."""
     if ps.rates is not None:
-        kept = _kept(ps, t, u_c)
+        kept = run_on(ps, t, u_c)
         if kept.k >= ps.rates.shape[0]:
-            kept = _braked(ps, t, u_c, T_end)
+            kept = brake_now(ps, t, u_c, T_end)
     elif float(np.max(np.abs(u_c))) > REST:
         Db = min(BRAKE_TIME, 0.5 * (T_end - t))
         kept = Kept(0, np.array([0.0, 0.5 * Db]), np.asarray(u_c, float)[None, :],
