@@ -7,7 +7,8 @@ Three parts, each on the benchmark's generated goals (:func:`bench.goals.generat
   states off the plan's by up to 0.5 deg, with the plan's rates at that time; p50 / p99 per
   ``n``, and the ratio of the cold plan's median to the replan's;
 * **latency over HTTP** (``--http``): ``python -m service`` in a subprocess (one worker),
-  ``POST /v1/replans`` with the whole earlier answer, sequentially, p50 / p99;
+  ``POST /v1/replans`` with the whole earlier answer, then with its compact form,
+  sequentially: wall-clock p50 / p99 and the server's CPU time per replan;
 * **closed loop**: per goal a plant whose gains ``K_i`` are off by ``e_i`` uniform in +-5 %,
   a start off by up to +-0.5 deg per joint, the plan run open loop and in closed loop (a
   replan from the measured state every 0.05 s) by scipy's DOP853
@@ -100,14 +101,38 @@ def latency(joints: list[int], goals: int, replans: int,
     return out
 
 
+def _tree_cpu(pid: int) -> float:
+    """CPU seconds (user + system) of a process and its children so far."""
+    import psutil
+
+    total = 0.0
+    try:
+        root = psutil.Process(pid)
+        for p in [root, *root.children(recursive=True)]:
+            try:
+                c = p.cpu_times()
+                total += c.user + c.system
+            except psutil.Error:
+                pass
+    except psutil.Error:
+        pass
+    return total
+
+
 def http_latency(replans: int) -> dict[str, Any]:
-    """``POST /v1/replans`` against ``python -m service`` (one worker), sequentially."""
+    """``POST /v1/replans`` against ``python -m service`` (one worker), sequentially: wall
+    clock per request (inflated by a shared machine's load) and CPU seconds of the server's
+    process tree per request (the event loop and the worker: what a replan costs the
+    server), once with the whole earlier answer sent back and once with its compact form."""
     import httpx
+
+    from optimizer.planner.plan_state import read_plan
 
     from .http_load import Server
 
     server = Server({"PLANNER_WORKERS": "1"})
     server.start()
+    out: dict[str, Any] = {}
     try:
         with httpx.Client(base_url=server.url, timeout=60.0) as client:
             deadline = time.monotonic() + 180.0
@@ -121,25 +146,38 @@ def http_latency(replans: int) -> dict[str, Any]:
             g = generate(3, 1)[0]
             answer = client.post("/v1/plans", json={"start": list(g.start),
                                                     "goal": list(g.goal)}).json()
-            rng = np.random.default_rng(SEED)
-            times, sizes = [], []
-            for _ in range(replans):
-                t, state = _perturbed_state(answer, rng, 0.05)
-                body = {"plan": answer, "time": t, "state": state.tolist()}
-                t0 = time.perf_counter()
-                r = client.post("/v1/replans", json=body)
-                times.append(time.perf_counter() - t0)
-                if r.status_code == 200:
-                    sizes.append(len(r.content))
+            assert server.proc is not None
+            for form, plan_sent in (("answer", answer),
+                                    ("compact", read_plan(answer).compact())):
+                rng = np.random.default_rng(SEED)
+                for _ in range(3):       # the worker's first replans (maps built, caches)
+                    t, state = _perturbed_state(answer, rng, 0.05)
+                    client.post("/v1/replans", json={"plan": plan_sent, "time": t,
+                                                     "state": state.tolist()})
+                times, sizes = [], []
+                cpu0 = _tree_cpu(server.proc.pid)
+                for _ in range(replans):
+                    t, state = _perturbed_state(answer, rng, 0.05)
+                    body = {"plan": plan_sent, "time": t, "state": state.tolist()}
+                    t0 = time.perf_counter()
+                    r = client.post("/v1/replans", json=body)
+                    times.append(time.perf_counter() - t0)
+                    if r.status_code == 200:
+                        sizes.append(len(r.content))
+                cpu = (_tree_cpu(server.proc.pid) - cpu0) / max(replans, 1)
+                out[form] = {"replans": len(times),
+                             "p50_ms": 1e3 * float(np.percentile(times, 50)),
+                             "p99_ms": 1e3 * float(np.percentile(times, 99)),
+                             "server_cpu_ms": 1e3 * cpu,
+                             "request_bytes": len(json.dumps(body)),
+                             "answer_bytes": int(np.median(sizes)) if sizes else 0,
+                             "answered": len(sizes)}
             t0 = time.perf_counter()
             client.post("/v1/plans", json={"start": list(g.start), "goal": list(g.goal)})
-            plan_ms = 1e3 * (time.perf_counter() - t0)
+            out["one_plan_ms"] = 1e3 * (time.perf_counter() - t0)
     finally:
         server.stop()
-    return {"replans": len(times), "p50_ms": 1e3 * float(np.percentile(times, 50)),
-            "p99_ms": 1e3 * float(np.percentile(times, 99)),
-            "answer_bytes": int(np.median(sizes)) if sizes else 0, "answered": len(sizes),
-            "one_plan_ms": plan_ms}
+    return out
 
 
 def closed_loop(joints: list[int], goals: int, gain_error: float, spread_deg: float,
@@ -207,10 +245,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"n = {n}: replan p50 {r['p50_ms']:.2f} ms, p99 {r['p99_ms']:.2f} ms; cold "
               f"default plan median {r['cold_plan_median_ms']:.1f} ms "
               f"({r['plan_over_replan']:.1f}x); routes {r['routes']}")
-    if "http" in report:
-        h = report["http"]
-        print(f"HTTP: replan p50 {h['p50_ms']:.2f} ms, p99 {h['p99_ms']:.2f} ms "
-              f"({h['replans']} sequential, answer {h['answer_bytes']} B)")
+    for form, h in report.get("http", {}).items():
+        if isinstance(h, dict):
+            print(f"HTTP ({form} sent back, {h['request_bytes']} B): replan wall p50 "
+                  f"{h['p50_ms']:.2f} ms, p99 {h['p99_ms']:.2f} ms; server CPU "
+                  f"{h['server_cpu_ms']:.2f} ms per replan ({h['replans']} sequential, "
+                  f"answer {h['answer_bytes']} B, {h['answered']} answered)")
     for n, r in report.get("closed_loop", {}).items():
         print(f"closed loop n = {n} ({r['goals']} goals): terminal error median open "
               f"{r['open_median_rad']:.3g} rad, closed {r['closed_median_rad']:.3g} rad, median "

@@ -134,7 +134,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.add_middleware(RequestContextMiddleware, max_body_bytes=settings.max_body_bytes,
                        metrics=metrics, known_paths=lambda: known, api_keys=settings.api_keys,
-                       fast_routes=[FastPlanRoute(app.state, schemas)],
+                       fast_routes=[FastPlanRoute(app.state, schemas),
+                                    replans.FastReplanRoute(app.state)],
                        body_timeout=settings.body_timeout, send_timeout=settings.send_timeout)
     # gzip for clients that accept it (a plan at the default 201 samples: 62 KB of JSON), outside
     # the request middleware so that its own answers (the fast path, 401, 413) are compressed

@@ -10,7 +10,8 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from optimizer.model import Robot
-from optimizer.planner.continuation_map import PieceMap, correct_pieces
+from optimizer.planner.continuation_map import (PieceMap, correct_pieces, correct_signed,
+                                                piece_weights, signed_step)
 from optimizer.planner.plan import plan
 from optimizer.planner.replan import read_plan, replan, sign_changes
 from optimizer.problem import PlanRequest
@@ -64,6 +65,36 @@ def test_correction_reaches_the_goal_on_scipy(pieces) -> None:
     err, W1, steps = correct_pieces(emap, q0, goal, W)
     assert err < 1e-10 and steps >= 1
     assert np.max(np.abs(scipy_end(q0, W1)[1:] - goal)) < 1e-8
+
+
+def test_sign_keeping_correction_reaches_the_goal_on_scipy(pieces) -> None:
+    """The sign-keeping Gauss-Newton reaches a nearby goal (checked by scipy) and no rate
+    changes sign."""
+    q0, W = pieces
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    goal = scipy_end(q0, W)[1:] + np.array([-1e-3, 1e-3, 1e-3])
+    err, W1, steps = correct_signed(emap, q0, goal, W)
+    assert err < 1e-10 and steps >= 1
+    assert np.all(W1 * np.sign(W) >= 0.0)
+    assert np.max(np.abs(scipy_end(q0, W1)[1:] - goal)) < 1e-8
+
+
+def test_signed_step_solves_the_system_within_the_signs() -> None:
+    """Random systems with room to spare: the step solves ``J dx = r`` and leaves every rate
+    on its own side of 0 (a rate the plain step would push across stops at 0)."""
+    rng = np.random.default_rng(5)
+    crossed = 0
+    for _ in range(50):
+        W = rng.uniform(0.2, 1.0, 16) * rng.choice([-1.0, 1.0], 16)
+        J = rng.normal(size=(3, 16))
+        r = 4.0 * rng.normal(size=3)
+        D2 = piece_weights(W)
+        plain = W - (J * D2).T @ np.linalg.solve((J * D2) @ J.T, r)
+        crossed += int(np.any(plain * np.sign(W) < 0.0))
+        dx = signed_step(J, r, D2, W, np.sign(W))
+        assert np.allclose(J @ dx, r, atol=1e-9)
+        assert np.all((W - dx) * np.sign(W) >= -1e-15)
+    assert crossed >= 5        # the sign constraint was active in some of them
 
 
 @pytest.fixture(scope="module")

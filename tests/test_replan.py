@@ -229,3 +229,51 @@ def test_the_compact_form_replans_like_the_answer(answer: dict) -> None:
     a, b = replan(answer, 0.25, q), replan(compact, 0.25, q)
     assert np.allclose(np.array(a["path"]["u"]), np.array(b["path"]["u"]), rtol=0, atol=1e-12)
     assert a["path"]["t"] == b["path"]["t"]
+
+
+def test_a_braked_continuation_starts_at_the_rates_and_reaches_the_goal(answer: dict) -> None:
+    """Late in the motion, where the rates cannot keep their signs with the motion under way
+    run to its piece's end, that motion is braked now and the rest of its piece corrected:
+    the continuation still starts at the commanded rates (no jump), adds no reversal, and
+    its rates reach the goal on the tests' model (scipy)."""
+    from optimizer.planner.replan import read_plan, sign_changes
+    ps = read_plan(answer)
+    rng = np.random.default_rng(3)
+    path_t, path_q = answer["path"]["t"], answer["path"]["q"]
+    braked = 0
+    for _ in range(16):
+        i = int(rng.integers(int(0.8 * len(path_t)), int(0.95 * len(path_t))))
+        t = path_t[i]
+        q = np.array(path_q[i]) + [0.0, *rng.uniform(-1e-3, 1e-3, 3)]
+        out = replan(answer, t, q)
+        d = out["diagnostics"]["replan"]
+        if not (d["braked"] and d["signs_kept"]):
+            continue
+        braked += 1
+        given = rates_of(answer, t)
+        assert rates_of(out, t + 1e-9) == pytest.approx(given, rel=1e-6, abs=1e-9)
+        rates = np.array([s["u"] for s in out["coefficients"]["segments"]])
+        k = int(np.searchsorted(ps.breaks, ps.law.evaluate(np.array([t]))[0][0],
+                                side="right")) - 1
+        assert sign_changes(rates) <= sign_changes(ps.rates[k:])
+        end = run_plant(out, q, t, out["duration"], PROTOTYPE_K)
+        assert np.max(np.abs(end[1:] - GOAL)) < 1e-8
+    assert braked >= 1      # the braking path was taken (and checked) at least once
+
+
+def test_a_replan_a_hair_before_a_stop(answer: dict) -> None:
+    """At 1e-7 s before a stop of the plan's law the motion is still under way but its stop
+    lies within rounding of plan time: the continuation still starts at the commanded rates
+    and reaches the goal (once an IndexError escaped here)."""
+    from optimizer.planner.replan import read_plan
+    P = read_plan(answer).law.phases
+    stops = P[(np.abs(P[:, 3]) <= 1e-12) & (P[:, 0] > 0.0), 0]
+    assert stops.size >= 3
+    for ts in stops[:3]:
+        t = float(ts) - 1e-7
+        i = int(np.searchsorted(answer["path"]["t"], t))
+        q = np.array(answer["path"]["q"][i])
+        out = replan(answer, t, q)
+        assert np.array_equal(out["path"]["u"][0], rates_of(answer, t))
+        end = run_plant(out, q, t, out["duration"], PROTOTYPE_K)
+        assert np.max(np.abs(end[1:] - GOAL)) < 1e-8

@@ -40,6 +40,16 @@ MAX_STEPS = 12
 #: Fractions of the Gauss-Newton step tried in turn until one shrinks the miss (near a
 #: direction that only brackets reach the full step overshoots).
 HALVINGS = tuple(0.5 ** k for k in range(9))
+#: Levenberg-Marquardt dampings (relative to the mean diagonal of ``J J^T``) tried in turn when
+#: the undamped sign-keeping step, halved, does not shrink the miss.
+DAMPINGS = (0.0, 1e-4, 1e-2, 1.0)
+#: Most steps of the sign-keeping correction.
+SIGNED_STEPS = 30
+#: A step that leaves more than this fraction of the squared miss is a stall (three in a row:
+#: stop).
+STALL = 0.9
+#: Rounds of the active set of :func:`signed_step`.
+MAX_ACTIVE = 6
 
 
 @functools.lru_cache(maxsize=64)
@@ -182,6 +192,90 @@ def correct_pieces(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
     return err, W, steps
 
 
-__all__ = ["HALVINGS", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
+def signed_step(J: np.ndarray, r: np.ndarray, D2: np.ndarray, W: np.ndarray,
+                 signs: np.ndarray, mu: float = 0.0) -> np.ndarray:
+    """The weighted least-norm step (:func:`weighted_step`) of the rates ``W`` (flat) in
+    which no rate crosses to the sign opposite ``signs`` (0: held at rest): a rate the step
+    would take across 0 is set to 0 exactly (its share of ``J dx = r`` moved to the right
+    side) and the others solved again (an active set, a few rounds). Returns ``dx`` with
+    ``W - dx`` the new rates."""
+    free = D2 > 0.0
+    fixed = np.zeros_like(free)
+    rhs = r
+    dx = np.zeros_like(W)
+    for _ in range(MAX_ACTIVE):
+        d = np.where(free & ~fixed, D2, 0.0)
+        step = weighted_step(J, rhs, d, mu)
+        step[fixed] = W[fixed]
+        new = W - step
+        bad = ~fixed & (new * signs < 0.0)
+        dx = step
+        if not bad.any():
+            return dx
+        fixed |= bad
+        rhs = r - J[:, fixed] @ W[fixed]
+    dx[(W - dx) * signs < 0.0] = W[(W - dx) * signs < 0.0]
+    return dx
+
+
+def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
+                   target: float = TARGET, max_steps: int = SIGNED_STEPS
+                   ) -> tuple[float, np.ndarray, int]:
+    """Gauss-Newton onto ``th(end) = goal`` in which no rate changes sign (a rate at rest
+    stays at rest; one may come to rest and move again in its own direction): each step is
+    the weighted least-norm step of :func:`correct_pieces` restricted to the rates' signs
+    (:func:`signed_step`), halved until the miss shrinks, then damped (Levenberg-Marquardt,
+    :data:`DAMPINGS`): near the directions only higher brackets reach the plain step
+    overshoots, a damped one still descends.
+
+    Returns
+    -------
+    (float, ndarray, int)
+        The map's miss (rad, max norm), the rates ``(M, 2)``, the steps taken.
+    """
+    W = np.array(W0, float)
+    scale = float(np.max(np.abs(W), initial=0.0))
+    signs = np.where(np.abs(W) > 1e-9 * scale, np.sign(W), 0.0).ravel()
+    W[(signs == 0.0).reshape(W.shape)] = 0.0
+    D2 = piece_weights(W0, signs == 0.0)
+    end, J = emap(q0, W)
+    r = end[1:] - goal
+    err = float(np.max(np.abs(r)))
+    size = float(r @ r)
+    steps = stalls = 0
+    mu = 0.0
+    while err > target and steps < max_steps:
+        accepted = False
+        for damping in ((mu,) if mu else ()) + DAMPINGS:
+            try:
+                dx = signed_step(J[1:], r, D2, W.ravel(), signs, damping).reshape(W.shape)
+            except np.linalg.LinAlgError:
+                continue
+            for alpha in HALVINGS[:5] if damping == 0.0 else HALVINGS[:2]:
+                V = W - alpha * dx
+                end2, J2 = emap(q0, V)
+                r2 = end2[1:] - goal
+                s2 = float(r2 @ r2)
+                if math.isfinite(s2) and s2 < size:
+                    accepted = True
+                    break
+            if accepted:
+                # keep a damping that was needed (halved), drop it once plain steps work
+                mu = 0.5 * damping if damping > 1e-6 else 0.0
+                break
+        if not accepted:
+            break
+        # Gauss-Newton that can reach the goal converges fast: a step that removes little of
+        # the miss (twice) says the signs keep the goal out of reach
+        stalls = stalls + 1 if s2 > STALL * size else 0
+        W, J, r, size = V, J2, r2, s2
+        err = float(np.max(np.abs(r)))
+        steps += 1
+        if stalls >= 3:
+            break
+    return err, W, steps
+
+
+__all__ = ["DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
            "correct_pieces", "piece_end", "prepare", "piece_map", "piece_weights", "size_for",
            "weighted_step"]

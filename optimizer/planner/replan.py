@@ -22,8 +22,8 @@ geometry and the timing are corrected separately.
 1. **Kept motion.** The motion under way runs on to the end of its piece at the commanded
    rates (the current piece's direction is the commanded rate over ``lam'(t)``): where the
    plan's law stops there, as planned; where it runs on to a later stop, ``lam'`` is brought
-   to rest at the piece's end (:func:`_to_piece_end`), so that every later piece can change
-   direction. In the last piece, where nothing would be left, it is braked to rest within
+   to rest at the piece's end (:func:`~.kept_motion.to_piece_end`), so that every later
+   piece can change direction (:mod:`.kept_motion`). In the last piece, where nothing would be left, it is braked to rest within
    :data:`BRAKE_TIME` instead (``lam'`` falls linearly; the rest of the piece becomes
    correctable). The rates stay continuous.
 2. **Tail and correction.** The last piece is split into a geometric tail
@@ -32,8 +32,10 @@ geometry and the timing are corrected separately.
    The rates of the later pieces start at the plan's (the warm start) and take weighted
    least-norm Gauss-Newton steps onto the goal (``th_1..th_n``; ``phi`` is free), each
    halved until the miss shrinks, with one compiled CasADi end map and Jacobian per robot
-   and size (:mod:`.continuation_map`). First every rate keeps its sign (no reversal of
-   ``phi`` or ``th1`` added); unless ``keep_reversals``, any sign when that fails. The
+   and size (:mod:`.continuation_map`). First every rate keeps its sign (each step restricted
+   to the rates' signs, an active set; Levenberg-Marquardt damping when the plain step
+   overshoots): no reversal of ``phi`` or ``th1`` is added; unless ``keep_reversals``, any
+   sign when that fails. The
    remaining law is kept when nothing was split or stopped early; otherwise every piece runs
    rest to rest in equal times (:func:`~.plan_state.law_after_stop`).
 3. **Proof.** The continuation's pieces are integrated by cascade quadrature on the original
@@ -41,8 +43,8 @@ geometry and the timing are corrected separately.
    break (monotone on a constant-rate piece), the handed-out samples replayed by their rule.
 4. **Fallback: the full planner.** A correction that fails (near a reversal the end map's
    Jacobian is ill-conditioned), or a plan of chained inputs (braked first): the full
-   planner (method ``shooting``, then ``penalty``) plans from the stop; its pieces run rest to
-   rest until the end.
+   planner (method ``shooting``, then ``penalty``) plans from the stop; its last piece is
+   split into the same geometric tail, and its pieces run rest to rest until the end.
 
 Why not change the current piece: its direction changed mid-motion would jump the rates; a
 stop is where the direction may change. The motion after the last replan is what no replan
@@ -72,18 +74,15 @@ from ..verify import integrate_cascade
 from .plan import plan as full_plan
 from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array,
                          invalid, law_after_stop, read_plan)
-from .continuation_map import (WEIGHT_FLOOR, PieceMap, correct_pieces, piece_end,
+from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
+from .continuation_map import (WEIGHT_FLOOR, PieceMap, correct_pieces, correct_signed, piece_end,
                                piece_weights, weighted_step)
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
 
-#: Rounds of holding at 0 the rates that a correction would reverse.
-MAX_HOLDS = 3
 #: The continuation's last piece is split into this many parts and one more...
 TAIL_PIECES = 4
 #: ... each this fraction of the rest: run in equal times, the motion slows geometrically.
 TAIL_RATIO = 0.35
-#: Seconds over which a chained plan's commanded rates are braked to rest (fallback).
-BRAKE_TIME = 0.05
 # ------------------------------------------------------------------ the replanner
 @dataclass(frozen=True)
 class Continuation:
@@ -98,6 +97,7 @@ class Continuation:
     kept: int = 0               # 1: the first piece is the commanded motion run on
     refine: Any = None          # (exact end, free rates) -> free rates (one defect step)
     signs_kept: bool = False    # every corrected rate kept its sign (no reversal added)
+    braked: bool = False        # the motion under way braked now (not run to its piece's end)
 
 
 def _commanded(ps: PlanState, t: float) -> np.ndarray:
@@ -198,6 +198,9 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
             cont = _fast(ps, req, t, q_m, u_c, T_end, keep_reversals)
         except PlannerError as exc:
             errors.append(f"{exc.code}: {exc.message}")
+        except (ArithmeticError, ValueError, IndexError, np.linalg.LinAlgError) as exc:
+            # a defect of the fast path on an edge case: the full planner still answers
+            errors.append(f"fast path: {type(exc).__name__}: {exc}")
     timing["correction"] = time.perf_counter() - t_start
     result: dict[str, Any] | None = None
     if cont is not None:
@@ -226,113 +229,6 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
     return json_safe(result) if plain else result
 
 
-@dataclass(frozen=True)
-class Kept:
-    """The motion that runs on as commanded: from plan time ``breaks[0]`` (now) to the next
-    stop ``breaks[-1]`` (empty at rest), its pieces' rates (the first: the commanded rates
-    over ``sigma'``), its law, and ``k``: the first of the plan's pieces after it."""
-
-    k: int
-    breaks: np.ndarray
-    rates: np.ndarray
-    law: TimeLaw
-    own: bool = True            # the plan's own law (False: brought to rest early)
-
-    @property
-    def pieces(self) -> int:
-        return self.rates.shape[0]
-
-    @property
-    def s_stop(self) -> float:
-        return float(self.breaks[-1])
-
-
-def _kept(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
-    """What runs on from ``t`` to the next stop (see :class:`Kept`). A plan without a time law
-    jumps at every break: there its next break is the stop."""
-    assert ps.rates is not None
-    sig, ds, _ = ps.law.evaluate(np.array([t]))
-    s_t, v = float(sig[0]), float(ds[0])
-    tol = 1e-9 * max(1.0, ps.plan_duration)
-    k = int(np.clip(np.searchsorted(ps.breaks, s_t + tol, side="right") - 1, 0,
-                    ps.rates.shape[0] - 1))
-    if v <= REST:
-        if float(np.max(np.abs(u_c))) > 1e-9:
-            raise NumericalError("the plan is at rest at this time but rates were given",
-                                 field="rates")
-        if abs(s_t - ps.breaks[k]) > tol:
-            raise NumericalError("the plan is at rest inside a piece")
-        return Kept(k, np.array([s_t]), np.zeros((0, 2)), TimeLaw(np.zeros((0, 6))))
-    P = ps.law.phases
-    if ps.jumps:
-        s_stop = float(ps.breaks[k + 1])
-        t_stop = float(P[np.argmin(np.abs(P[:, 2] - s_stop)), 0]) if s_stop < ps.breaks[-1] \
-            else ps.law.end
-    else:
-        at_rest = P[(P[:, 0] > t) & (np.abs(P[:, 3]) <= REST), 0]
-        t_stop = float(at_rest[0]) if at_rest.size else ps.law.end
-        s_stop = float(ps.law.evaluate(np.array([t_stop]))[0][0]) if at_rest.size \
-            else float(ps.law.sigma_ends()[-1])
-    j = int(np.argmin(np.abs(ps.breaks - s_stop)))
-    if abs(ps.breaks[j] - s_stop) > 1e-7 * max(1.0, ps.plan_duration):
-        raise NumericalError("the time law stops between the plan's breaks")
-    if j > k + 1:
-        return _to_piece_end(ps, t, s_t, v, k, u_c)
-    inner = ps.breaks[k + 1:j]
-    kb = np.concatenate([[s_t], inner, [ps.breaks[j]]])
-    kr = ps.rates[k:j].copy()
-    kr[0] = np.asarray(u_c, float) / v
-    law = ps.law.after(t)
-    kept_rows = law.phases[law.phases[:, 0] < t_stop - 1e-12]
-    return Kept(j, kb, kr, TimeLaw(kept_rows))
-
-
-def _to_piece_end(ps: PlanState, t: float, s_t: float, v: float, k: int, u_c: np.ndarray
-                  ) -> Kept:
-    """The commanded motion brought to rest at the end of its piece (where the plan's law runs
-    on to a later stop): ``sigma'`` linear from ``v`` to a peak and down to 0, in about the
-    time the plan takes to that break (at most ``3.5 l / v``, so the peak stays above
-    ``v / 14``). The rates stay continuous; every later piece becomes correctable."""
-    assert ps.rates is not None
-    s_end = float(ps.breaks[k + 1])
-    ell = s_end - s_t
-    # the plan's own time to the break (its sigma is increasing: a grid and interpolation)
-    grid = np.linspace(t, ps.law.end, 64)
-    sg = ps.law.evaluate(grid)[0]
-    D_plan = float(np.interp(s_end, sg, grid)) - t if sg[-1] >= s_end else ps.law.end - t
-    D = min(max(D_plan, 1e-6), 3.5 * ell / v)
-    h = 0.5 * D
-    peak = 0.5 * (4.0 * ell / D - v)
-    s_mid = s_t + 0.5 * (v + peak) * h
-    law = np.array([[t, h, s_t, v, (peak - v) / h, 0.0],
-                    [t + h, h, s_mid, peak, -peak / h, 0.0]])
-    rates = (np.asarray(u_c, float) / v)[None, :]
-    return Kept(k + 1, np.array([s_t, s_end]), rates, TimeLaw(law), own=False)
-
-
-def _braked(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
-    """The commanded motion braked to rest now: ``sigma'`` from its value down to 0 at a
-    constant rate within :data:`BRAKE_TIME` (the rates stay continuous, their slope jumps),
-    inside the current piece; what is left of that piece and the later pieces follow. Used
-    when no piece is left after the next stop (the plan's last segment)."""
-    assert ps.rates is not None
-    sig, ds, _ = ps.law.evaluate(np.array([t]))
-    s_t, v = float(sig[0]), float(ds[0])
-    if v <= REST:
-        return _kept(ps, t, u_c)
-    k = int(np.clip(np.searchsorted(ps.breaks, s_t, side="right") - 1, 0,
-                    ps.rates.shape[0] - 1))
-    room = float(ps.breaks[k + 1]) - s_t
-    D = min(BRAKE_TIME, 0.25 * (T_end - t), room / v)   # travels v D / 2 <= room / 2
-    if D <= 0.0:
-        raise NumericalError("no room left to brake the current motion")
-    s_b = s_t + 0.5 * v * D
-    law = np.array([[t, D, s_t, v, -v / D, 0.0]])
-    rates = (np.asarray(u_c, float) / v)[None, :]
-    # the rest of the current piece is free: ps.breaks[k + 1:] follow s_b
-    return Kept(k, np.array([s_t, s_b]), rates, TimeLaw(law))
-
-
 def _pieces_end(robot: Robot, q0: np.ndarray, breaks: np.ndarray, rates: np.ndarray
                 ) -> np.ndarray:
     """The state after constant-rate pieces: RK4 (:func:`~.continuation_map.piece_end`) (as
@@ -346,15 +242,32 @@ def _pieces_end(robot: Robot, q0: np.ndarray, breaks: np.ndarray, rates: np.ndar
     return q
 
 
-def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
-          T_end: float, keep_reversals: bool = False) -> Continuation:
-    """Steps 1-2 of the module: the kept motion, then Gauss-Newton on the later pieces."""
+@dataclass(frozen=True)
+class _Setup:
+    """The kept motion and the correctable pieces after it (plan time ``free``, start rates
+    ``W0`` as unit-piece displacements) from the state ``q_stop`` at its stop."""
+
+    kept: Kept
+    free: np.ndarray
+    W0: np.ndarray
+    q_stop: np.ndarray
+    emap: PieceMap
+    plain_law: bool             # the plan's own law can run the rest
+    braked: bool                # the motion under way is braked now
+
+
+def _setup(ps: PlanState, t: float, q_m: np.ndarray, u_c: np.ndarray, T_end: float,
+           brake: bool) -> _Setup:
+    """Step 1-2's pieces: the motion under way run to its piece's end (``brake`` False, not
+    the last piece) or braked now (the rest of its piece correctable too), the later pieces
+    split when few are left, and the geometric tail."""
     assert ps.rates is not None
-    kept = _kept(ps, t, u_c)
+    kept = run_on(ps, t, u_c)
     n = ps.robot.n
-    braked = kept.k >= ps.rates.shape[0]
-    if braked:      # the last segment: stop early, what follows is corrected
-        kept = _braked(ps, t, u_c, T_end)
+    braked = brake or kept.k >= ps.rates.shape[0]
+    if braked:      # stop early, what follows is corrected
+        kept = brake_now(ps, t, u_c, T_end)
+        braked = kept.pieces > 0        # (at rest: nothing to brake, kept as it is)
     free = np.concatenate([[kept.s_stop], ps.breaks[kept.k + 1:]]) if braked else \
         ps.breaks[kept.k:]
     rates0 = ps.rates[kept.k:]
@@ -367,19 +280,48 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
         free = np.concatenate([(free[:-1, None] + np.diff(free)[:, None] * w).ravel(),
                                free[-1:]])
         rates0 = np.repeat(rates0, split, axis=0)
-        M *= split
     free, rates0, tailed = _tail(free, rates0)
-    M = free.size - 1
-    emap = PieceMap(tuple(ps.robot.gains), tuple(ps.robot.exponents), M)
+    emap = PieceMap(tuple(ps.robot.gains), tuple(ps.robot.exponents), free.size - 1)
     # a piece of plan time L at geometric rate g moves as the unit piece at rate g L
-    L = np.diff(free)[:, None]
+    W0 = rates0 * np.diff(free)[:, None]
     q_stop = _pieces_end(ps.robot, q_m, kept.breaks, kept.rates)
+    plain_law = T_end == ps.end_time and split == 1 and not braked and kept.own and not tailed
+    return _Setup(kept, free, W0, q_stop, emap, plain_law, braked)
+
+
+def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
+          T_end: float, keep_reversals: bool = False) -> Continuation:
+    """Steps 1-2 of the module: the kept motion, then Gauss-Newton on the later pieces.
+
+    The rates keep their signs first with the motion under way run to its piece's end, then
+    with it braked now (its piece's rest correctable too: near the end the piece under way
+    holds most of what is left); then, unless ``keep_reversals``, any sign (run to the end).
+    """
+    assert ps.rates is not None
     goal = ps.goal
-    W0 = rates0 * L
-    err, W, steps, weights, signs_kept = _correct(emap, q_stop, goal, W0, keep_reversals)
+    first = _setup(ps, t, q_m, u_c, T_end, brake=False)
+    found = None
+    try:
+        found = first, _correct(first.emap, first.q_stop, goal, first.W0, True)
+    except NumericalError:
+        if first.kept.pieces and not first.braked:
+            try:
+                braked = _setup(ps, t, q_m, u_c, T_end, brake=True)
+                found = braked, _correct(braked.emap, braked.q_stop, goal, braked.W0, True)
+            except NumericalError:
+                pass
+        if found is None:
+            if keep_reversals:
+                raise
+            found = first, _correct(first.emap, first.q_stop, goal, first.W0, False,
+                                    signed_first=False)
+    st, (err, W, steps, weights, signs_kept) = found
+    kept, free, emap, q_stop = st.kept, st.free, st.emap, st.q_stop
+    L = np.diff(free)[:, None]
+    M = free.size - 1
     new_rates = W / L
     t_stop = kept.law.end if kept.law.phases.size else t
-    if T_end == ps.end_time and split == 1 and not braked and kept.own and not tailed:
+    if st.plain_law:
         later = ps.law.after(t_stop).phases
     else:
         later = law_after_stop(t_stop, T_end, free, equal=True)
@@ -391,37 +333,29 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
         return current - weighted_step(J[1:], exact_end[1:] - goal, weights).reshape(M, 2) / L
 
     return replace(_assemble(kept, free, new_rates, later, ps.plan_duration, "gauss_newton",
-                             steps, refine), signs_kept=signs_kept)
+                             steps, refine), signs_kept=signs_kept, braked=st.braked)
 
 
 def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
-             keep_reversals: bool) -> tuple[float, np.ndarray, int, np.ndarray, bool]:
-    """The later pieces' rates moved onto the goal (:func:`~.continuation_map.correct_pieces`):
-    first keeping every rate's sign (a rate at rest stays at rest, one that would change sign
-    is held at rest and the rest solved again): no reversal of ``phi`` or ``th1`` is added;
-    then, unless ``keep_reversals``, with any sign (weighted, then the plain least-norm step).
-    Returns the map's miss, the rates, the steps, the weights used (for the defect step) and
-    whether the signs were kept.
+             keep_reversals: bool, signed_first: bool = True
+             ) -> tuple[float, np.ndarray, int, np.ndarray, bool]:
+    """The later pieces' rates moved onto the goal: first with no rate changing sign
+    (:func:`~.continuation_map.correct_signed`: a rate at rest stays at rest, one may come to
+    rest and no further): no reversal of ``phi`` or ``th1`` is added; then, unless
+    ``keep_reversals``, with any sign (:func:`~.continuation_map.correct_pieces`, weighted,
+    then the plain least-norm step). Returns the map's miss, the rates, the steps, the
+    weights used (for the defect step) and whether the signs were kept.
 
     Raises
     ------
     NumericalError
         No correction reached the goal.
     """
-    scale = float(np.max(np.abs(W0), initial=0.0))
-    signs = np.where(np.abs(W0) > 1e-9 * scale, np.sign(W0), 0.0)
-    held = signs == 0.0
     err = math.inf
-    for _ in range(MAX_HOLDS + 1):
-        if held.all():
-            break
-        err, W, steps = correct_pieces(emap, q0, goal, W0, held=held)
-        if err > 1e-6:
-            break
-        flipped = (signs != 0.0) & (np.sign(W) == -signs) & ~held
-        if not flipped.any():
-            return err, W, steps, piece_weights(W0, held), True
-        held |= flipped
+    if signed_first:
+        err, W, steps = correct_signed(emap, q0, goal, W0)
+        if err <= 1e-6:
+            return err, W, steps, piece_weights(W0, W == 0.0), True
     if not keep_reversals:
         for floor in (WEIGHT_FLOOR, None):
             err, W, steps = correct_pieces(emap, q0, goal, W0, floor=floor)
@@ -477,9 +411,9 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
               T_end: float) -> Continuation:
     """Step 4 of the module: the kept motion (or a braking), then the full planner."""
     if ps.rates is not None:
-        kept = _kept(ps, t, u_c)
+        kept = run_on(ps, t, u_c)
         if kept.k >= ps.rates.shape[0]:
-            kept = _braked(ps, t, u_c, T_end)
+            kept = brake_now(ps, t, u_c, T_end)
     elif float(np.max(np.abs(u_c))) > REST:
         Db = min(BRAKE_TIME, 0.5 * (T_end - t))
         kept = Kept(0, np.array([0.0, 0.5 * Db]), np.asarray(u_c, float)[None, :],
@@ -504,7 +438,10 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
     sched = p.inputs
     breaks = kept.s_stop + np.asarray(sched.breaks, float)   # its plan time after the stop
     rates = np.asarray(sched.rates, float)                    # type: ignore[union-attr]
-    later = law_after_stop(t_stop, T_end, breaks)
+    # it ends in a geometric tail too: little is left for the plant's error after the last
+    # replan (a fresh plan's last piece is 1/12 to 1/20 of its path)
+    breaks, rates, tailed = _tail(breaks, rates)
+    later = law_after_stop(t_stop, T_end, breaks, equal=tailed)
     return _assemble(kept, breaks, rates, later, kept.s_stop + float(sched.breaks[-1]),
                      "full_planner", 0)
 
@@ -654,7 +591,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         "timing": dict(timing),
         "diagnostics": {"replan": {
             "route": cont.route, "gauss_newton_steps": cont.steps,
-            "signs_kept": cont.signs_kept,
+            "signs_kept": cont.signs_kept, "braked": cont.braked,
             "kept_piece": bool(cont.kept), "pieces": int(rates.shape[0]),
             "commanded_rates": [float(x) for x in u_c],
             "start_state": q_m.tolist()}},

@@ -106,3 +106,62 @@ def test_robustness_closed_loop_needs_actuator_rates(client: TestClient) -> None
     r = client.post("/v1/robustness", json=body)
     assert r.status_code == 422, r.text
     assert r.json()["field"] == "closed_loop"
+
+
+def _replan_apps():
+    """Two apps (one worker each), with and without the middleware's fast routes."""
+    from service.main import create_app
+    from service.middleware import RequestContextMiddleware
+    from service.settings import default_settings
+
+    def app(fast: bool) -> TestClient:
+        a = create_app(default_settings(workers=1, queue_size=8))
+        if not fast:
+            for m in a.user_middleware:
+                if m.cls is RequestContextMiddleware:
+                    m.kwargs["fast_routes"] = []
+        return TestClient(a, raise_server_exceptions=False)
+    return app(True), app(False)
+
+
+def _comparable(r) -> tuple[int, str, dict]:
+    body = r.json()
+    for key in ("request_id", "timing"):     # vary from request to request
+        body.pop(key, None)
+    return r.status_code, r.headers["content-type"], body
+
+
+def test_the_fast_replan_route_answers_as_the_fastapi_route(answer: dict, monkeypatch) -> None:
+    """A valid replan is answered by the middleware (FastReplanRoute), the same body as the
+    FastAPI route's; what it does not take (a schema violation, not JSON) goes on to the
+    route; the library's own 422 is the same from both."""
+    from svc_support import wait_ready
+
+    from service.routers.replans import FastReplanRoute
+    taken: list[bool] = []
+    original = FastReplanRoute.__call__
+
+    async def spy(self, *args, **kwargs):
+        answered = await original(self, *args, **kwargs)
+        taken.append(answered)
+        return answered
+
+    monkeypatch.setattr(FastReplanRoute, "__call__", spy)
+    t = answer["path"]["t"][int(np.searchsorted(answer["path"]["t"], 0.4))]
+    ok = {"plan": answer, "time": t, "state": _state_at(answer, 0.4, math.radians(0.2))}
+    outside = {**ok, "state": [0.0, 2.0, 0.5, 0.5]}
+    schema = {**ok, "time": "soon"}
+    fast, slow = _replan_apps()
+    with fast, slow:
+        wait_ready(fast)
+        wait_ready(slow)
+        codes = []
+        for kwargs in ({"json": ok}, {"json": outside}, {"json": schema},
+                       {"content": b'{"plan": {', "headers": {"content-type": "application/json"}}):
+            a, b = fast.post("/v1/replans", **kwargs), slow.post("/v1/replans", **kwargs)
+            assert _comparable(a) == _comparable(b)
+            codes.append((a.status_code, a.json().get("field")))
+    assert taken == [True, True, False, False]
+    assert codes[0][0] == 200
+    assert codes[1] == (422, "state[1]")
+    assert codes[2][0] == 422 and codes[3][0] == 400

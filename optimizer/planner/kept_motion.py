@@ -1,0 +1,130 @@
+"""The motion under way when a replan starts (:mod:`.replan`, step 1): run on at the
+commanded rates to its next stop (:func:`run_on`), brought to rest at the end of its piece
+where the plan's law runs on (:func:`to_piece_end`), or braked now (:func:`brake_now`). The
+rates stay continuous in every case; what follows the stop is the replanner's to correct."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import NumericalError
+from .plan_state import REST, PlanState, TimeLaw
+
+#: Seconds within which the motion under way is braked to rest (:func:`brake_now`; a chained
+#: plan's commanded rates too, in the replanner's fallback).
+BRAKE_TIME = 0.05
+
+
+@dataclass(frozen=True)
+class Kept:
+    """The motion that runs on as commanded: from plan time ``breaks[0]`` (now) to the next
+    stop ``breaks[-1]`` (empty at rest), its pieces' rates (the first: the commanded rates
+    over ``sigma'``), its law, and ``k``: the first of the plan's pieces after it."""
+
+    k: int
+    breaks: np.ndarray
+    rates: np.ndarray
+    law: TimeLaw
+    own: bool = True            # the plan's own law (False: brought to rest early)
+
+    @property
+    def pieces(self) -> int:
+        return self.rates.shape[0]
+
+    @property
+    def s_stop(self) -> float:
+        return float(self.breaks[-1])
+
+
+def run_on(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
+    """What runs on from ``t`` to the next stop (see :class:`Kept`). A plan without a time law
+    jumps at every break: there its next break is the stop."""
+    assert ps.rates is not None
+    sig, ds, _ = ps.law.evaluate(np.array([t]))
+    s_t, v = float(sig[0]), float(ds[0])
+    tol = 1e-9 * max(1.0, ps.plan_duration)
+    k = int(np.clip(np.searchsorted(ps.breaks, s_t + tol, side="right") - 1, 0,
+                    ps.rates.shape[0] - 1))
+    if v <= REST:
+        if float(np.max(np.abs(u_c))) > 1e-9:
+            raise NumericalError("the plan is at rest at this time but rates were given",
+                                 field="rates")
+        if abs(s_t - ps.breaks[k]) > tol:
+            raise NumericalError("the plan is at rest inside a piece")
+        return Kept(k, np.array([s_t]), np.zeros((0, 2)), TimeLaw(np.zeros((0, 6))))
+    P = ps.law.phases
+    if ps.jumps:
+        s_stop = float(ps.breaks[k + 1])
+        t_stop = float(P[np.argmin(np.abs(P[:, 2] - s_stop)), 0]) if s_stop < ps.breaks[-1] \
+            else ps.law.end
+    else:
+        at_rest = P[(P[:, 0] > t) & (np.abs(P[:, 3]) <= REST), 0]
+        t_stop = float(at_rest[0]) if at_rest.size else ps.law.end
+        s_stop = float(ps.law.evaluate(np.array([t_stop]))[0][0]) if at_rest.size \
+            else float(ps.law.sigma_ends()[-1])
+    j = int(np.argmin(np.abs(ps.breaks - s_stop)))
+    if abs(ps.breaks[j] - s_stop) > 1e-7 * max(1.0, ps.plan_duration):
+        raise NumericalError("the time law stops between the plan's breaks")
+    if j <= k:      # the stop lies within rounding ahead of t, at the start of piece k
+        k = j - 1
+    if j > k + 1:
+        return to_piece_end(ps, t, s_t, v, k, u_c)
+    inner = ps.breaks[k + 1:j]
+    kb = np.concatenate([[s_t], inner, [ps.breaks[j]]])
+    kr = ps.rates[k:j].copy()
+    kr[0] = np.asarray(u_c, float) / v
+    law = ps.law.after(t)
+    kept_rows = law.phases[law.phases[:, 0] < t_stop - 1e-12]
+    return Kept(j, kb, kr, TimeLaw(kept_rows))
+
+
+def to_piece_end(ps: PlanState, t: float, s_t: float, v: float, k: int, u_c: np.ndarray
+                  ) -> Kept:
+    """The commanded motion brought to rest at the end of its piece (where the plan's law runs
+    on to a later stop): ``sigma'`` linear from ``v`` to a peak and down to 0, in about the
+    time the plan takes to that break (at most ``3.5 l / v``, so the peak stays above
+    ``v / 14``). The rates stay continuous; every later piece becomes correctable."""
+    assert ps.rates is not None
+    s_end = float(ps.breaks[k + 1])
+    ell = s_end - s_t
+    # the plan's own time to the break (its sigma is increasing: a grid and interpolation)
+    grid = np.linspace(t, ps.law.end, 64)
+    sg = ps.law.evaluate(grid)[0]
+    D_plan = float(np.interp(s_end, sg, grid)) - t if sg[-1] >= s_end else ps.law.end - t
+    D = min(max(D_plan, 1e-6), 3.5 * ell / v)
+    h = 0.5 * D
+    peak = 0.5 * (4.0 * ell / D - v)
+    s_mid = s_t + 0.5 * (v + peak) * h
+    law = np.array([[t, h, s_t, v, (peak - v) / h, 0.0],
+                    [t + h, h, s_mid, peak, -peak / h, 0.0]])
+    rates = (np.asarray(u_c, float) / v)[None, :]
+    return Kept(k + 1, np.array([s_t, s_end]), rates, TimeLaw(law), own=False)
+
+
+def brake_now(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
+    """The commanded motion braked to rest now: ``sigma'`` from its value down to 0 at a
+    constant rate within :data:`BRAKE_TIME` (the rates stay continuous, their slope jumps),
+    inside the current piece; what is left of that piece and the later pieces follow. Used
+    when no piece is left after the next stop (the plan's last segment), and when the rates
+    cannot keep their signs with the motion under way run to its piece's end."""
+    assert ps.rates is not None
+    sig, ds, _ = ps.law.evaluate(np.array([t]))
+    s_t, v = float(sig[0]), float(ds[0])
+    if v <= REST:
+        return run_on(ps, t, u_c)
+    k = int(np.clip(np.searchsorted(ps.breaks, s_t, side="right") - 1, 0,
+                    ps.rates.shape[0] - 1))
+    room = float(ps.breaks[k + 1]) - s_t
+    D = min(BRAKE_TIME, 0.25 * (T_end - t), room / v)   # travels v D / 2 <= room / 2
+    if D <= 0.0:
+        raise NumericalError("no room left to brake the current motion")
+    s_b = s_t + 0.5 * v * D
+    law = np.array([[t, D, s_t, v, -v / D, 0.0]])
+    rates = (np.asarray(u_c, float) / v)[None, :]
+    # the rest of the current piece is free: ps.breaks[k + 1:] follow s_b
+    return Kept(k, np.array([s_t, s_b]), rates, TimeLaw(law))
+
+
+__all__ = ["BRAKE_TIME", "Kept", "brake_now", "run_on", "to_piece_end"]
