@@ -74,8 +74,28 @@ FREE_DEVIATION_WEIGHT = 30000.0
 #: per T (2/3 rad per interval, as the first rung's 0.5). Measured on 10 generated 3-joint
 #: goals against 50 intervals of two steps (the ladder's second rung): the straightest
 #: candidate within 0.3 deg of it on all 10 (closer to the min-max peer on 3, farther on 4),
-#: each NLP about a third of the time.
+#: each NLP about a third of the time. From :data:`TWO_STEPS_FROM_JOINTS` joints two steps
+#: per interval (:func:`budget_transcription`).
 BUDGET_TRANSCRIPTION = Transcription(30, 1, 20.0)
+#: From this many joints the budget's NLPs take two RK4 steps per interval. With one, the NLP's
+#: model ended 8.5e-6 rad from the exact model's goal on 5-joint goals (weak bracket directions
+#: carry that miss), and the Newton correction, whose Jacobian is that model's, moved away
+#: (8.5e-6 -> 4e-4 -> 1.6e-5 rad after its four steps): on the bench's goal r5_003 both
+#: straightest candidates were dropped unverified, and the front was the 0-reversal plan alone
+#: (2.97 deg, the min-max peer 2.70 at 12 reversals). With two steps the same NLP ended
+#: 1.4e-6 rad away and the correction reached 3e-10.
+TWO_STEPS_FROM_JOINTS = 5
+
+
+def budget_transcription(n: int) -> Transcription:
+    """The transcription of the budget's NLPs for ``n`` joints: :data:`BUDGET_TRANSCRIPTION`,
+    with two RK4 steps per interval from :data:`TWO_STEPS_FROM_JOINTS` joints."""
+    tr = BUDGET_TRANSCRIPTION
+    if n >= TWO_STEPS_FROM_JOINTS:
+        return Transcription(tr.intervals, 2 * tr.substeps, tr.rate_bound)
+    return tr
+
+
 #: Inner points per interval (its midpoint) where the deviation epigraph bounds the distance
 #: too, besides the nodes. With the nodes alone the NLP bought straightness the path does not
 #: have: it returned to the segment at the nodes and bulged between them (on a 3-joint goal the
@@ -286,7 +306,7 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
     if first is not None:
         cands.append(Candidate(first, "objective"))
     floor = first.indicators.reversals if first is not None else 0
-    tr = BUDGET_TRANSCRIPTION
+    tr = budget_transcription(req.n)
     # the straightest from both of phi's directions (the NLP has local optima: on the bench's
     # 3-joint goals the two differed by up to 0.7 deg), the straighter verified one kept
     sol: ShootingSolution | None = None
