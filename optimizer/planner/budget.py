@@ -279,17 +279,19 @@ def merge(signs: np.ndarray, run: tuple[float, int, int, int]) -> np.ndarray:
 def _verified(req: PlanRequest, tr: Transcription, sol: ShootingSolution,
               signs: np.ndarray | None, origin: str,
               tried: list[dict[str, Any]]) -> Candidate | None:
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         plan = _finish(req, tr, sol, signs, origin)
     except (InfeasibleError, NumericalError) as exc:
         tried.append({"candidate": origin, "outcome": f"{exc.code}: {exc.message[:120]}",
-                      "seconds": round(time.perf_counter() - t0, 6)})
+                      "seconds": round(time.perf_counter() - t0, 6),
+                      "finish_cpu_seconds": time.process_time() - c0})
         return None
     tried.append({"candidate": origin, "outcome": "plan",
                   "reversals": plan.indicators.reversals,
                   "deviation_deg": math.degrees(plan.indicators.deviation),
-                  "seconds": round(time.perf_counter() - t0, 6)})
+                  "seconds": round(time.perf_counter() - t0, 6),
+                  "finish_cpu_seconds": time.process_time() - c0})
     return Candidate(plan, origin, signs)
 
 
@@ -312,13 +314,17 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
     sol: ShootingSolution | None = None
     top: Candidate | None = None
     for sign in (1.0, -1.0):
+        c0 = time.process_time()
         try:
             alt = _solve(req, deadline, tr, None, None, FREE_DEVIATION_WEIGHT,
                          sign * GUESS_PHI_TRAVEL)
         except InfeasibleError as exc:
             tried.append({"candidate": "straightest", "outcome": f"infeasible: {exc.message}",
-                          "tried": exc.diagnostics.get("tried", [])})
+                          "tried": exc.diagnostics.get("tried", []),
+                          "nlp_cpu_seconds": time.process_time() - c0})
             continue
+        tried.append({"candidate": "straightest", "status": alt.status,
+                      "iterations": alt.iterations, "nlp_cpu_seconds": time.process_time() - c0})
         cand = _verified(req, tr, alt, None, "straightest", tried)
         if cand is not None and (top is None or cand.key[1] < top.key[1]):
             sol, top = alt, cand
@@ -333,14 +339,17 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
             trials = [t for t in (merge(signs, run) for run in options) if possible(req, t)]
             for trial in trials[:MERGE_TRIES]:
                 fewer = _count(trial[:, 0]) + _count(trial[:, 1])
+                c0 = time.process_time()
                 try:
                     alt = _solve(req, deadline, tr, trial, prev.nodes, FREE_DEVIATION_WEIGHT)
                 except InfeasibleError as exc:
                     tried.append({"candidate": f"merged to {fewer}", "outcome": "infeasible",
-                                  "tried": exc.diagnostics.get("tried", [])})
+                                  "tried": exc.diagnostics.get("tried", []),
+                                  "nlp_cpu_seconds": time.process_time() - c0})
                     continue
                 tried.append({"candidate": f"merged to {fewer}", "status": alt.status,
-                              "iterations": alt.iterations})
+                              "iterations": alt.iterations,
+                              "nlp_cpu_seconds": time.process_time() - c0})
                 cand = _verified(req, tr, alt, trial, f"merged to {fewer}", tried)
                 if cand is not None:
                     cands.append(cand)
