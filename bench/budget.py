@@ -280,7 +280,7 @@ Written by `python -m bench.budget` (see its docstring for what each column mean
 with every goal goes to `bench/results/`. The machine is shared by several engineers: times
 are from one run under that load, compare the ratios.
 
-    .venv/bin/python -m bench.budget --goals-counts 3:20,4:20,5:20,6:20
+    .venv/bin/python -m bench.budget --goals-counts 3:10,4:10,5:10   # the run below
     .venv/bin/python -m bench.budget --report-only bench/results/budget_....json   # page only
 
 """

@@ -34,11 +34,15 @@ than :data:`DEVIATION_TOLERANCE`). ``max_reversals = k`` answers the front's mem
 most reversals ``<= k`` (the straightest); none: :class:`~optimizer.errors.InfeasibleError`
 naming ``max_reversals`` and the fewest reversals found.
 
-Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-90 iterations), then one
-sign-held NLP (IPOPT, 20-40 iterations) and one finishing per other candidate, and one NLP per
-failed merge. The NLPs run in CasADi's virtual machine (not compiled, unlike the default
-plan's first rung), 1.5-3 ms per iteration for 3 joints: a member costs several default plans
-(the bench measures it: :mod:`bench.budget`).
+Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-130 iterations), then one
+sign-held NLP (IPOPT, 30-90 iterations) and one finishing per other candidate, and one NLP per
+failed merge. Measured (``diagnostics.budget.tried`` records each NLP's and each finishing's
+CPU seconds; :mod:`bench.budget` sums them): the NLPs take about 90 % of the front, and of an
+IPOPT solve of 3 joints about 70 % is IPOPT's own work (its sparse linear solver, MUMPS, about
+2 ms per iteration on this KKT system of some 500 rows), 25 % the functions' evaluation. So
+compiling the functions (:mod:`optimizer.native`) saves little: 15 % on a 3-joint solve
+(175 ms against 210 ms, 75 iterations), and the C of the 4- and 5-joint NLPs (3.4 and 8.9 MB)
+is over the size native compiles. A member costs several default plans (see docs/methods.md).
 """
 
 from __future__ import annotations
@@ -107,10 +111,14 @@ DEVIATION_POINTS = 1
 #: Solvers of the free NLPs (the straightest), tried in order: IPOPT (fatrop, from the
 #: straight line at this weight, reached its iteration cap or converged slower).
 FREE_SOLVERS = ("ipopt",)
-#: Solvers of the sign-held NLPs (every merge), tried in order: IPOPT. fatrop from the
-#: previous candidate's nodes converged on 34 of 35 such NLPs of 6 generated 3-joint goals, to
-#: the same front for 25 % less time, but on 5 joints it stopped in worse local optima (two of
-#: the bench's five 5-joint goals lost 0.4-1.2 deg at the min-max peer's count).
+#: Solvers of the sign-held NLPs (every merge), tried in order: IPOPT. fatrop (a
+#: structure-exploiting solver, about 0.4 ms per iteration compiled, 1 ms in the virtual
+#: machine on 3 joints) from the previous candidate's nodes: on the 7 merges of the bench's
+#: first 3-joint goal it failed (iteration cap 200) on 3 of 7 with its initial barrier
+#: parameter 1.0 and on 4 of 7 with 0.1, 0.01 or 0.001 (where it converged, its optimum was
+#: often lower than IPOPT's: other local optima of this nonconvex NLP); on 5 joints it stopped in
+#: worse local optima (two of the bench's five 5-joint goals lost 0.4-1.2 deg at the min-max
+#: peer's count). A fatrop that fails and then IPOPT costs more than IPOPT alone.
 HELD_SOLVERS = ("ipopt",)
 #: A front member must be straighter than every member with fewer reversals by more than this
 #: (rad): smaller differences are numerical noise, not a trade.
