@@ -14,12 +14,14 @@ machine), in one process:
   reversals of ``phi`` and ``th_1`` (the planner's dead band) and the deviation from the
   segment start -> goal;
 * the **default plan** (``PlanRequest(start, goal, robot)``), timed (a warm-up call, then one
-  timed call), re-integrated the same way;
+  timed call; every time here is CPU time, ``time.process_time``, as the machine is shared),
+  re-integrated the same way;
 * on n <= :data:`BUDGET_JOINTS`: **``max_reversals`` = the min-max peer's reversal count**,
   re-integrated: is its deviation within :data:`DEVIATION_SLACK_DEG` of the peer's?
 * on n <= :data:`BUDGET_JOINTS`: **``pareto: true``**, timed: every member re-integrated and
   verified (terminal error < 1e-6 rad, every joint strictly inside (0, pi/2)); the front's time
-  against the default plan's and against ``K + 1`` default plans (``K`` members).
+  against the default plan's and against ``K + 1`` default plans (``K`` members), and where
+  it went: its NLPs' count, iterations and share of its CPU (``diagnostics.budget.tried``).
 
 The targets (issue 26): within 0.25 deg of the min-max peer on >= 90 % of the n = 3 goals and
 >= 80 % of n = 4, 5; every member verified; the default's reversals no more than the
