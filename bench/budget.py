@@ -14,12 +14,14 @@ machine), in one process:
   reversals of ``phi`` and ``th_1`` (the planner's dead band) and the deviation from the
   segment start -> goal;
 * the **default plan** (``PlanRequest(start, goal, robot)``), timed (a warm-up call, then one
-  timed call), re-integrated the same way;
+  timed call; every time here is CPU time, ``time.process_time``, as the machine is shared),
+  re-integrated the same way;
 * on n <= :data:`BUDGET_JOINTS`: **``max_reversals`` = the min-max peer's reversal count**,
   re-integrated: is its deviation within :data:`DEVIATION_SLACK_DEG` of the peer's?
 * on n <= :data:`BUDGET_JOINTS`: **``pareto: true``**, timed: every member re-integrated and
   verified (terminal error < 1e-6 rad, every joint strictly inside (0, pi/2)); the front's time
-  against the default plan's and against ``K + 1`` default plans (``K`` members).
+  against the default plan's and against ``K + 1`` default plans (``K`` members), and where
+  it went: its NLPs' count, iterations and share of its CPU (``diagnostics.budget.tried``).
 
 The targets (issue 26): within 0.25 deg of the min-max peer on >= 90 % of the n = 3 goals and
 >= 80 % of n = 4, 5; every member verified; the default's reversals no more than the
@@ -77,9 +79,12 @@ def _peer(g: Goal, peers: dict[tuple[int, str], Any], objective: str) -> dict[st
         peers[(g.n, objective)] = MultipleShootingBaseline(gains, exps, objective=objective)
     bl = peers[(g.n, objective)]
     a, b = np.asarray(g.start), np.asarray(g.goal)
+    c0 = time.process_time()
     res = bl.solve(a, b)
+    cpu = time.process_time() - c0
     m = reintegrate_baseline(res, gains, [int(x) for x in exps], a, b).as_dict()
-    return {"status": res.return_status, "success": res.success, "time": res.solve_time,
+    return {"status": res.return_status, "success": res.success, "time": cpu,
+            "wall": res.solve_time,
             "verified": bool(res.success and verified(m)), "reversals": _rev(m),
             "deviation_deg": m["segment_dev_deg"]}
 
@@ -96,15 +101,16 @@ def _plan(g: Goal, timed: bool = False, **extra: Any) -> tuple[Any, dict[str, An
             plan(req)
         except Exception:  # noqa: BLE001 - the timed call records it
             pass
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         p = plan(req)
     except Exception as exc:  # noqa: BLE001 - recorded
-        out.update(status=status_of(exc), error=describe(exc), time=time.perf_counter() - t0,
-                   verified=False, fewest=getattr(exc, "diagnostics", {}).get(
-                       "fewest_reversals"))
+        out.update(status=status_of(exc), error=describe(exc), time=time.process_time() - c0,
+                   wall=time.perf_counter() - t0, verified=False,
+                   fewest=getattr(exc, "diagnostics", {}).get("fewest_reversals"))
         return None, out
-    out["time"] = time.perf_counter() - t0
+    # CPU time (the machine is shared: wall-clock times are inflated by the others' load)
+    out["time"], out["wall"] = time.process_time() - c0, time.perf_counter() - t0
     m = reintegrate_plan(p, np.asarray(g.start), np.asarray(g.goal)).as_dict()
     out.update(status="success", verified=verified(m), reversals=_rev(m),
                deviation_deg=m["segment_dev_deg"],
@@ -134,6 +140,14 @@ def run_goal(g: Goal, peers: dict[tuple[int, str], Any]) -> dict[str, Any]:
                             "verified": verified(m), "reversals": _rev(m),
                             "deviation_deg": m["segment_dev_deg"]})
         front["members"] = members
+        # where the front's CPU went: its NLPs (IPOPT) and its finishings (correction,
+        # quadrature, checks), as the planner records them
+        tried = p.diagnostics.get("budget", {}).get("tried", [])
+        front["nlps"] = sum(1 for t in tried if "nlp_cpu_seconds" in t)
+        front["nlp_iterations"] = sum(int(t.get("iterations", 0)) for t in tried
+                                      if "nlp_cpu_seconds" in t)
+        front["nlp_cpu"] = sum(float(t.get("nlp_cpu_seconds", 0.0)) for t in tried)
+        front["finish_cpu"] = sum(float(t.get("finish_cpu_seconds", 0.0)) for t in tried)
     row["front"] = front
     return row
 
@@ -184,6 +198,14 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
             s["front_over_K_plus_1_plans_median"] = float(np.median(per_k)) if per_k \
                 else math.nan
             s["front_within_K_plus_1_plans"] = _share([x <= 1.0 for x in per_k])
+            nlp = [f for f in fronts if f.get("nlps")]
+            s["front_nlp_share_median"] = float(np.median(
+                [f["nlp_cpu"] / f["time"] for f in nlp])) if nlp else math.nan
+            s["front_nlps_median"] = float(np.median([f["nlps"] for f in nlp])) if nlp \
+                else math.nan
+            s["front_ms_per_nlp_iteration_median"] = float(np.median(
+                [1e3 * f["nlp_cpu"] / f["nlp_iterations"] for f in nlp
+                 if f["nlp_iterations"]])) if nlp else math.nan
             s["minmax_peer_time_median_s"] = float(np.median([r["minmax"]["time"] for r in rs]))
         s["default_time_median_s"] = float(np.median([r["default"].get("time", math.nan)
                                                       for r in rs]))
@@ -200,10 +222,11 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
 
     lines = [f"Reversal budget and front (issue 26), {meta['stamp']}, {meta['machine']}", "",
              "| n | goals | max_reversals = min-max peer's: within 0.25 deg | members verified "
-             "| K median | front [s] (median) | min-max peer [s] | front / default plan "
+             "| K median | front CPU [s] (median) | min-max peer [s] | front / default plan "
              "| front / (K+1) plans (median; share <= 1) "
+             "| NLPs (median) | NLP share of front | ms per NLP iteration "
              "| default reversals <= min-energy peer's | worse on both |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for n, s in summary.items():
         t = TARGET_WITHIN.get(int(n))
         lines.append(
@@ -216,6 +239,8 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
             f" | {f(s.get('front_over_default_median'))}"
             f" | {f(s.get('front_over_K_plus_1_plans_median'))}; "
             f"{f(s.get('front_within_K_plus_1_plans'), True)}"
+            f" | {f(s.get('front_nlps_median'))} | {f(s.get('front_nlp_share_median'), True)}"
+            f" | {f(s.get('front_ms_per_nlp_iteration_median'))}"
             f" | {f(s['default_reversals_no_more_than_energy_peer'], True)} of "
             f"{s['compared_with_energy_peer']} (target 90 %) | {s['default_worse_on_both']} |")
     return "\n".join(lines)
@@ -257,7 +282,7 @@ Written by `python -m bench.budget` (see its docstring for what each column mean
 with every goal goes to `bench/results/`. The machine is shared by several engineers: times
 are from one run under that load, compare the ratios.
 
-    .venv/bin/python -m bench.budget --goals-counts 3:20,4:20,5:20,6:20
+    .venv/bin/python -m bench.budget --goals-counts 3:10,4:10,5:10   # the run below
     .venv/bin/python -m bench.budget --report-only bench/results/budget_....json   # page only
 
 """

@@ -34,11 +34,15 @@ than :data:`DEVIATION_TOLERANCE`). ``max_reversals = k`` answers the front's mem
 most reversals ``<= k`` (the straightest); none: :class:`~optimizer.errors.InfeasibleError`
 naming ``max_reversals`` and the fewest reversals found.
 
-Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-90 iterations), then one
-sign-held NLP (IPOPT, 20-40 iterations) and one finishing per other candidate, and one NLP per
-failed merge. The NLPs run in CasADi's virtual machine (not compiled, unlike the default
-plan's first rung), 1.5-3 ms per iteration for 3 joints: a member costs several default plans
-(the bench measures it: :mod:`bench.budget`).
+Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-130 iterations), then one
+sign-held NLP (IPOPT, 30-90 iterations) and one finishing per other candidate, and one NLP per
+failed merge. Measured (``diagnostics.budget.tried`` records each NLP's and each finishing's
+CPU seconds; :mod:`bench.budget` sums them): the NLPs take about 90 % of the front, and of an
+IPOPT solve of 3 joints about 70 % is IPOPT's own work (its sparse linear solver, MUMPS, about
+2 ms per iteration on this KKT system of some 500 rows), 25 % the functions' evaluation. So
+compiling the functions (:mod:`optimizer.native`) saves little: 15 % on a 3-joint solve
+(175 ms against 210 ms, 75 iterations), and the C of the 4- and 5-joint NLPs (3.4 and 8.9 MB)
+is over the size native compiles. A member costs several default plans (see docs/methods.md).
 """
 
 from __future__ import annotations
@@ -74,8 +78,28 @@ FREE_DEVIATION_WEIGHT = 30000.0
 #: per T (2/3 rad per interval, as the first rung's 0.5). Measured on 10 generated 3-joint
 #: goals against 50 intervals of two steps (the ladder's second rung): the straightest
 #: candidate within 0.3 deg of it on all 10 (closer to the min-max peer on 3, farther on 4),
-#: each NLP about a third of the time.
+#: each NLP about a third of the time. From :data:`TWO_STEPS_FROM_JOINTS` joints two steps
+#: per interval (:func:`budget_transcription`).
 BUDGET_TRANSCRIPTION = Transcription(30, 1, 20.0)
+#: From this many joints the budget's NLPs take two RK4 steps per interval. With one, the NLP's
+#: model ended 8.5e-6 rad from the exact model's goal on 5-joint goals (weak bracket directions
+#: carry that miss), and the Newton correction, whose Jacobian is that model's, moved away
+#: (8.5e-6 -> 4e-4 -> 1.6e-5 rad after its four steps): on the bench's goal r5_003 both
+#: straightest candidates were dropped unverified, and the front was the 0-reversal plan alone
+#: (2.97 deg, the min-max peer 2.70 at 12 reversals). With two steps the same NLP ended
+#: 1.4e-6 rad away and the correction reached 3e-10.
+TWO_STEPS_FROM_JOINTS = 5
+
+
+def budget_transcription(n: int) -> Transcription:
+    """The transcription of the budget's NLPs for ``n`` joints: :data:`BUDGET_TRANSCRIPTION`,
+    with two RK4 steps per interval from :data:`TWO_STEPS_FROM_JOINTS` joints."""
+    tr = BUDGET_TRANSCRIPTION
+    if n >= TWO_STEPS_FROM_JOINTS:
+        return Transcription(tr.intervals, 2 * tr.substeps, tr.rate_bound)
+    return tr
+
+
 #: Inner points per interval (its midpoint) where the deviation epigraph bounds the distance
 #: too, besides the nodes. With the nodes alone the NLP bought straightness the path does not
 #: have: it returned to the segment at the nodes and bulged between them (on a 3-joint goal the
@@ -87,10 +111,14 @@ DEVIATION_POINTS = 1
 #: Solvers of the free NLPs (the straightest), tried in order: IPOPT (fatrop, from the
 #: straight line at this weight, reached its iteration cap or converged slower).
 FREE_SOLVERS = ("ipopt",)
-#: Solvers of the sign-held NLPs (every merge), tried in order: IPOPT. fatrop from the
-#: previous candidate's nodes converged on 34 of 35 such NLPs of 6 generated 3-joint goals, to
-#: the same front for 25 % less time, but on 5 joints it stopped in worse local optima (two of
-#: the bench's five 5-joint goals lost 0.4-1.2 deg at the min-max peer's count).
+#: Solvers of the sign-held NLPs (every merge), tried in order: IPOPT. fatrop (a
+#: structure-exploiting solver, about 0.4 ms per iteration compiled, 1 ms in the virtual
+#: machine on 3 joints) from the previous candidate's nodes: on the 7 merges of the bench's
+#: first 3-joint goal it failed (iteration cap 200) on 3 of 7 with its initial barrier
+#: parameter 1.0 and on 4 of 7 with 0.1, 0.01 or 0.001 (where it converged, its optimum was
+#: often lower than IPOPT's: other local optima of this nonconvex NLP); on 5 joints it stopped in
+#: worse local optima (two of the bench's five 5-joint goals lost 0.4-1.2 deg at the min-max
+#: peer's count). A fatrop that fails and then IPOPT costs more than IPOPT alone.
 HELD_SOLVERS = ("ipopt",)
 #: A front member must be straighter than every member with fewer reversals by more than this
 #: (rad): smaller differences are numerical noise, not a trade.
@@ -259,17 +287,19 @@ def merge(signs: np.ndarray, run: tuple[float, int, int, int]) -> np.ndarray:
 def _verified(req: PlanRequest, tr: Transcription, sol: ShootingSolution,
               signs: np.ndarray | None, origin: str,
               tried: list[dict[str, Any]]) -> Candidate | None:
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         plan = _finish(req, tr, sol, signs, origin)
     except (InfeasibleError, NumericalError) as exc:
         tried.append({"candidate": origin, "outcome": f"{exc.code}: {exc.message[:120]}",
-                      "seconds": round(time.perf_counter() - t0, 6)})
+                      "seconds": round(time.perf_counter() - t0, 6),
+                      "finish_cpu_seconds": time.process_time() - c0})
         return None
     tried.append({"candidate": origin, "outcome": "plan",
                   "reversals": plan.indicators.reversals,
                   "deviation_deg": math.degrees(plan.indicators.deviation),
-                  "seconds": round(time.perf_counter() - t0, 6)})
+                  "seconds": round(time.perf_counter() - t0, 6),
+                  "finish_cpu_seconds": time.process_time() - c0})
     return Candidate(plan, origin, signs)
 
 
@@ -286,19 +316,23 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
     if first is not None:
         cands.append(Candidate(first, "objective"))
     floor = first.indicators.reversals if first is not None else 0
-    tr = BUDGET_TRANSCRIPTION
+    tr = budget_transcription(req.n)
     # the straightest from both of phi's directions (the NLP has local optima: on the bench's
     # 3-joint goals the two differed by up to 0.7 deg), the straighter verified one kept
     sol: ShootingSolution | None = None
     top: Candidate | None = None
     for sign in (1.0, -1.0):
+        c0 = time.process_time()
         try:
             alt = _solve(req, deadline, tr, None, None, FREE_DEVIATION_WEIGHT,
                          sign * GUESS_PHI_TRAVEL)
         except InfeasibleError as exc:
             tried.append({"candidate": "straightest", "outcome": f"infeasible: {exc.message}",
-                          "tried": exc.diagnostics.get("tried", [])})
+                          "tried": exc.diagnostics.get("tried", []),
+                          "nlp_cpu_seconds": time.process_time() - c0})
             continue
+        tried.append({"candidate": "straightest", "status": alt.status,
+                      "iterations": alt.iterations, "nlp_cpu_seconds": time.process_time() - c0})
         cand = _verified(req, tr, alt, None, "straightest", tried)
         if cand is not None and (top is None or cand.key[1] < top.key[1]):
             sol, top = alt, cand
@@ -313,14 +347,17 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
             trials = [t for t in (merge(signs, run) for run in options) if possible(req, t)]
             for trial in trials[:MERGE_TRIES]:
                 fewer = _count(trial[:, 0]) + _count(trial[:, 1])
+                c0 = time.process_time()
                 try:
                     alt = _solve(req, deadline, tr, trial, prev.nodes, FREE_DEVIATION_WEIGHT)
                 except InfeasibleError as exc:
                     tried.append({"candidate": f"merged to {fewer}", "outcome": "infeasible",
-                                  "tried": exc.diagnostics.get("tried", [])})
+                                  "tried": exc.diagnostics.get("tried", []),
+                                  "nlp_cpu_seconds": time.process_time() - c0})
                     continue
                 tried.append({"candidate": f"merged to {fewer}", "status": alt.status,
-                              "iterations": alt.iterations})
+                              "iterations": alt.iterations,
+                              "nlp_cpu_seconds": time.process_time() - c0})
                 cand = _verified(req, tr, alt, trial, f"merged to {fewer}", tried)
                 if cand is not None:
                     cands.append(cand)
