@@ -88,8 +88,9 @@ IPOPT_OPTIONS: dict[str, Any] = {"print_level": 0, "sb": "yes", "tol": 1e-8,
 #: IPOPT options of a solve that starts from another solution's nodes (a polish): the
 #: adaptive barrier update. From such a start the default monotone update spends most
 #: iterations lowering the barrier from 0.1 again; on the 19 polish NLPs of 12 five-joint
-#: goals it took 724 iterations (19-268), the adaptive update 274 (9-25), the same optima,
-#: 3.6 times less time. From the straight-line guesses it was slower (772 against 750
+#: goals it took 724 iterations (19-268), the adaptive update 274 (9-25), 3.6 times less
+#: time; the default plans of 25 five-joint goals were the same on 23 (one polish found
+#: another local optimum with 2 reversals fewer, one with 2 more). From the straight-line guesses it was slower (772 against 750
 #: iterations, one NLP lost): those keep the default.
 IPOPT_WARM_OPTIONS: dict[str, Any] = {"mu_strategy": "adaptive"}
 
