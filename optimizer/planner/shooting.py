@@ -100,11 +100,14 @@ ATTEMPTS: tuple[tuple[str, float], ...] = (("fatrop", 1.0), ("ipopt", 1.0), ("fa
                                            ("ipopt", -1.0))
 
 #: Rates held to signs from a cold start (the sign-held rungs) take the NLP with soft signs
-#: (:data:`~.nlp.SIGN_PENALTY`) from this many joints; a polish from a solution's nodes keeps
-#: them as bounds. On 3 joints fatrop converged on every sign-held NLP of 20 generated goals
-#: (22 of 22) and the soft NLP's extra input only costs time.
+#: (:data:`~.nlp.SIGN_PENALTY`) for these numbers of joints; a polish from a solution's nodes
+#: keeps them as bounds. On 3 joints fatrop converged on every sign-held NLP of 20 generated
+#: goals (22 of 22): the soft NLP's extra input only costs time. On 5 joints it was mixed: 30 %
+#: less time on 12 held-out goals, but on the benchmark's 8 goals two rungs that the bounds
+#: solved failed soft (one plan 34 -> 128 ms). From 6 joints the elastic goal already ends
+#: such rungs (no gain measured).
 SOFT_SIGNS = True
-SOFT_SIGNS_FROM_JOINTS = 4
+SOFT_SIGNS_JOINTS = frozenset({4})
 
 #: Net travel of phi (rad) of the initial guesses (both signs, see :data:`ATTEMPTS`).
 GUESS_PHI_TRAVEL = 0.6
@@ -130,7 +133,7 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
     its first request; with compiled functions configured (:mod:`optimizer.native`) this also
     starts their build (``wait``: builds them before it returns). Returns the free one."""
     tr = ladder(len(gains) + 1)[0]
-    softs = (False, True) if len(gains) + 1 >= SOFT_SIGNS_FROM_JOINTS else (False,)
+    softs = (False, True) if len(gains) + 1 in SOFT_SIGNS_JOINTS else (False,)
     nlps = [multiple_shooting_nlp(tuple(float(k) for k in gains),
                                   tuple(int(m) for m in exponents), fixed_phi, tr.intervals,
                                   tr.substeps, soft_signs=soft) for soft in softs]
@@ -155,7 +158,7 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
     if tr is None:
         tr = ladder(req.n)[0]
     # rates held to signs from a cold start: the signs as penalised rows (nlp.SIGN_PENALTY)
-    soft = (SOFT_SIGNS and req.n >= SOFT_SIGNS_FROM_JOINTS and monotone is not None
+    soft = (SOFT_SIGNS and req.n in SOFT_SIGNS_JOINTS and monotone is not None
             and start_nodes is None)
     nlp = nlp_for(req, tr, soft_signs=soft)
     a, b = np.array(req.start), np.array(req.goal)
