@@ -43,23 +43,29 @@ def is_json(content_type: str | None) -> bool:
     return media == _JSON or (media.startswith("application/") and media.endswith("+json"))
 
 
-class FastPlanRoute:
-    """The fast path of ``POST /v1/plans`` (see the module docstring).
+class FastJSONRoute:
+    """A route answered from the request middleware: a well-formed JSON body of the route's
+    model is answered here; anything else returns False, unanswered, for the FastAPI route
+    (which produces every error answer).
+
+    Subclasses set ``path`` and ``model`` and implement :meth:`answer`.
 
     Parameters
     ----------
     state : starlette State
         The app's state (``pool``, ``settings``, ``metrics`` once the lifespan runs).
-    schemas : Schemas
-        The app's request models.
     """
 
     method = "POST"
-    path = "/v1/plans"
+    path: str
+    model: type[BaseModel]
 
-    def __init__(self, state: Any, schemas: Schemas) -> None:
+    def __init__(self, state: Any) -> None:
         self.state = state
-        self.model: type[BaseModel] = schemas.PlanRequest
+
+    async def answer(self, request: Any, request_id: str) -> Any:
+        """The JSON-safe answer of a validated request (raises :class:`ServiceProblem`)."""
+        raise NotImplementedError
 
     async def __call__(self, body: bytes, content_type: str | None, send: Send,
                        request_id: str) -> bool:
@@ -75,10 +81,31 @@ class FastPlanRoute:
         except (ValueError, ValidationError, RecursionError):
             return False  # the route answers it (400 or 422, as documented)
         try:
-            response = SafeJSONResponse(await answer_plan(self.state, request, request_id))
+            response = SafeJSONResponse(await self.answer(request, request_id))
         except ServiceProblem as problem:
             response = problem.response(request_id)
         await send({"type": "http.response.start", "status": response.status_code,
                     "headers": response.raw_headers})
         await send({"type": "http.response.body", "body": response.body})
         return True
+
+
+class FastPlanRoute(FastJSONRoute):
+    """The fast path of ``POST /v1/plans`` (see the module docstring).
+
+    Parameters
+    ----------
+    state : starlette State
+        The app's state.
+    schemas : Schemas
+        The app's request models.
+    """
+
+    path = "/v1/plans"
+
+    def __init__(self, state: Any, schemas: Schemas) -> None:
+        super().__init__(state)
+        self.model = schemas.PlanRequest
+
+    async def answer(self, request: Any, request_id: str) -> Any:
+        return await answer_plan(self.state, request, request_id)

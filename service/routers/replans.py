@@ -12,13 +12,10 @@ that documents it.
 from typing import Any
 
 from fastapi import APIRouter, Request
-from pydantic import ValidationError
 from starlette.responses import Response
-from starlette.types import Send
 
 from ..dispatch import execute
-from ..fastpath import is_json
-from ..problems import SafeJSONResponse, ServiceProblem
+from ..fastpath import FastJSONRoute
 from ..responses import ReplanResponse
 from ..schemas import ReplanRequest
 from . import ERROR_RESPONSES
@@ -38,42 +35,16 @@ def _payload(body: ReplanRequest) -> dict[str, Any]:
     return payload
 
 
-class FastReplanRoute:
+class FastReplanRoute(FastJSONRoute):
     """``POST /v1/replans`` answered from the request middleware (see the module docstring;
-    the same interface as :class:`service.fastpath.FastPlanRoute`).
+    :class:`service.fastpath.FastJSONRoute`)."""
 
-    Parameters
-    ----------
-    state : starlette State
-        The app's state (``pool``, ``settings``, ``metrics`` once the lifespan runs).
-    """
-
-    method = "POST"
     path = "/v1/replans"
+    model = ReplanRequest
 
-    def __init__(self, state: Any) -> None:
-        self.state = state
-
-    async def __call__(self, body: bytes, content_type: str | None, send: Send,
-                       request_id: str) -> bool:
-        """Answer the request and return True, or return False without side effects (the
-        request is then for the FastAPI route)."""
-        if not body or not is_json(content_type):
-            return False
-        try:
-            request = ReplanRequest.model_validate_json(body)
-        except (ValueError, ValidationError, RecursionError):
-            return False  # the route answers it (400 or 422, as documented)
-        try:
-            response = SafeJSONResponse(await execute(
-                self.state, "replan", _payload(request), request.time_limit, method="replan",
-                request_id=request_id))
-        except ServiceProblem as problem:
-            response = problem.response(request_id)
-        await send({"type": "http.response.start", "status": response.status_code,
-                    "headers": response.raw_headers})
-        await send({"type": "http.response.body", "body": response.body})
-        return True
+    async def answer(self, request: Any, request_id: str) -> Any:
+        return await execute(self.state, "replan", _payload(request), request.time_limit,
+                             method="replan", request_id=request_id)
 
 
 def build_router() -> APIRouter:
