@@ -585,3 +585,21 @@ def test_the_correction_keeps_the_held_signs_when_they_end_within_tolerance():
     assert np.all((q[:, 1:6] > 0) & (q[:, 1:6] < np.pi / 2))
     assert _direction_changes(q[:, 0]) == 1
     assert _direction_changes(q[:, 1]) == 0
+
+
+def test_a_miss_the_correction_cannot_reach_is_solved_on_the_finer_rung():
+    """A reachable 5-joint goal near the region's edge (th4 starts at 81.7 deg): the first
+    rung's NLP (one RK4 step on each of 20 intervals) ends 1.5e-6 rad off the goal along the
+    end map's weakest direction (singular value 5e-8 of 0.28), which the Newton correction
+    cannot reach (its steps diverge). The 50-interval rung, from that path, reaches it: the
+    plan re-integrated by scipy ends on the goal and stays inside the region."""
+    from optimizer.planner.rules import TERMINAL_TOLERANCE
+
+    g = generate(5, 18, seed=33)[17]
+    req = request(g.start, g.goal, robot=Robot.default(5), time_limit=60.0)
+    p = plan(req)
+    assert p.diagnostics["shooting"]["refined_from_intervals"] == 20
+    assert p.diagnostics["shooting"]["intervals"] == 50
+    _, q = scipy_path(p, req, per_interval=11)
+    assert np.max(np.abs(q[-1, 1:] - np.array(g.goal))) < TERMINAL_TOLERANCE
+    assert np.all((q[:, 1:5] > 0) & (q[:, 1:5] < np.pi / 2))

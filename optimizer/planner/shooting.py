@@ -79,7 +79,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InfeasibleError, InvalidRequestError
+from ..errors import InfeasibleError, InvalidRequestError, NumericalError
 from ..problem import PlanRequest
 from ..results import Plan
 from . import nlp as nlp_layer
@@ -234,8 +234,34 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
             else solve_shooting(req, deadline, tr, signs, start)), light_first=True)
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
-    return finish_solution(req, "shooting", nlp_for(req, tr), sol, tr, mono, tried,
-                                     timing, {})
+    try:
+        return finish_solution(req, "shooting", nlp_for(req, tr), sol, tr, mono, tried,
+                               timing, {})
+    except NumericalError:
+        steps = ladder(req.n)
+        if tr not in steps[:-1]:
+            raise
+    # the rung's model (RK4 on its intervals) ends off the goal in a direction the Newton
+    # correction cannot reach (the end map's weakest singular value; a 5-joint goal near the
+    # region's edge: 1.5e-6 rad along a direction of singular value 5e-8): the next rung, a
+    # finer model, from this path (with its rates free: held to the same signs, the 5-joint
+    # goal's finer NLP did not converge in 60 iterations; free, it did at once)
+    finer = steps[steps.index(tr) + 1]
+    t1 = time.perf_counter()
+    again = solve_shooting(req, deadline, finer, None, resample_nodes(sol.nodes, finer.intervals))
+    timing["nlp"] += time.perf_counter() - t1
+    deadline.check("the shooting NLP")
+    return finish_solution(req, "shooting", nlp_for(req, finer), again, finer, None,
+                           tried + list(getattr(sol, "tried", ())), timing,
+                           {"refined_from_intervals": tr.intervals})
+
+
+def resample_nodes(nodes: np.ndarray, intervals: int) -> np.ndarray:
+    """Node states ``(N+1, n+1)`` on equal intervals, linearly interpolated onto
+    ``intervals`` equal intervals (``(intervals+1, n+1)``)."""
+    s = np.linspace(0.0, 1.0, nodes.shape[0])
+    t = np.linspace(0.0, 1.0, int(intervals) + 1)
+    return np.stack([np.interp(t, s, nodes[:, j]) for j in range(nodes.shape[1])], axis=1)
 
 
 class ShootingMethod(Method):
