@@ -629,3 +629,29 @@ def test_a_handed_out_path_within_tolerance_is_not_corrected_off_the_plan():
     assert np.all((sol.y[1:6] > 0) & (sol.y[1:6] < np.pi / 2))
     assert _direction_changes(sol.y[0]) == p.plan_indicators.reversals_phi == 1
     assert _direction_changes(sol.y[1]) == p.plan_indicators.reversals_th1 == 0
+
+
+def test_a_shooting_plan_from_the_finer_rung_is_ranked_against_the_family():
+    """A 4-joint goal whose first rung's answer (0 + 1 reversals) misses the goal beyond the
+    correction's reach: the finer rung answers with 1 + 1 reversals, and the family
+    (``polynomial``) with 0 + 1. The default ranks them: the answer has 1 reversal in all,
+    and the handed-out path re-integrated by scipy reverses as the answer says and ends on
+    the goal inside the region."""
+    from scipy.integrate import solve_ivp
+
+    from reference import model_rhs
+
+    g = generate(4, 58, seed=77)[57]
+    req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(4), time_limit=60.0)
+    p = plan(req)
+    tried = {t["method"]: t for t in p.diagnostics["auto"]["tried"]}
+    assert tried["shooting"]["outcome"] == "plan" and "polynomial" in tried
+    assert p.indicators.reversals_phi + p.indicators.reversals_th1 == 1
+    t, u = np.asarray(p.path.t, float), np.asarray(p.path.u, float)
+    sol = solve_ivp(lambda s, q: model_rhs(q, [np.interp(s, t, u[:, 0]), np.interp(s, t, u[:, 1])],
+                                           p.robot.gains, p.robot.exponents),
+                    (t[0], t[-1]), req.q_start(), method="DOP853", rtol=1e-11, atol=1e-12,
+                    t_eval=t, max_step=float(np.min(np.diff(t)[np.diff(t) > 0])))
+    assert np.max(np.abs(sol.y[1:, -1] - np.array(g.goal))) < 1e-6
+    assert np.all((sol.y[1:4] > 0) & (sol.y[1:4] < np.pi / 2))
+    assert _direction_changes(sol.y[0]) + _direction_changes(sol.y[1]) == 1

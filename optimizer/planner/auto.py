@@ -13,7 +13,9 @@ What runs (each method through :mod:`.registry`, its capabilities checked there)
 * **The default objective** (fewest reversals, then smallest joint-space deviation) and
   ``weighted``: ``shooting`` first. Its NLP minimises the deviation directly over 24 to 40 rates
   on the original model, where the family has one parameter, so the family is not waited for;
-  it runs only when ``shooting`` fails (``weighted`` runs both, the weights decide). ``penalty``
+  it runs only when ``shooting`` fails (``weighted`` runs both, the weights decide), or when
+  ``shooting``'s plan comes from its finer rung after the first rung's answer missed the goal
+  (then it is not the ladder's answer, and the family may beat it). ``penalty``
   solves the same transcription with the region as an exact penalty: at equal objective it
   cannot beat a converged ``shooting`` plan, so it runs only when ``shooting`` found none.
 
@@ -120,7 +122,12 @@ def plan_auto(req: PlanRequest, ctx: PlanContext) -> Plan:
         return run.finish()
     # the default objective and weighted
     shot = run.attempt("shooting")
-    if req.objective == "weighted" and reachable:
+    refined = shot is not None and "refined_from_intervals" in shot.diagnostics.get(
+        "shooting", {})
+    if (req.objective == "weighted" or refined) and reachable:
+        # (a shooting plan found on the finer rung after the first rung's answer missed the
+        # goal is not the ladder's: the family may beat it, as it does on a 4-joint goal, 0 + 1
+        # reversals against 1 + 1)
         run.attempt("polynomial")
     if shot is None:
         if reachable and not run.plans:

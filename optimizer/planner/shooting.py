@@ -244,14 +244,23 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     # the rung's model (RK4 on its intervals) ends off the goal in a direction the Newton
     # correction cannot reach (the end map's weakest singular value; a 5-joint goal near the
     # region's edge: 1.5e-6 rad along a direction of singular value 5e-8): the next rung, a
-    # finer model, from this path (with its rates free: held to the same signs, the 5-joint
-    # goal's finer NLP did not converge in 60 iterations; free, it did at once)
+    # finer model, from this path, its rates held to the same signs, else free (that 5-joint
+    # goal's finer NLP did not converge held in 60 iterations; free, it did at once)
     finer = steps[steps.index(tr) + 1]
+    nodes = resample_nodes(sol.nodes, finer.intervals)
+    signs = None if mono is None else resample_signs(mono, finer.intervals)
     t1 = time.perf_counter()
-    again = solve_shooting(req, deadline, finer, None, resample_nodes(sol.nodes, finer.intervals))
+    again = None
+    if signs is not None:
+        try:
+            again = solve_shooting(req, deadline, finer, signs, nodes)
+        except InfeasibleError:
+            signs = None
+    if again is None:
+        again = solve_shooting(req, deadline, finer, None, nodes)
     timing["nlp"] += time.perf_counter() - t1
     deadline.check("the shooting NLP")
-    return finish_solution(req, "shooting", nlp_for(req, finer), again, finer, None,
+    return finish_solution(req, "shooting", nlp_for(req, finer), again, finer, signs,
                            tried + list(getattr(sol, "tried", ())), timing,
                            {"refined_from_intervals": tr.intervals})
 
@@ -262,6 +271,16 @@ def resample_nodes(nodes: np.ndarray, intervals: int) -> np.ndarray:
     s = np.linspace(0.0, 1.0, nodes.shape[0])
     t = np.linspace(0.0, 1.0, int(intervals) + 1)
     return np.stack([np.interp(t, s, nodes[:, j]) for j in range(nodes.shape[1])], axis=1)
+
+
+def resample_signs(signs: Any, intervals: int) -> Any:
+    """Rate signs held per actuator (a pair) as they are; per interval ``(N, 2)``: each of
+    ``intervals`` equal intervals takes the sign of the old interval holding its midpoint."""
+    arr = np.asarray(signs, float)
+    if arr.ndim == 1:
+        return signs
+    mid = (np.arange(int(intervals)) + 0.5) / int(intervals)
+    return arr[np.minimum((mid * arr.shape[0]).astype(int), arr.shape[0] - 1)]
 
 
 class ShootingMethod(Method):
