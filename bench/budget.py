@@ -236,7 +236,8 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
              "| n | goals | max_reversals = min-max peer's: within 0.25 deg | members verified "
              "| K median | front CPU [s] (median) | min-max peer [s] | front / default plan "
              "| front / (K+1) plans (median; share <= 1) "
-             "| NLPs (median) | NLP share of front | ms per NLP iteration "
+             "| NLPs (median; dropped unfinished, all goals) | NLP share of front "
+             "| ms per NLP iteration "
              "| default reversals <= min-energy peer's | worse on both |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for n, s in summary.items():
@@ -251,7 +252,8 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
             f" | {f(s.get('front_over_default_median'))}"
             f" | {f(s.get('front_over_K_plus_1_plans_median'))}; "
             f"{f(s.get('front_within_K_plus_1_plans'), True)}"
-            f" | {f(s.get('front_nlps_median'))} | {f(s.get('front_nlp_share_median'), True)}"
+            f" | {f(s.get('front_nlps_median'))}; {s.get('front_nlps_dropped', '-')}"
+            f" | {f(s.get('front_nlp_share_median'), True)}"
             f" | {f(s.get('front_ms_per_nlp_iteration_median'))}"
             f" | {f(s['default_reversals_no_more_than_energy_peer'], True)} of "
             f"{s['compared_with_energy_peer']} (target 90 %) | {s['default_worse_on_both']} |")

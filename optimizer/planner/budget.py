@@ -22,11 +22,15 @@ the original model in the handed-out form):
    actuator) has runs; merging the run that travels least into its neighbours (it takes their
    sign) removes one reversal (a run at an end) or two (inside), for the least loss of the
    motion that bought straightness. The sign-held NLP (the rungs' machinery: every interval's
-   rates held to the pattern's signs, from the previous solution's nodes, by IPOPT:
-   :data:`HELD_SOLVERS`) gives the straightest plan of that pattern; merging goes on until no
-   run is left to merge or the count reaches the first candidate's. When a pattern's NLP
-   fails (the goal needs that run: ``th_1`` must move its way, or ``phi`` must reverse) the
-   next-smallest run is merged instead.
+   rates held to the pattern's signs, from the previous solution's nodes, by fatrop below 5
+   joints, else or where fatrop fails by IPOPT: :data:`HELD_SOLVERS`) gives the straightest
+   plan of that pattern; merging goes on until no run is left to merge or the count reaches
+   the first candidate's. When a pattern's NLP fails (the goal needs that run: ``th_1`` must
+   move its way, or ``phi`` must reverse) the next-smallest run is merged instead.
+
+An NLP answer whose nodes alone are no straighter than the first candidate (which has no more
+reversals than any other) is no front member: it is not finished and the merging stops there
+(:func:`_dominated`).
 
 Each candidate is kept only when it is verified; the front is the candidates sorted by
 reversals, each kept when its deviation is smaller than every one with fewer reversals (by more
@@ -34,15 +38,22 @@ than :data:`DEVIATION_TOLERANCE`). ``max_reversals = k`` answers the front's mem
 most reversals ``<= k`` (the straightest); none: :class:`~optimizer.errors.InfeasibleError`
 naming ``max_reversals`` and the fewest reversals found.
 
-Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-130 iterations), then one
-sign-held NLP (IPOPT, 30-90 iterations) and one finishing per other candidate, and one NLP per
-failed merge. Measured (``diagnostics.budget.tried`` records each NLP's and each finishing's
-CPU seconds; :mod:`bench.budget` sums them): the NLPs take about 90 % of the front, and of an
-IPOPT solve of 3 joints about 70 % is IPOPT's own work (its sparse linear solver, MUMPS, about
-2 ms per iteration on this KKT system of some 500 rows), 25 % the functions' evaluation. So
-compiling the functions (:mod:`optimizer.native`) saves little: 15 % on a 3-joint solve
-(175 ms against 210 ms, 75 iterations), and the C of the 4- and 5-joint NLPs (3.4 and 8.9 MB)
-is over the size native compiles. A member costs several default plans (see docs/methods.md).
+Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-200 iterations; the second
+fatrop below 5 joints), then one sign-held NLP (30-90 iterations) and one finishing per other
+candidate, and one NLP per failed merge. The NLP and its solvers are built once per robot and
+transcription per process (:func:`prepare`, :func:`~.nlp.multiple_shooting_nlp`): start, goal,
+weights, bounds and signs are parameters and bounds, and every solve takes a fresh solver
+memory, so nothing of one request reaches the next (tests/test_budget_purity.py). Measured
+(``diagnostics.budget.tried`` records each NLP's and each finishing's CPU seconds;
+:mod:`bench.budget` sums them): the NLPs take about 90 % of the front. Of an IPOPT solve of 3
+joints about 65 % is IPOPT's own work, mostly its sparse solver MUMPS (1.2-1.5 ms per
+iteration on this KKT system of some 500 rows; its options and the SPRAL solver did not
+help), 30 % the functions' evaluation. fatrop takes about half IPOPT's time per iteration in
+CasADi's virtual machine. Compiled (:mod:`optimizer.native`), fatrop's functions took 7 of a
+3-joint solve's 31-44 ms (61 iterations): its own work, about 0.5 ms per iteration, stays; and
+the C of these NLPs (3.3, 4.8 and 12.6 MB for 3, 4 and 5 joints, with the correction's
+maps) is over the size :mod:`optimizer.native` compiles (the 3-joint one took 75 s to compile).
+A member still costs several default plans (docs/benchmark-budget.md).
 """
 
 from __future__ import annotations
@@ -229,7 +240,10 @@ def _solve(req: PlanRequest, deadline: Any, tr: Transcription,
             continue
         nodes, rates = nlp.unpack(out.x)
         return ShootingSolution(nodes=nodes, rates=rates, status=f"{out.solver}: {out.status}",
-                                iterations=out.iterations, start=out.guess,
+                                # (with those of the solvers that failed before it)
+                                iterations=out.iterations + sum(
+                                    max(int(t.get("iterations", 0)), 0) for t in tried),
+                                start=out.guess,
                                 tried=(*tried, *out.tried),
                                 compiled=nlp.compiled and out.solver == "fatrop")
     raise InfeasibleError("the reversal budget's NLP found no path: "
