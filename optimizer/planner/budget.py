@@ -22,11 +22,15 @@ the original model in the handed-out form):
    actuator) has runs; merging the run that travels least into its neighbours (it takes their
    sign) removes one reversal (a run at an end) or two (inside), for the least loss of the
    motion that bought straightness. The sign-held NLP (the rungs' machinery: every interval's
-   rates held to the pattern's signs, from the previous solution's nodes, by IPOPT:
-   :data:`HELD_SOLVERS`) gives the straightest plan of that pattern; merging goes on until no
-   run is left to merge or the count reaches the first candidate's. When a pattern's NLP
-   fails (the goal needs that run: ``th_1`` must move its way, or ``phi`` must reverse) the
-   next-smallest run is merged instead.
+   rates held to the pattern's signs, from the previous solution's nodes, by fatrop below 5
+   joints, else or where fatrop fails by IPOPT: :data:`HELD_SOLVERS`) gives the straightest
+   plan of that pattern; merging goes on until no run is left to merge or the count reaches
+   the first candidate's. When a pattern's NLP fails (the goal needs that run: ``th_1`` must
+   move its way, or ``phi`` must reverse) the next-smallest run is merged instead.
+
+An NLP answer whose nodes alone are no straighter than the first candidate (which has no more
+reversals than any other) is no front member: it is not finished and the merging stops there
+(:func:`_dominated`).
 
 Each candidate is kept only when it is verified; the front is the candidates sorted by
 reversals, each kept when its deviation is smaller than every one with fewer reversals (by more
@@ -34,15 +38,22 @@ than :data:`DEVIATION_TOLERANCE`). ``max_reversals = k`` answers the front's mem
 most reversals ``<= k`` (the straightest); none: :class:`~optimizer.errors.InfeasibleError`
 naming ``max_reversals`` and the fewest reversals found.
 
-Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-130 iterations), then one
-sign-held NLP (IPOPT, 30-90 iterations) and one finishing per other candidate, and one NLP per
-failed merge. Measured (``diagnostics.budget.tried`` records each NLP's and each finishing's
-CPU seconds; :mod:`bench.budget` sums them): the NLPs take about 90 % of the front, and of an
-IPOPT solve of 3 joints about 70 % is IPOPT's own work (its sparse linear solver, MUMPS, about
-2 ms per iteration on this KKT system of some 500 rows), 25 % the functions' evaluation. So
-compiling the functions (:mod:`optimizer.native`) saves little: 15 % on a 3-joint solve
-(175 ms against 210 ms, 75 iterations), and the C of the 4- and 5-joint NLPs (3.4 and 8.9 MB)
-is over the size native compiles. A member costs several default plans (see docs/methods.md).
+Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-200 iterations; the second
+fatrop below 5 joints), then one sign-held NLP (30-90 iterations) and one finishing per other
+candidate, and one NLP per failed merge. The NLP and its solvers are built once per robot and
+transcription per process (:func:`prepare`, :func:`~.nlp.multiple_shooting_nlp`): start, goal,
+weights, bounds and signs are parameters and bounds, and every solve takes a fresh solver
+memory, so nothing of one request reaches the next (tests/test_budget_purity.py). Measured
+(``diagnostics.budget.tried`` records each NLP's and each finishing's CPU seconds;
+:mod:`bench.budget` sums them): the NLPs take about 90 % of the front. Of an IPOPT solve of 3
+joints about 65 % is IPOPT's own work, mostly its sparse solver MUMPS (1.2-1.5 ms per
+iteration on this KKT system of some 500 rows; its options and the SPRAL solver did not
+help), 30 % the functions' evaluation. fatrop takes about half IPOPT's time per iteration in
+CasADi's virtual machine. Compiled (:mod:`optimizer.native`), fatrop's functions took 7 of a
+3-joint solve's 31-44 ms (61 iterations): its own work, about 0.5 ms per iteration, stays; and
+the C of these NLPs (3.3, 4.8 and 12.6 MB for 3, 4 and 5 joints, with the correction's
+maps) is over the size :mod:`optimizer.native` compiles (the 3-joint one took 75 s to compile).
+A member still costs several default plans (docs/benchmark-budget.md).
 """
 
 from __future__ import annotations
@@ -61,7 +72,7 @@ from ..results import Plan, ParetoMember
 from . import nlp as nlp_layer
 from .context import PlanContext
 from .correction import finish_solution
-from .nlp import D_A_WEIGHT, Transcription, nlp_for, node_bounds
+from .nlp import D_A_WEIGHT, Transcription, node_bounds
 from .rungs import th1_reach_ok
 from .attempts import Attempt, first_converged
 from .ranking import best
@@ -108,18 +119,34 @@ def budget_transcription(n: int) -> Transcription:
 #: seed the bench does not use, ``max_reversals`` = the min-max peer's count came within
 #: 0.25 deg of the peer on 18 without, 20 with the midpoint (the front's time +28 %).
 DEVIATION_POINTS = 1
-#: Solvers of the free NLPs (the straightest), tried in order: IPOPT (fatrop, from the
-#: straight line at this weight, reached its iteration cap or converged slower).
+#: Solvers of the free NLPs (the straightest), tried in order: IPOPT. fatrop (below) found
+#: other local optima from the straight line: on three generated 3-joint goals its
+#: straightest lost two reversals for 0.18 deg (9 reversals at 1.02 deg became 6 at 1.20).
 FREE_SOLVERS = ("ipopt",)
-#: Solvers of the sign-held NLPs (every merge), tried in order: IPOPT. fatrop (a
-#: structure-exploiting solver, about 0.4 ms per iteration compiled, 1 ms in the virtual
-#: machine on 3 joints) from the previous candidate's nodes: on the 7 merges of the bench's
-#: first 3-joint goal it failed (iteration cap 200) on 3 of 7 with its initial barrier
-#: parameter 1.0 and on 4 of 7 with 0.1, 0.01 or 0.001 (where it converged, its optimum was
-#: often lower than IPOPT's: other local optima of this nonconvex NLP); on 5 joints it stopped in
-#: worse local optima (two of the bench's five 5-joint goals lost 0.4-1.2 deg at the min-max
-#: peer's count). A fatrop that fails and then IPOPT costs more than IPOPT alone.
-HELD_SOLVERS = ("ipopt",)
+#: ... and of the second free NLP (phi's other direction; the straighter verified one of the
+#: two is kept, so a worse local optimum here costs nothing): fatrop first, as the held NLPs.
+SECOND_FREE_SOLVERS = ("fatrop", "ipopt")
+#: Solvers of the sign-held NLPs (every merge, from the previous candidate's nodes), tried in
+#: order, below :data:`FATROP_BELOW_JOINTS` joints: fatrop (the structure-exploiting interior
+#: point method, about half IPOPT's time per iteration here in CasADi's virtual machine:
+#: IPOPT's sparse solver MUMPS alone took 1.2-1.5 ms per iteration of a 3-joint NLP, whose KKT
+#: system has some 500 rows), with :data:`FATROP_SETTINGS` and the objective scaled by
+#: :data:`FATROP_OBJECTIVE_SCALE`; then IPOPT (unscaled: it scales its problem itself) where
+#: fatrop fails. From :data:`FATROP_BELOW_JOINTS` joints IPOPT alone.
+HELD_SOLVERS = ("fatrop", "ipopt")
+#: fatrop on the 5-joint NLPs (two RK4 steps per interval): it failed on 15 of the 18 NLPs of
+#: two generated fronts (150 iterations, about 0.6 s each) at every scale tried.
+FATROP_BELOW_JOINTS = 5
+#: fatrop's options on the budget's NLPs (its defaults elsewhere: mu_init 1, 60 iterations).
+#: Measured on the 25 NLPs of three generated 3-joint fronts (scaled as below): mu_init 0.1
+#: converged on 25, 1452 iterations in all; mu_init 1 on 23, 1761 (IPOPT: 25, 1074, its time
+#: 1.4 times fatrop's); the largest count 148, hence the cap.
+FATROP_SETTINGS: tuple[tuple[str, float], ...] = (("mu_init", 0.1), ("max_iter", 150))
+#: The objective's weights (deviation 3e4, energy 1) times this for fatrop, which does not
+#: scale the problem itself (IPOPT scales the objective so that its largest gradient is 100).
+#: Unscaled, fatrop converged on 13-14 of those 25 NLPs, at 1/30 on 23, at 1/300 on 25; at
+#: 1/30000 the objective (about 1e-4) is below fatrop's tolerance and it stops early.
+FATROP_OBJECTIVE_SCALE = 1.0 / 300.0
 #: A front member must be straighter than every member with fewer reversals by more than this
 #: (rad): smaller differences are numerical noise, not a trade.
 DEVIATION_TOLERANCE = 1e-6
@@ -174,13 +201,15 @@ def check_budget_request(req: PlanRequest) -> None:
 
 def _solve(req: PlanRequest, deadline: Any, tr: Transcription,
            signs: np.ndarray | None, start_nodes: np.ndarray | None,
-           w_dev: float, phi_travel: float = GUESS_PHI_TRAVEL) -> ShootingSolution:
+           w_dev: float, phi_travel: float = GUESS_PHI_TRAVEL,
+           solvers: tuple[str, ...] | None = None) -> ShootingSolution:
     """The transcription ``tr`` with deviation weight ``w_dev`` and rates held to ``signs``
     (per interval and actuator, 0: free), from ``start_nodes`` or else the straight line with
     ``phi`` travelling ``phi_travel`` (rad).
 
-    Solvers :data:`FREE_SOLVERS` (free signs) or :data:`HELD_SOLVERS` (held), in order, by
-    the one loop of attempts (:func:`~.attempts.first_converged`). No time cap of its own
+    Solvers ``solvers``, by default :data:`FREE_SOLVERS` (free signs) or :data:`HELD_SOLVERS`
+    (held), in order (fatrop below :data:`FATROP_BELOW_JOINTS` joints), by the one loop of
+    attempts (:func:`~.attempts.first_converged`). No time cap of its own
     (the answer would depend on the machine's load): patterns the rules rule out are not
     solved (:func:`possible`), and at most :data:`MERGE_TRIES` fail per level.
     """
@@ -188,19 +217,38 @@ def _solve(req: PlanRequest, deadline: Any, tr: Transcription,
     a, b = np.array(req.start), np.array(req.goal)
     lo, hi = node_bounds(req, joint_limits(req))
     lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi, signs)
-    p = nlp_layer.parameters(req, w_dev, 1.0, D_A_WEIGHT)
     if start_nodes is not None:
         guess, x0 = "the previous candidate's nodes", nlp.guess_from_nodes(start_nodes, a, b)
     else:
         travel = min(max(phi_travel, lo_phi), hi_phi)
         guess, x0 = f"phi travel {travel:+.3g} rad", nlp.guess(a, b, req.phi_start, travel)
     x0 = np.clip(x0, lbw, ubw)
-    names = HELD_SOLVERS if signs is not None else FREE_SOLVERS
-    out = first_converged(nlp, [Attempt(name, guess, x0) for name in names], p, lbw, ubw,
-                          deadline, "the reversal budget's NLP", "budget NLP")
-    nodes, rates = nlp.unpack(out.x)
-    return ShootingSolution(nodes=nodes, rates=rates, status=f"{out.solver}: {out.status}",
-                            iterations=out.iterations, start=out.guess, tried=out.tried)
+    have = dict(nlp.solvers)
+    if solvers is None:
+        solvers = HELD_SOLVERS if signs is not None else FREE_SOLVERS
+    names = [name for name in solvers
+             if name in have and (req.n < FATROP_BELOW_JOINTS or name != "fatrop")]
+    tried: list[dict[str, Any]] = []
+    for name in names:
+        scale = FATROP_OBJECTIVE_SCALE if name.startswith("fatrop") else 1.0
+        p = nlp_layer.parameters(req, w_dev * scale, scale, D_A_WEIGHT * scale)
+        try:
+            out = first_converged(nlp, [Attempt(name, guess, x0)], p, lbw, ubw, deadline,
+                                  "the reversal budget's NLP", "budget NLP")
+        except InfeasibleError as exc:
+            tried.extend(exc.diagnostics.get("tried", []))
+            continue
+        nodes, rates = nlp.unpack(out.x)
+        return ShootingSolution(nodes=nodes, rates=rates, status=f"{out.solver}: {out.status}",
+                                # (with those of the solvers that failed before it)
+                                iterations=out.iterations + sum(
+                                    max(int(t.get("iterations", 0)), 0) for t in tried),
+                                start=out.guess,
+                                tried=(*tried, *out.tried),
+                                compiled=nlp.compiled and out.solver == "fatrop")
+    raise InfeasibleError("the reversal budget's NLP found no path: "
+                          + "; ".join(f"{t['solver']} {t['status']}" for t in tried),
+                          diagnostics={"blocking": "nlp_failed", "tried": tried})
 
 
 def _finish(req: PlanRequest, tr: Transcription, sol: ShootingSolution,
@@ -213,8 +261,28 @@ def _finish(req: PlanRequest, tr: Transcription, sol: ShootingSolution,
 
 def _nlp(req: PlanRequest, tr: Transcription) -> nlp_layer.MultipleShootingNLP:
     """The budget's NLP of ``req`` under ``tr``: the deviation from the segment, bounded at
-    the nodes and :data:`DEVIATION_POINTS` inner points per interval."""
-    return nlp_for(req, tr, deviation="segment", deviation_points=DEVIATION_POINTS)
+    the nodes and :data:`DEVIATION_POINTS` inner points per interval (built once per robot,
+    transcription and variant per process, :func:`~.nlp.multiple_shooting_nlp`)."""
+    return _nlp_of(tuple(float(k) for k in req.robot.gains),
+                   tuple(int(m) for m in req.robot.exponents), req.phi_change is not None, tr)
+
+
+def _nlp_of(gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
+            tr: Transcription) -> nlp_layer.MultipleShootingNLP:
+    return nlp_layer.multiple_shooting_nlp(
+        gains, exponents, fixed_phi, tr.intervals, tr.substeps, "hard", "segment",
+        DEVIATION_POINTS, None, False, FATROP_SETTINGS)
+
+
+def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *,
+            fixed_phi: bool = False) -> nlp_layer.MultipleShootingNLP:
+    """Build (and cache) the budget's NLP of a robot and its IPOPT solver ahead of its first
+    ``max_reversals`` or ``pareto`` request (building it took 0.3-0.4 s of 3-joint CPU, more
+    from 5 joints: otherwise the first such request pays it). The built solver holds nothing
+    of a request: every solve takes a fresh memory (:meth:`~.nlp.MultipleShootingNLP.solver_call`),
+    start, goal, weights and bounds are its parameters."""
+    return _nlp_of(tuple(float(k) for k in gains), tuple(int(m) for m in exponents),
+                   fixed_phi, budget_transcription(len(gains) + 1))
 
 
 def runs(signs: np.ndarray, rates: np.ndarray) -> list[tuple[float, int, int, int]]:
@@ -303,6 +371,32 @@ def _verified(req: PlanRequest, tr: Transcription, sol: ShootingSolution,
     return Candidate(plan, origin, signs)
 
 
+#: What ``diagnostics.budget.tried`` says of an NLP answer that :func:`_dominated` dropped.
+DOMINATED = "dominated by the objective's plan: not finished, no merge of it tried"
+
+
+def node_deviation(req: PlanRequest, nodes: np.ndarray) -> float:
+    """The largest distance (rad) of the NLP's nodes ``(N+1, n+1)`` from the segment start ->
+    goal in joint space: the path of the answer passes through them (to the correction's
+    step, about 1e-7 rad), so its deviation is at least this."""
+    a, b = np.asarray(req.start, float), np.asarray(req.goal, float)
+    th, d = nodes[:, 1:], b - a
+    nrm = float(d @ d)
+    s = np.clip((th - a) @ d / nrm, 0.0, 1.0) if nrm > 0.0 else np.zeros(th.shape[0])
+    return float(np.max(np.linalg.norm(th - a - s[:, None] * d, axis=1)))
+
+
+def _dominated(req: PlanRequest, sol: ShootingSolution, first: Plan | None) -> bool:
+    """True when the NLP answer ``sol`` cannot be a front member: its nodes alone are already
+    no straighter than ``first`` (the objective's plan, whose reversals end the merging, so it
+    has no more than any candidate). Such an answer is not finished (the correction and the
+    quadrature cost about one default plan) and not merged further (paths with fewer reversals
+    are no straighter, see :func:`build_front`)."""
+    if first is None:
+        return False
+    return node_deviation(req, sol.nodes) >= first.indicators.deviation - DEVIATION_TOLERANCE
+
+
 def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front:
     """The candidates of the module docstring and their non-dominated set.
 
@@ -321,11 +415,11 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
     # 3-joint goals the two differed by up to 0.7 deg), the straighter verified one kept
     sol: ShootingSolution | None = None
     top: Candidate | None = None
-    for sign in (1.0, -1.0):
+    for sign, solvers in ((1.0, FREE_SOLVERS), (-1.0, SECOND_FREE_SOLVERS)):
         c0 = time.process_time()
         try:
             alt = _solve(req, deadline, tr, None, None, FREE_DEVIATION_WEIGHT,
-                         sign * GUESS_PHI_TRAVEL)
+                         sign * GUESS_PHI_TRAVEL, solvers)
         except InfeasibleError as exc:
             tried.append({"candidate": "straightest", "outcome": f"infeasible: {exc.message}",
                           "tried": exc.diagnostics.get("tried", []),
@@ -333,6 +427,9 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
             continue
         tried.append({"candidate": "straightest", "status": alt.status,
                       "iterations": alt.iterations, "nlp_cpu_seconds": time.process_time() - c0})
+        if _dominated(req, alt, first):
+            tried.append({"candidate": "straightest", "outcome": DOMINATED})
+            continue
         cand = _verified(req, tr, alt, None, "straightest", tried)
         if cand is not None and (top is None or cand.key[1] < top.key[1]):
             sol, top = alt, cand
@@ -358,6 +455,14 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
                 tried.append({"candidate": f"merged to {fewer}", "status": alt.status,
                               "iterations": alt.iterations,
                               "nlp_cpu_seconds": time.process_time() - c0})
+                if _dominated(req, alt, first):
+                    # no straighter than the objective's plan, which has no more reversals;
+                    # the merges after it would have fewer still (every path with fewer
+                    # reversals is one with more: the straightest of them is no straighter;
+                    # the NLPs' optima are local, so this is the rule, not a proof)
+                    tried.append({"candidate": f"merged to {fewer}", "outcome": DOMINATED})
+                    found = False
+                    break
                 cand = _verified(req, tr, alt, trial, f"merged to {fewer}", tried)
                 if cand is not None:
                     cands.append(cand)
@@ -441,5 +546,6 @@ def _with_front(main: Plan, members: list[ParetoMember], seconds: float) -> Plan
                                timing={**main.timing, "front": seconds})
 
 
-__all__ = ["Candidate", "Front", "FREE_DEVIATION_WEIGHT", "build_front", "check_budget_request",
-           "merge", "non_dominated", "pattern", "plan_with_budget", "runs", "within_budget"]
+__all__ = ["Candidate", "DOMINATED", "Front", "FREE_DEVIATION_WEIGHT", "build_front",
+           "check_budget_request", "merge", "node_deviation", "non_dominated", "pattern",
+           "plan_with_budget", "prepare", "runs", "within_budget"]

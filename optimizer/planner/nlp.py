@@ -183,6 +183,9 @@ class MultipleShootingNLP:
     soft_signs : bool
         The rates' signs (parameters) as penalised rows with a slack ``t`` per interval (one
         more input), see :data:`SIGN_PENALTY`.
+    fatrop_settings : tuple of (str, float)
+        fatrop options that replace :func:`~.solvers.fatrop_options`' (``mu_init``,
+        ``max_iter``, ...) for this NLP (the reversal budget's, :mod:`.budget`).
 
     Attributes
     ----------
@@ -200,7 +203,8 @@ class MultipleShootingNLP:
     def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
                  intervals: int, substeps: int, region: str = "hard",
                  deviation: str = "line", deviation_points: int = 0,
-                 terminal: str = "hard", soft_signs: bool = False) -> None:
+                 terminal: str = "hard", soft_signs: bool = False,
+                 fatrop_settings: tuple[tuple[str, float], ...] = ()) -> None:
         if region not in REGION_MODES:
             raise ValueError(f"region must be one of {REGION_MODES}, not {region!r}")
         if deviation not in DEVIATION_MODES:
@@ -361,6 +365,7 @@ class MultipleShootingNLP:
         self._factories: dict[str, Callable[[], Any]] = {}
         if ca.has_nlpsol("fatrop"):
             fatrop_opts = fatrop_options([nx] * (N + 1), [nu] * N + [0], ng, eq)
+            fatrop_opts["fatrop"].update(dict(fatrop_settings))
             self._factories["fatrop"] = functools.partial(
                 ca.nlpsol, f"{name}_fatrop", "fatrop", nlp, fatrop_opts)
             # for the same functions compiled (optimizer.native), see load_native
@@ -581,12 +586,16 @@ def multiple_shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...], 
                           region: str = "hard", deviation: str = "line",
                           deviation_points: int = 0,
                           terminal: str | None = None,
-                          soft_signs: bool = False) -> MultipleShootingNLP:
+                          soft_signs: bool = False,
+                          fatrop_settings: tuple[tuple[str, float], ...] = ()
+                          ) -> MultipleShootingNLP:
     """The cached NLP of one robot, transcription, region, deviation and terminal mode (per
-    process; ``terminal`` None: :func:`default_terminal`)."""
+    process; ``terminal`` None: :func:`default_terminal`; ``fatrop_settings``: see
+    :class:`MultipleShootingNLP`)."""
     return MultipleShootingNLP(gains, exponents, fixed_phi, intervals, substeps, region,
                                deviation, deviation_points,
-                               terminal or default_terminal(len(gains) + 1), soft_signs)
+                               terminal or default_terminal(len(gains) + 1), soft_signs,
+                               fatrop_settings)
 
 
 def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard",
