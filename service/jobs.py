@@ -24,7 +24,7 @@ from optimizer import analysis
 from optimizer.chained_form import chained_form
 from optimizer.errors import InvalidRequestError, PlannerError
 from optimizer.model import Robot
-from optimizer.planner import continuation_map
+from optimizer.planner import budget, continuation_map
 from optimizer.planner.context import Deadline
 from optimizer.planner.plan import plan
 from optimizer.planner.replan import replan
@@ -62,6 +62,9 @@ def warm_up() -> dict[str, Any]:
     shooting = prepare(robot.gains, robot.exponents)
     # the replans' compiled continuation maps (about 0.3 s): not paid by the first replan
     continuation_map.prepare(robot.gains, robot.exponents)
+    # the reversal budget's NLP and solvers (0.3-0.4 s): not paid by the first
+    # max_reversals or pareto request
+    budget.prepare(robot.gains, robot.exponents)
     # matplotlib, its fonts and writers (about 0.9 s of CPU): loaded once in the forkserver
     # and shared by every worker forked from it, so that a figure's drawing allowance is spent
     # on drawing, not on a cold worker's import (6 s at load 10-14 on two cores)
