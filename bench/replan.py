@@ -76,7 +76,8 @@ def latency(joints: list[int], goals: int, replans: int,
         for g in generate(n, goals):
             req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(n))
             warm = plan(req).to_dict()             # the NLP built, as in a warm worker
-            prepare(tuple(req.robot.gains), tuple(req.robot.exponents))
+            # the kernels compiled (when compiled functions are on: the service's default)
+            prepare(tuple(req.robot.gains), tuple(req.robot.exponents), wait=True)
             try:
                 replan(warm, *_perturbed_state(warm, np.random.default_rng(0)))
             except PlannerError:
@@ -231,15 +232,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--period", type=float, default=0.05)
     ap.add_argument("--keep-reversals", action="store_true",
                     help="closed loop: refuse continuations that add reversals")
+    ap.add_argument("--no-native", action="store_true",
+                    help="CasADi's virtual machine only (no compiled kernels)")
     ap.add_argument("--out", help="write the JSON here too")
     args = ap.parse_args(argv)
-    report: dict[str, Any] = {
-        "latency": latency(args.joints, args.goals, args.replans, args.state_error_deg)}
+    from .inprocess import configure_native
+
+    report: dict[str, Any] = {"native": configure_native(args.no_native)}
+    report["latency"] = latency(args.joints, args.goals, args.replans, args.state_error_deg)
     if args.http:
         report["http"] = http_latency(10 * args.replans)
     if not args.no_loop:
         report["closed_loop"] = closed_loop(args.joints, args.goals, args.gain_error,
                                             args.spread_deg, args.period, args.keep_reversals)
+    print(f"compiled functions: {report['native']}")
     print(f"latency: states off the plan by up to {args.state_error_deg:g} deg per joint")
     for n, r in report["latency"].items():
         print(f"n = {n}: replan p50 {r['p50_ms']:.2f} ms, p99 {r['p99_ms']:.2f} ms; cold "

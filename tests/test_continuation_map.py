@@ -10,8 +10,10 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from optimizer.model import Robot
-from optimizer.planner.continuation_map import (PieceMap, correct_pieces, correct_signed,
-                                                piece_weights, signed_step)
+from optimizer import native
+from optimizer.planner.continuation_map import (CompiledCall, PieceMap, correct_pieces,
+                                                correct_signed, kernel_correct, piece_weights,
+                                                signed_kernel, signed_step)
 from optimizer.planner.plan import plan
 from optimizer.planner.replan import read_plan, replan, sign_changes
 from optimizer.problem import PlanRequest
@@ -95,6 +97,64 @@ def test_signed_step_solves_the_system_within_the_signs() -> None:
         assert np.allclose(J @ dx, r, atol=1e-9)
         assert np.all((W - dx) * np.sign(W) >= -1e-15)
     assert crossed >= 5        # the sign constraint was active in some of them
+
+
+def test_the_compiled_kernel_keeps_the_signs_and_reaches_the_goal_on_scipy(pieces) -> None:
+    """The one-call correction (full sign-keeping steps) reaches a nearby goal on scipy's
+    integration of the tests' model, keeps every rate's sign and agrees with the Python loop
+    of :func:`correct_signed`; where one rate must stop to keep its sign, it stops at 0."""
+    q0, W = pieces
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    goal = scipy_end(q0, W)[1:] + np.array([-1e-3, 1e-3, 1e-3])
+    err, W1 = kernel_correct(emap, q0, goal, W)
+    assert err < 1e-10
+    assert np.all(W1 * np.sign(W) >= 0.0)
+    assert np.max(np.abs(scipy_end(q0, W1)[1:] - goal)) < 1e-8
+    _, W2, _ = correct_signed(emap, q0, goal, W)
+    assert np.allclose(W1, W2, rtol=1e-6, atol=1e-9)
+    # any sign: the plain weighted Gauss-Newton, on scipy too
+    err, W3 = kernel_correct(emap, q0, goal, W, signed=False)
+    assert err < 1e-10 and np.max(np.abs(scipy_end(q0, W3)[1:] - goal)) < 1e-8
+
+
+def test_the_kernel_says_when_it_cannot_keep_the_signs(pieces) -> None:
+    """A goal that no rates of the same signs reach (th2 back by 0.05 rad, th1 and th3 where
+    they are, every rate forward) is out of the signed kernel's reach: it says so by its
+    miss, and no rate crossed 0; with any sign it is reached, some rate reversed."""
+    q0, _ = pieces
+    W = np.tile([0.05, 0.02], (7, 1))                 # phi and th1 forward on every piece
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    end = scipy_end(q0, W)
+    goal = end[1:] - np.array([0.0, 0.05, 0.0])      # th2 back, th1 and th3 where they are
+    err, W1 = kernel_correct(emap, q0, goal, W)
+    assert not err <= 1e-6
+    assert np.all(W1 * np.sign(W) >= 0.0)
+    err, W3 = kernel_correct(emap, q0, goal, W, signed=False, floor=None)
+    assert err < 1e-9 and np.any(W3 * np.sign(W) < 0.0)
+    assert np.max(np.abs(scipy_end(q0, W3)[1:] - goal)) < 1e-7
+
+
+def test_the_compiled_kernel_is_the_virtual_machines(pieces, tmp_path, monkeypatch) -> None:
+    """The kernel generated as C and compiled (optimizer.native) gives the virtual machine's
+    answer."""
+    monkeypatch.setattr(native, "_config", None)      # (restored after the test)
+    cfg = native.configure(tmp_path / "native")
+    if cfg is None:
+        pytest.skip("no C compiler")
+    q0, W = pieces
+    robot = Robot.default(3)
+    call = signed_kernel(tuple(robot.gains), tuple(robot.exponents), 8)
+    fresh = CompiledCall(call.function, 5, (0, 1))   # not the cached one: built here
+    compiled = fresh.current(wait=True)
+    assert compiled is not fresh.vm
+    full = np.vstack([np.zeros((1, 2)), W])
+    emap = PieceMap(tuple(robot.gains), tuple(robot.exponents), 8)
+    goal = scipy_end(q0, W)[1:] + np.array([-1e-3, 1e-3, 1e-3])
+    D2 = piece_weights(full, np.vstack([[True, True], np.zeros((7, 2), bool)]))
+    args = (q0, full, goal, D2, np.sign(full))
+    for a, b in zip(fresh.vm(*args), compiled(*args)):
+        assert np.allclose(a, b, rtol=1e-12, atol=1e-14)
+    assert emap.P == 8
 
 
 @pytest.fixture(scope="module")
