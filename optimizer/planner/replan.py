@@ -76,7 +76,8 @@ from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array,
                          invalid, law_after_stop, read_plan)
 from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
 from .continuation_map import (KERNEL_STEPS, WEIGHT_FLOOR, PieceMap, correct_pieces,
-                               kernel_correct, piece_end, piece_weights, weighted_step)
+                               integrate_pieces, kernel_correct, piece_end, piece_weights,
+                               weighted_step)
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
 
 #: The continuation's last piece is split into this many parts and one more...
@@ -345,9 +346,8 @@ def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
     """The later pieces' rates moved onto the goal: first with no rate changing sign
     (:func:`~.continuation_map.kernel_correct`, one compiled call of full sign-keeping steps:
     a rate at rest stays at rest, one may come to rest and no further): no reversal of
-    ``phi`` or ``th1`` is added; then, unless ``keep_reversals``, with any sign (the kernel,
-    then :func:`~.continuation_map.correct_pieces`'s halved steps; weighted, then the plain
-    least-norm step). Returns the map's miss, the rates, the steps, the
+    ``phi`` or ``th1`` is added; then, unless ``keep_reversals``, with any sign
+    (:func:`~.continuation_map.correct_pieces`, weighted, then the plain least-norm step). Returns the map's miss, the rates, the steps, the
     weights used (for the defect step) and whether the signs were kept.
 
     Raises
@@ -364,10 +364,10 @@ def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
         if err <= KERNEL_ACCEPT:
             return err, W, KERNEL_STEPS, piece_weights(W0, W == 0.0), True
     if not keep_reversals:
+        # (halved steps: the kernel's full steps with any sign jumped to rates that take a
+        # joint out of the region, 6 of 120 states at n = 3, which the halved steps reach
+        # inside)
         for floor in (WEIGHT_FLOOR, None):
-            err, W = kernel_correct(emap, q0, goal, W0, signed=False, floor=floor)
-            if err <= KERNEL_ACCEPT:
-                return err, W, KERNEL_STEPS, piece_weights(W0, None, floor), False
             err, W, steps = correct_pieces(emap, q0, goal, W0, floor=floor)
             if err <= 1e-6:
                 return err, W, steps, piece_weights(W0, None, floor), False
@@ -464,6 +464,12 @@ def _replay(robot: Robot, q_m: np.ndarray, cont: Continuation, rates: np.ndarray
             s_eval: np.ndarray) -> Any:
     sb = cont.breaks - cont.breaks[0]
     L = float(sb[-1])
+    # compiled RK4 with Richardson's error estimate; where that is above the cascade's
+    # target, the cascade quadrature
+    proof = integrate_pieces(tuple(robot.gains), tuple(robot.exponents), q_m, sb, rates,
+                             np.clip(s_eval, 0.0, L))
+    if proof is not None:
+        return proof
     return integrate_cascade(robot, lambda s: rates[_piece(sb, s)], q_m, L,
                              np.clip(np.concatenate([sb, s_eval]), 0.0, L), sb,
                              nodes=REPLAY_NODES, initial_panels=1, constant_pieces=True)
