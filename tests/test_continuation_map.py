@@ -12,7 +12,8 @@ from scipy.integrate import solve_ivp
 from optimizer.model import Robot
 from optimizer import native
 from optimizer.planner.continuation_map import (CompiledCall, PieceMap, correct_pieces,
-                                                correct_signed, integrate_pieces,
+                                                correct_signed, halving_correct,
+                                                integrate_pieces,
                                                 kernel_correct, piece_weights, signed_kernel,
                                                 signed_step)
 from optimizer.planner.plan import plan
@@ -116,6 +117,23 @@ def test_the_compiled_kernel_keeps_the_signs_and_reaches_the_goal_on_scipy(piece
     # any sign: the plain weighted Gauss-Newton, on scipy too
     err, W3 = kernel_correct(emap, q0, goal, W, signed=False)
     assert err < 1e-10 and np.max(np.abs(scipy_end(q0, W3)[1:] - goal)) < 1e-8
+
+
+def test_the_halving_kernel_is_the_python_loop(pieces) -> None:
+    """The any-sign correction with halved steps in one call: on scipy's model and equal to
+    :func:`correct_pieces`, for a goal far enough that full steps overshoot."""
+    q0, W = pieces
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    # (the far goal needs rates whose 4 RK4 steps per piece are 1e-5 rad off the model: the
+    # map's own error, which the replanner's verification measures and its defect step
+    # removes)
+    for offset, on_model in (([2e-3, -1e-3, 1.5e-3], 1e-8), ([0.04, -0.05, 0.06], 1e-4)):
+        goal = scipy_end(q0, W)[1:] + np.array(offset)
+        err, W1 = halving_correct(emap, q0, goal, W)
+        err_loop, W2, _ = correct_pieces(emap, q0, goal, W)
+        assert err < 1e-10 and err_loop < 1e-10
+        assert np.max(np.abs(scipy_end(q0, W1)[1:] - goal)) < on_model
+        assert np.allclose(W1, W2, rtol=1e-6, atol=1e-9)
 
 
 def test_the_kernel_says_when_it_cannot_keep_the_signs(pieces) -> None:

@@ -212,6 +212,79 @@ def signed_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) 
     return CompiledCall(fn, 5, (0, 1))
 
 
+#: Steps and halvings of the any-sign kernel (:func:`halving_kernel`).
+HALVING_STEPS = 12
+HALVING_TRIES = 7
+
+
+@functools.lru_cache(maxsize=64)
+def halving_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int
+                   ) -> CompiledCall:
+    """:func:`correct_pieces` in one call: :data:`HALVING_STEPS` weighted least-norm
+    Gauss-Newton steps with any sign, each the largest of :data:`HALVING_TRIES` halvings
+    that shrinks the miss (none: the rates stay), ``(q0, W, goal, D2) -> (W_end, th_end -
+    goal)``. Every candidate is the map's end state without its Jacobian (RK4 as
+    :func:`piece_map`'s)."""
+    n = len(gains) + 1
+    F = _piece_step(gains, exponents)
+    forward = _piece_function(gains, exponents, SUBSTEPS).mapaccum("forward", P)
+    q0 = ca.MX.sym("q0", n + 1)
+    w = ca.MX.sym("w", 2 * P)
+    goal = ca.MX.sym("goal", n)
+    D2 = ca.MX.sym("D2", 2 * P)
+    ones = ca.DM.ones(n, 1)
+    x, As, Bs = q0, [], []
+    for k in range(P):
+        x, A, B = F(x, w[2 * k:2 * k + 2])
+        As.append(A)
+        Bs.append(B)
+    S, cols = ca.MX.eye(n + 1), []
+    for k in reversed(range(P)):
+        cols.append(ca.mtimes(S, Bs[k]))
+        S = ca.mtimes(S, As[k])
+    Jt = ca.horzcat(*reversed(cols))[1:, :]
+    r = x[1:] - goal
+    JD = Jt * ca.mtimes(ones, D2.T)
+    dx = ca.mtimes(JD.T, ca.solve(ca.mtimes(JD, Jt.T), r))
+    size = ca.sumsqr(r)
+    chosen_w, chosen_r = w, r
+    for j in reversed(range(HALVING_TRIES)):
+        V = w - 0.5 ** j * dx
+        rV = forward(q0, ca.reshape(V, 2, P))[1:, P - 1] - goal
+        better = ca.sumsqr(rV) < size
+        chosen_w = ca.if_else(better, V, chosen_w)
+        chosen_r = ca.if_else(better, rV, chosen_r)
+    # one step, a Function of its own: the generated C holds it once, called in turn
+    step = ca.Function(f"continuation_halving_step_{P}", [q0, w, goal, D2],
+                       [chosen_w, chosen_r])
+    W = ca.MX.sym("W", 2, P)
+    w = ca.vec(W)
+    for _ in range(HALVING_STEPS):
+        w, r = step(q0, w, goal, D2)
+    fn = ca.Function(f"continuation_halving_{P}", [q0, W, goal, D2],
+                     [ca.reshape(w, 2, P), r])
+    return CompiledCall(fn, 4, (0, 1))
+
+
+def halving_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
+                    floor: float | None = WEIGHT_FLOOR) -> tuple[float, np.ndarray]:
+    """The any-sign correction in one compiled call (:func:`halving_kernel`) from ``W0``
+    ``(M, 2)``, weights of ``floor``: the map's miss (rad, max norm; inf when not finite)
+    and the rates ``(M, 2)``."""
+    P, M = emap.P, emap.M
+    full = np.zeros((P, 2))
+    full[P - M:] = W0
+    D2_full = np.zeros(2 * P)
+    D2_full[2 * (P - M):] = piece_weights(W0, None, floor)
+    fn = halving_kernel(emap.gains, emap.exponents, P)
+    W_end, r = fn(np.asarray(q0, float), full, np.asarray(goal, float), D2_full)
+    W_new = W_end.reshape(P, 2)[P - M:]
+    err = float(np.max(np.abs(r)))
+    if not (math.isfinite(err) and np.all(np.isfinite(W_new))):
+        return math.inf, np.array(W0, float)
+    return err, W_new
+
+
 def kernel_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
                    signed: bool = True, floor: float | None = WEIGHT_FLOOR
                    ) -> tuple[float, np.ndarray]:
@@ -356,6 +429,7 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], wait: bool = F
     for P in SIZES:
         piece_map(gains, exponents, P)
         signed_kernel(gains, exponents, P).current(wait=wait)
+        halving_kernel(gains, exponents, P).current(wait=wait)
         break_states(gains, exponents, P).current(wait=wait)
     for N in SAMPLE_SIZES[:3]:
         sample_states(gains, exponents, N).current(wait=wait)
@@ -547,6 +621,6 @@ def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
     return err, W, steps
 
 
-__all__ = ["PieceProof", "VERIFY_SUBSTEPS", "VERIFY_TOL", "break_states", "integrate_pieces", "sample_states", "CompiledCall", "KERNEL_STEPS", "KERNEL_ROUNDS", "kernel_correct", "signed_kernel", "DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
+__all__ = ["HALVING_STEPS", "HALVING_TRIES", "halving_correct", "halving_kernel", "PieceProof", "VERIFY_SUBSTEPS", "VERIFY_TOL", "break_states", "integrate_pieces", "sample_states", "CompiledCall", "KERNEL_STEPS", "KERNEL_ROUNDS", "kernel_correct", "signed_kernel", "DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
            "correct_pieces", "piece_end", "prepare", "piece_map", "piece_weights", "size_for",
            "weighted_step"]

@@ -75,7 +75,8 @@ from .plan import plan as full_plan
 from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array,
                          invalid, law_after_stop, read_plan)
 from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
-from .continuation_map import (KERNEL_STEPS, WEIGHT_FLOOR, PieceMap, correct_pieces,
+from .continuation_map import (HALVING_STEPS, KERNEL_STEPS, WEIGHT_FLOOR, PieceMap,
+                               correct_pieces, halving_correct,
                                integrate_pieces, kernel_correct, piece_end, piece_weights,
                                weighted_step)
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
@@ -347,7 +348,9 @@ def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
     (:func:`~.continuation_map.kernel_correct`, one compiled call of full sign-keeping steps:
     a rate at rest stays at rest, one may come to rest and no further): no reversal of
     ``phi`` or ``th1`` is added; then, unless ``keep_reversals``, with any sign
-    (:func:`~.continuation_map.correct_pieces`, weighted, then the plain least-norm step). Returns the map's miss, the rates, the steps, the
+    (:func:`~.continuation_map.halving_correct`, the halved steps of
+    :func:`~.continuation_map.correct_pieces` in one compiled call; weighted, then the plain
+    least-norm step). Returns the map's miss, the rates, the steps, the
     weights used (for the defect step) and whether the signs were kept.
 
     Raises
@@ -364,13 +367,17 @@ def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
         if err <= KERNEL_ACCEPT:
             return err, W, KERNEL_STEPS, piece_weights(W0, W == 0.0), True
     if not keep_reversals:
-        # (halved steps: the kernel's full steps with any sign jumped to rates that take a
-        # joint out of the region, 6 of 120 states at n = 3, which the halved steps reach
-        # inside)
+        # halved steps (full steps with any sign jumped to rates that take a joint out of
+        # the region, 6 of 120 states at n = 3), in one compiled call; the Python loop only
+        # where a system was singular (it solves those by least squares)
         for floor in (WEIGHT_FLOOR, None):
-            err, W, steps = correct_pieces(emap, q0, goal, W0, floor=floor)
-            if err <= 1e-6:
-                return err, W, steps, piece_weights(W0, None, floor), False
+            err, W = halving_correct(emap, q0, goal, W0, floor=floor)
+            if err <= KERNEL_ACCEPT:
+                return err, W, HALVING_STEPS, piece_weights(W0, None, floor), False
+            if not math.isfinite(err):
+                err, W, steps = correct_pieces(emap, q0, goal, W0, floor=floor)
+                if err <= 1e-6:
+                    return err, W, steps, piece_weights(W0, None, floor), False
     raise NumericalError("the Gauss-Newton correction of the later pieces' rates did not "
                          "reach the goal" + (" keeping their signs" if keep_reversals else
                                              f" (miss {err:.3g} rad)"))
