@@ -77,7 +77,7 @@ def latency(joints: list[int], goals: int, replans: int,
             req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(n))
             warm = plan(req).to_dict()             # the NLP built, as in a warm worker
             # the kernels compiled (when compiled functions are on: the service's default)
-            prepare(tuple(req.robot.gains), tuple(req.robot.exponents), wait=True)
+            prepare(tuple(req.robot.gains), tuple(req.robot.exponents), build=True)
             try:
                 replan(warm, *_perturbed_state(warm, np.random.default_rng(0)))
             except PlannerError:

@@ -420,19 +420,25 @@ def integrate_pieces(gains: tuple[float, ...], exponents: tuple[int, ...], q0: n
     return PieceProof(np.vstack([Xb, Qs]), Xb[-1].copy(), est, singular)
 
 
-def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], wait: bool = False) -> None:
-    """Build every size's map and kernel of a robot ahead of its first replan (a warm worker:
-    the first call of a size otherwise pays its construction, 10-100 ms), and, when compiled
-    functions are on (:func:`optimizer.native.configure`), ask for the kernels' libraries
-    (``wait``: compile the missing ones now, 3-10 s each; else in the background)."""
+def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], build: bool = False
+            ) -> None:
+    """Build every size's map and kernels of a robot ahead of its first replan (a warm
+    worker: the first call of a size otherwise pays its construction, 10-100 ms).
+
+    ``build`` (a benchmark): also compile the missing kernels now when compiled functions
+    are on (:func:`optimizer.native.configure`; 3-10 s each, cached per machine). Otherwise
+    a kernel's build starts in the background at its first call (a service does not start
+    some thirty compilers at once at its start-up)."""
     piece_end(gains, exponents)
+    kernels: list[CompiledCall] = []
     for P in SIZES:
         piece_map(gains, exponents, P)
-        signed_kernel(gains, exponents, P).current(wait=wait)
-        halving_kernel(gains, exponents, P).current(wait=wait)
-        break_states(gains, exponents, P).current(wait=wait)
-    for N in SAMPLE_SIZES[:3]:
-        sample_states(gains, exponents, N).current(wait=wait)
+        kernels += [signed_kernel(gains, exponents, P), halving_kernel(gains, exponents, P),
+                    break_states(gains, exponents, P)]
+    kernels += [sample_states(gains, exponents, N) for N in SAMPLE_SIZES[:3]]
+    if build:
+        for kernel in kernels:
+            kernel.current(wait=True)
 
 
 def size_for(M: int) -> int:

@@ -30,17 +30,19 @@ geometry and the timing are corrected separately.
    (:data:`TAIL_PIECES` + 1 parts, each :data:`TAIL_RATIO` of what is left, run in equal
    times: little motion is left near the end, where no later replan corrects the plant).
    The rates of the later pieces start at the plan's (the warm start) and take weighted
-   least-norm Gauss-Newton steps onto the goal (``th_1..th_n``; ``phi`` is free), each
-   halved until the miss shrinks, with one compiled CasADi end map and Jacobian per robot
-   and size (:mod:`.continuation_map`). First every rate keeps its sign (each step restricted
-   to the rates' signs, an active set; Levenberg-Marquardt damping when the plain step
-   overshoots): no reversal of ``phi`` or ``th1`` is added; unless ``keep_reversals``, any
-   sign when that fails. The
+   least-norm Gauss-Newton steps onto the goal (``th_1..th_n``; ``phi`` is free). First
+   every rate keeps its sign (each step restricted to the rates' signs, an active set): no
+   reversal of ``phi`` or ``th1`` is added; five full steps in one compiled call
+   (:func:`~.continuation_map.signed_kernel`), halved and damped steps in Python where those
+   miss. Unless ``keep_reversals``, any sign when that fails (halved steps, one compiled
+   call, :func:`~.continuation_map.halving_kernel`). The
    remaining law is kept when nothing was split or stopped early; otherwise every piece runs
    rest to rest in equal times (:func:`~.plan_state.law_after_stop`).
-3. **Proof.** The continuation's pieces are integrated by cascade quadrature on the original
-   model (a miss above 1e-9 rad gets one defect-corrected step), every joint checked at every
-   break (monotone on a constant-rate piece), the handed-out samples replayed by their rule.
+3. **Proof.** The continuation's pieces are integrated on the original model by compiled
+   RK4 at two step sizes (:func:`~.continuation_map.integrate_pieces`; Richardson's estimate
+   of the error at most 1e-11 rad, else by cascade quadrature); a miss above 1e-9 rad gets
+   one defect-corrected step; every joint checked at every break (monotone on a
+   constant-rate piece), the handed-out samples replayed by their rule.
 4. **Fallback: the full planner.** A correction that fails (near a reversal the end map's
    Jacobian is ill-conditioned), or a plan of chained inputs (braked first): the full
    planner (method ``shooting``, then ``penalty``) plans from the stop; its last piece is
