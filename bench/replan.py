@@ -40,6 +40,7 @@ from optimizer.analysis import closed_loop_run
 from optimizer.errors import PlannerError
 from optimizer.planner.plan import plan
 from optimizer.planner.continuation_map import prepare
+from optimizer.planner.piece_proof import prepare as prepare_proof
 from optimizer.planner.replan import replan
 from optimizer.model import Robot
 from optimizer.problem import PlanRequest
@@ -78,6 +79,7 @@ def latency(joints: list[int], goals: int, replans: int,
             warm = plan(req).to_dict()             # the NLP built, as in a warm worker
             # the kernels compiled (when compiled functions are on: the service's default)
             prepare(tuple(req.robot.gains), tuple(req.robot.exponents), build=True)
+            prepare_proof(tuple(req.robot.gains), tuple(req.robot.exponents), build=True)
             try:
                 replan(warm, *_perturbed_state(warm, np.random.default_rng(0)))
             except PlannerError:

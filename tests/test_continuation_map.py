@@ -13,9 +13,9 @@ from optimizer.model import Robot
 from optimizer import native
 from optimizer.planner.continuation_map import (CompiledCall, PieceMap, correct_pieces,
                                                 correct_signed, halving_correct,
-                                                integrate_pieces,
                                                 kernel_correct, piece_weights, signed_kernel,
                                                 signed_step)
+from optimizer.planner.piece_proof import integrate_pieces
 from optimizer.planner.plan import plan
 from optimizer.planner.replan import read_plan, replan, sign_changes
 from optimizer.problem import PlanRequest

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -106,6 +105,31 @@ def _piece_step(gains: tuple[float, ...], exponents: tuple[int, ...]) -> ca.Func
                        [end, ca.densify(ca.jacobian(end, q)), ca.densify(ca.jacobian(end, u))])
 
 
+def _end_and_jacobian(F: ca.Function, q0: ca.MX, w: ca.MX, P: int) -> tuple[ca.MX, ca.MX]:
+    """The end state of ``P`` pieces (rates ``w``, flat) and its Jacobian: forward through
+    the pieces, then the chain rule backwards (``d end / d w_k = A_{P-1} ... A_{k+1} B_k``)."""
+    x, As, Bs = q0, [], []
+    for k in range(P):
+        x, A, B = F(x, w[2 * k:2 * k + 2])
+        As.append(A)
+        Bs.append(B)
+    S, cols = ca.MX.eye(q0.shape[0]), []
+    for k in reversed(range(P)):
+        cols.append(ca.mtimes(S, Bs[k]))
+        S = ca.mtimes(S, As[k])
+    return x, ca.horzcat(*reversed(cols))
+
+
+def piece_function(gains: tuple[float, ...], exponents: tuple[int, ...], substeps: int
+                    ) -> ca.Function:
+    nq = len(gains) + 2
+    q = ca.SX.sym("q", nq)
+    u = ca.SX.sym("u", 2)
+    return ca.Function(f"piece_rk4_{substeps}", [q, u], [rk4_step(
+        lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1], ca.cos)),
+        q, u, 1.0, substeps)])
+
+
 class CompiledCall:
     """A CasADi Function called through its buffer (:class:`~.solvers.BufferedCall`), in its
     compiled form (:mod:`optimizer.native`: generated C, built once per machine and cached)
@@ -174,22 +198,8 @@ def signed_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) 
     held = D2 == 0
     ones = ca.DM.ones(n, 1)
 
-    def end_and_jacobian(w: ca.MX) -> tuple[ca.MX, ca.MX]:
-        # forward through the pieces, then the chain rule backwards: d end / d w_k =
-        # A_{P-1} ... A_{k+1} B_k
-        x, As, Bs = q0, [], []
-        for k in range(P):
-            x, A, B = F(x, w[2 * k:2 * k + 2])
-            As.append(A)
-            Bs.append(B)
-        S, cols = ca.MX.eye(n + 1), []
-        for k in reversed(range(P)):
-            cols.append(ca.mtimes(S, Bs[k]))
-            S = ca.mtimes(S, As[k])
-        return x, ca.horzcat(*reversed(cols))
-
     for _ in range(KERNEL_STEPS):
-        x, J = end_and_jacobian(w)
+        x, J = _end_and_jacobian(F, q0, w, P)
         r = x[1:] - goal
         Jt = J[1:, :]
         fixed = held
@@ -227,22 +237,14 @@ def halving_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int
     :func:`piece_map`'s)."""
     n = len(gains) + 1
     F = _piece_step(gains, exponents)
-    forward = _piece_function(gains, exponents, SUBSTEPS).mapaccum("forward", P)
+    forward = piece_function(gains, exponents, SUBSTEPS).mapaccum("forward", P)
     q0 = ca.MX.sym("q0", n + 1)
     w = ca.MX.sym("w", 2 * P)
     goal = ca.MX.sym("goal", n)
     D2 = ca.MX.sym("D2", 2 * P)
     ones = ca.DM.ones(n, 1)
-    x, As, Bs = q0, [], []
-    for k in range(P):
-        x, A, B = F(x, w[2 * k:2 * k + 2])
-        As.append(A)
-        Bs.append(B)
-    S, cols = ca.MX.eye(n + 1), []
-    for k in reversed(range(P)):
-        cols.append(ca.mtimes(S, Bs[k]))
-        S = ca.mtimes(S, As[k])
-    Jt = ca.horzcat(*reversed(cols))[1:, :]
+    x, J = _end_and_jacobian(F, q0, w, P)
+    Jt = J[1:, :]
     r = x[1:] - goal
     JD = Jt * ca.mtimes(ones, D2.T)
     dx = ca.mtimes(JD.T, ca.solve(ca.mtimes(JD, Jt.T), r))
@@ -318,108 +320,6 @@ def kernel_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.nd
     return err, W_new
 
 
-#: RK4 steps per unit piece of the compiled verification's coarse run (its fine run takes
-#: twice as many): on the benchmark's continuations the two differ by 1e-13 rad or less.
-VERIFY_SUBSTEPS = 16
-#: Richardson's estimate of the fine run's error (``|fine - coarse| / 15``, RK4) accepted
-#: (rad): the cascade quadrature's own target. Above it the cascade integrates instead.
-VERIFY_TOL = 1e-11
-#: Sizes of the compiled sample maps (samples padded to the next).
-SAMPLE_SIZES = (64, 128, 256, 512, 1024, 2048, 4096)
-#: RK4 steps of a sample from its piece's start (a part of a piece: within 1e-10 rad of the
-#: exact model on the benchmark's continuations; the samples show the path, the states at the
-#: breaks prove it). The samples dominate the cost: 32 steps took 1.2 ms for 230 samples.
-SAMPLE_SUBSTEPS = 8
-
-
-def _piece_function(gains: tuple[float, ...], exponents: tuple[int, ...], substeps: int
-                    ) -> ca.Function:
-    nq = len(gains) + 2
-    q = ca.SX.sym("q", nq)
-    u = ca.SX.sym("u", 2)
-    return ca.Function(f"piece_rk4_{substeps}", [q, u], [rk4_step(
-        lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1], ca.cos)),
-        q, u, 1.0, substeps)])
-
-
-@functools.lru_cache(maxsize=64)
-def break_states(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> CompiledCall:
-    """The states at the ends of ``P`` unit pieces twice, ``(q0, W) -> (X_fine, X_coarse)``
-    (``(n+1, P)`` each, flat column-major; RK4 with 2 :data:`VERIFY_SUBSTEPS` and
-    :data:`VERIFY_SUBSTEPS` steps per piece): the fine states and, from their difference,
-    Richardson's estimate of their error."""
-    fine = _piece_function(gains, exponents, 2 * VERIFY_SUBSTEPS).mapaccum("fine", P)
-    coarse = _piece_function(gains, exponents, VERIFY_SUBSTEPS).mapaccum("coarse", P)
-    q0 = ca.MX.sym("q0", len(gains) + 2)
-    W = ca.MX.sym("W", 2, P)
-    fn = ca.Function(f"continuation_breaks_{P}", [q0, W], [fine(q0, W), coarse(q0, W)])
-    return CompiledCall(fn, 2, (0, 1))
-
-
-@functools.lru_cache(maxsize=64)
-def sample_states(gains: tuple[float, ...], exponents: tuple[int, ...], N: int) -> CompiledCall:
-    """``N`` partial pieces at once, ``(Q, W) -> Q_end`` (``(n+1, N)`` starts, ``(2, N)``
-    displacement rates; RK4 with :data:`SAMPLE_SUBSTEPS` steps each): the handed-out
-    samples from the states at their pieces' starts."""
-    fine = _piece_function(gains, exponents, SAMPLE_SUBSTEPS).map(N)
-    nq = len(gains) + 2
-    Q = ca.MX.sym("Q", nq, N)
-    W = ca.MX.sym("W", 2, N)
-    return CompiledCall(ca.Function(f"continuation_samples_{N}", [Q, W], [fine(Q, W)]), 2,
-                        (0,))
-
-
-@dataclass(frozen=True)
-class PieceProof:
-    """The compiled integration of a continuation's pieces (:func:`integrate_pieces`)."""
-
-    q: np.ndarray               # states at the breaks, then at the samples ((B + S, n+1))
-    final: np.ndarray
-    error_estimate: float       # rad, Richardson's (fine against coarse)
-    singular: bool              # a joint th_1..th_{n-1} outside (0, pi/2) at a break
-    success: bool = True
-    message: str = ""
-    integrator: str = f"RK4 (2 x {VERIFY_SUBSTEPS} steps per piece, compiled)"
-
-
-def integrate_pieces(gains: tuple[float, ...], exponents: tuple[int, ...], q0: np.ndarray,
-                     breaks: np.ndarray, rates: np.ndarray, s_eval: np.ndarray
-                     ) -> PieceProof | None:
-    """The original model through constant-rate pieces (plan-time ``breaks`` from 0, rates
-    ``(M, 2)``) from ``q0``: the states at every break and at the plan times ``s_eval``, by
-    compiled RK4 on each piece, with Richardson's estimate of the error (the run at half the
-    steps). None when the estimate is above :data:`VERIFY_TOL` or not finite: integrate
-    otherwise (the cascade quadrature).
-
-    Each joint is monotone on a piece (``th_i' = K_i cos(th_{i-1})^{m_i} u_1`` with ``u_1``
-    constant and ``cos > 0`` inside), so the states at the breaks bound the whole path."""
-    L = np.diff(breaks)
-    M = L.size
-    W = np.asarray(rates, float) * L[:, None]
-    P = size_for(M)
-    full = np.zeros((P, 2))
-    full[P - M:] = W
-    fine, coarse = break_states(gains, exponents, P)(np.asarray(q0, float), full)
-    nq = len(gains) + 2
-    Xf = fine.reshape(P, nq)[P - M:]
-    Xc = coarse.reshape(P, nq)[P - M:]
-    est = float(np.max(np.abs(Xf - Xc), initial=0.0)) / 15.0
-    if not math.isfinite(est) or est > VERIFY_TOL:
-        return None
-    Xb = np.vstack([np.asarray(q0, float)[None, :], Xf])          # (M + 1, nq)
-    S = s_eval.size
-    k = np.clip(np.searchsorted(breaks, s_eval, side="right") - 1, 0, M - 1)
-    N = next((x for x in SAMPLE_SIZES if x >= S), S)
-    Q = np.zeros((N, nq))
-    Q[:S] = Xb[k]
-    Ws = np.zeros((N, 2))
-    Ws[:S] = np.asarray(rates, float)[k] * (s_eval - breaks[k])[:, None]
-    Qs = sample_states(gains, exponents, N)(Q, Ws)[0].reshape(N, nq)[:S]
-    th = Xb[:, 1:-1]
-    singular = bool(np.any(th <= 0.0) or np.any(th >= 0.5 * math.pi))
-    return PieceProof(np.vstack([Xb, Qs]), Xb[-1].copy(), est, singular)
-
-
 def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], build: bool = False
             ) -> None:
     """Build every size's map and kernels of a robot ahead of its first replan (a warm
@@ -428,14 +328,13 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], build: bool = 
     ``build`` (a benchmark): also compile the missing kernels now when compiled functions
     are on (:func:`optimizer.native.configure`; 3-10 s each, cached per machine). Otherwise
     a kernel's build starts in the background at its first call (a service does not start
-    some thirty compilers at once at its start-up)."""
+    some thirty compilers at once at its start-up). The verification's functions:
+    :func:`~.piece_proof.prepare`."""
     piece_end(gains, exponents)
     kernels: list[CompiledCall] = []
     for P in SIZES:
         piece_map(gains, exponents, P)
-        kernels += [signed_kernel(gains, exponents, P), halving_kernel(gains, exponents, P),
-                    break_states(gains, exponents, P)]
-    kernels += [sample_states(gains, exponents, N) for N in SAMPLE_SIZES[:3]]
+        kernels += [signed_kernel(gains, exponents, P), halving_kernel(gains, exponents, P)]
     if build:
         for kernel in kernels:
             kernel.current(wait=True)
@@ -627,6 +526,6 @@ def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
     return err, W, steps
 
 
-__all__ = ["HALVING_STEPS", "HALVING_TRIES", "halving_correct", "halving_kernel", "PieceProof", "VERIFY_SUBSTEPS", "VERIFY_TOL", "break_states", "integrate_pieces", "sample_states", "CompiledCall", "KERNEL_STEPS", "KERNEL_ROUNDS", "kernel_correct", "signed_kernel", "DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
+__all__ = ["piece_function", "HALVING_STEPS", "HALVING_TRIES", "halving_correct", "halving_kernel", "CompiledCall", "KERNEL_STEPS", "KERNEL_ROUNDS", "kernel_correct", "signed_kernel", "DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
            "correct_pieces", "piece_end", "prepare", "piece_map", "piece_weights", "size_for",
            "weighted_step"]

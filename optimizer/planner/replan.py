@@ -39,7 +39,7 @@ geometry and the timing are corrected separately.
    remaining law is kept when nothing was split or stopped early; otherwise every piece runs
    rest to rest in equal times (:func:`~.plan_state.law_after_stop`).
 3. **Proof.** The continuation's pieces are integrated on the original model by compiled
-   RK4 at two step sizes (:func:`~.continuation_map.integrate_pieces`; Richardson's estimate
+   RK4 at two step sizes (:func:`~.piece_proof.integrate_pieces`; Richardson's estimate
    of the error at most 1e-11 rad, else by cascade quadrature); a miss above 1e-9 rad gets
    one defect-corrected step; every joint checked at every break (monotone on a
    constant-rate piece), the handed-out samples replayed by their rule.
@@ -79,8 +79,8 @@ from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array,
 from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
 from .continuation_map import (HALVING_STEPS, KERNEL_STEPS, WEIGHT_FLOOR, PieceMap,
                                correct_pieces, correct_signed, halving_correct,
-                               integrate_pieces, kernel_correct, piece_end, piece_weights,
-                               weighted_step)
+                               kernel_correct, piece_end, piece_weights, weighted_step)
+from .piece_proof import integrate_pieces
 from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
 
 #: The continuation's last piece is split into this many parts and one more...
