@@ -119,6 +119,23 @@ def test_the_compiled_kernel_keeps_the_signs_and_reaches_the_goal_on_scipy(piece
     assert err < 1e-10 and np.max(np.abs(scipy_end(q0, W3)[1:] - goal)) < 1e-8
 
 
+def test_the_kernel_with_fewer_free_rates_than_joints(pieces) -> None:
+    """Late in a motion few rates are left free (the others at rest, held there): the
+    kernel's systems are (nearly) singular. It does not claim the goal (the replanner then
+    runs the Python loop) and keeps the resting rates at rest; the loop takes the miss
+    lower."""
+    q0, _ = pieces
+    W = np.zeros((4, 2))
+    W[2] = [0.05, 0.02]                               # one piece moves: 2 rates, 3 joints
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 4)
+    goal = scipy_end(q0, W)[1:] + np.array([3e-8, -2e-8, 1e-8])
+    err, W1 = kernel_correct(emap, q0, goal, W)
+    assert not err <= 1e-9
+    assert np.all(W1[[0, 1, 3]] == 0.0)
+    err_loop, W2, _ = correct_signed(emap, q0, goal, W)
+    assert err_loop < min(err, 2e-8) and np.all(W2[[0, 1, 3]] == 0.0)
+
+
 def test_the_halving_kernel_is_the_python_loop(pieces) -> None:
     """The any-sign correction with halved steps in one call: on scipy's model and equal to
     :func:`correct_pieces`, for a goal far enough that full steps overshoot."""

@@ -313,6 +313,8 @@ def kernel_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.nd
     fn = signed_kernel(emap.gains, emap.exponents, P)
     W_end, r = fn(np.asarray(q0, float), full, np.asarray(goal, float), D2_full, s_full)
     W_new = W_end.reshape(P, 2)[P - M:]
+    if signed:      # held at rest exactly (the kernel's arithmetic leaves denormals there)
+        W_new[signs == 0.0] = 0.0
     err = float(np.max(np.abs(r)))
     if not (math.isfinite(err) and np.all(np.isfinite(W_new))) or \
             (signed and np.any(W_new * signs < 0.0)):
