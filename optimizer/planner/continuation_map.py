@@ -1,10 +1,10 @@
 """The end map of a continuation's pieces and its Jacobian, compiled once per robot, and the
-weighted Gauss-Newton correction that moves the pieces onto the goal.
+weighted Gauss-Newton corrections that move the pieces onto the goal.
 
 A continuation's later pieces are constant geometric rates ``g_k`` over plan-time lengths
 ``L_k``; the model is driftless, so each piece is the unit-length flow under the displacement
-rates ``w_k = g_k L_k``. :func:`piece_map` is one CasADi function of the start state and the
-``w_k`` of ``P`` pieces (fewer pieces are padded in front with zero rates, under which
+rates ``w_k = g_k L_k``. :func:`jacobian_map` is one CasADi function of the start state and
+the ``w_k`` of ``P`` pieces (fewer pieces are padded in front with zero rates, under which
 nothing moves) that returns the RK4 end state and its Jacobian in one call: a fixed-size,
 reset-free computation whose answer depends on its arguments only.
 
@@ -12,6 +12,10 @@ reset-free computation whose answer depends on its arguments only.
 measured relative to the rate itself (weights ``|w| + floor``), so the correction is shared
 in proportion to how much each piece already moves and a rate keeps its sign unless the goal
 needs a change of its own size; a step that does not shrink the miss is halved.
+:func:`correct_signed` keeps every rate's sign (an active set per step). The common cases
+run as one compiled call each (:func:`signed_kernel`, :func:`halving_kernel`): CasADi
+functions built from one RK4 piece and its sensitivities, generated as C and compiled
+(:class:`CompiledCall`, :mod:`optimizer.native`) when compiled functions are on.
 """
 
 from __future__ import annotations
@@ -51,25 +55,6 @@ SIGNED_STEPS = 30
 STALL = 0.9
 #: Rounds of the active set of :func:`signed_step`.
 MAX_ACTIVE = 6
-
-
-@functools.lru_cache(maxsize=64)
-def piece_map(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> BufferedCall:
-    """The compiled map ``(q0, W) -> (q_end, d q_end / d W)`` of ``P`` unit pieces (``W``:
-    ``(2, P)`` column-major, so the C-contiguous ``(P, 2)`` array of the rates; the Jacobian
-    comes back flat column-major, ``(n+1, 2P)``)."""
-    nq = len(gains) + 2
-    q = ca.SX.sym("q", nq)
-    u = ca.SX.sym("u", 2)
-    step = ca.Function("piece", [q, u], [rk4_step(
-        lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1], ca.cos)),
-        q, u, 1.0, SUBSTEPS)])
-    W = ca.SX.sym("W", 2, P)
-    x = q
-    for k in range(P):
-        x = step(x, W[:, k])
-    fn = ca.Function(f"continuation_{P}", [q, W], [x, ca.densify(ca.jacobian(x, ca.vec(W)))])
-    return BufferedCall(fn, 2, (0, 1))
 
 
 @functools.lru_cache(maxsize=16)
@@ -175,10 +160,24 @@ class CompiledCall:
 
 
 @functools.lru_cache(maxsize=64)
+def jacobian_map(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> CompiledCall:
+    """The compiled map ``(q0, W) -> (q_end, d q_end / d W)`` of ``P`` unit pieces (``W``:
+    ``(2, P)`` column-major, so the C-contiguous ``(P, 2)`` array of the rates; the Jacobian
+    comes back flat column-major, ``(n+1, 2P)``), built as the kernels are (one piece and its
+    sensitivities, the chain rule backwards: its C compiles in seconds): the Python loops'
+    map (:class:`PieceMap`)."""
+    F = _piece_step(gains, exponents)
+    q0 = ca.MX.sym("q0", len(gains) + 2)
+    W = ca.MX.sym("W", 2, P)
+    x, J = _end_and_jacobian(F, q0, ca.vec(W), P)
+    return CompiledCall(ca.Function(f"continuation_map_{P}", [q0, W], [x, J]), 2, (0, 1))
+
+
+@functools.lru_cache(maxsize=64)
 def signed_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> CompiledCall:
     """:data:`KERNEL_STEPS` full sign-keeping Gauss-Newton steps in one call:
     ``(q0, W, goal, D2, signs) -> (W_end, th_end - goal)`` (``W``: ``(2, P)`` as for
-    :func:`piece_map`; ``D2``, ``signs``: flat like ``vec(W)``).
+    :func:`jacobian_map`; ``D2``, ``signs``: flat like ``vec(W)``).
 
     Each step is :func:`signed_step` with :data:`KERNEL_ROUNDS` rounds of its active set (a
     rate the step would take across 0 held at 0, the others solved again), without halving
@@ -234,7 +233,7 @@ def halving_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int
     Gauss-Newton steps with any sign, each the largest of :data:`HALVING_TRIES` halvings
     that shrinks the miss (none: the rates stay), ``(q0, W, goal, D2) -> (W_end, th_end -
     goal)``. Every candidate is the map's end state without its Jacobian (RK4 as
-    :func:`piece_map`'s)."""
+    :func:`jacobian_map`'s)."""
     n = len(gains) + 1
     F = _piece_step(gains, exponents)
     forward = piece_function(gains, exponents, SUBSTEPS).mapaccum("forward", P)
@@ -335,8 +334,8 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], build: bool = 
     piece_end(gains, exponents)
     kernels: list[CompiledCall] = []
     for P in SIZES:
-        piece_map(gains, exponents, P)
-        kernels += [signed_kernel(gains, exponents, P), halving_kernel(gains, exponents, P)]
+        kernels += [signed_kernel(gains, exponents, P), halving_kernel(gains, exponents, P),
+                    jacobian_map(gains, exponents, P)]
     if build:
         for kernel in kernels:
             kernel.current(wait=True)
@@ -349,13 +348,13 @@ def size_for(M: int) -> int:
 
 class PieceMap:
     """The end state and Jacobian of ``M`` pieces of displacement rates ``(M, 2)`` from ``q0``
-    (the compiled :func:`piece_map` of the next size, padded in front)."""
+    (the compiled :func:`jacobian_map` of the next size, padded in front)."""
 
     def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...], M: int) -> None:
         self.M, self.P = M, size_for(M)
         self.gains, self.exponents = gains, exponents
         self.nq = len(gains) + 2
-        self._call = piece_map(gains, exponents, self.P)
+        self._call = jacobian_map(gains, exponents, self.P)
 
     def __call__(self, q0: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """End state and Jacobian ``(n+1, 2M)`` at rates ``W`` ``(M, 2)``."""
@@ -528,6 +527,6 @@ def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
     return err, W, steps
 
 
-__all__ = ["piece_function", "HALVING_STEPS", "HALVING_TRIES", "halving_correct", "halving_kernel", "CompiledCall", "KERNEL_STEPS", "KERNEL_ROUNDS", "kernel_correct", "signed_kernel", "DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
-           "correct_pieces", "piece_end", "prepare", "piece_map", "piece_weights", "size_for",
+__all__ = ["jacobian_map", "piece_function", "HALVING_STEPS", "HALVING_TRIES", "halving_correct", "halving_kernel", "CompiledCall", "KERNEL_STEPS", "KERNEL_ROUNDS", "kernel_correct", "signed_kernel", "DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
+           "correct_pieces", "piece_end", "prepare", "piece_weights", "size_for",
            "weighted_step"]
