@@ -21,8 +21,11 @@ Usage::
     .venv/bin/python -m bench.replan --goals 3 --joints 3 --no-loop
     .venv/bin/python -m bench.replan --http
 
-Timings depend on the machine's load (2 shared cores here): compare the ratio to the cold
-plan, measured in the same run, rather than the milliseconds.
+Compiled functions are on (:mod:`optimizer.native`, the service's default; ``--no-native``:
+CasADi's virtual machine), and the replanner's kernels are compiled before anything is
+timed (:func:`optimizer.planner.continuation_map.prepare`, ``build=True``): the cold plans
+use the compiled NLP too. Timings depend on the machine's load (2 shared cores here):
+compare the ratio to the cold plan, measured in the same run, rather than the milliseconds.
 """
 
 from __future__ import annotations
