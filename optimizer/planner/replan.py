@@ -33,8 +33,8 @@ geometry and the timing are corrected separately.
    least-norm Gauss-Newton steps onto the goal (``th_1..th_n``; ``phi`` is free). First
    every rate keeps its sign (each step restricted to the rates' signs, an active set): no
    reversal of ``phi`` or ``th1`` is added; five full steps in one compiled call
-   (:func:`~.continuation_map.signed_kernel`), halved and damped steps in Python where those
-   miss. Unless ``keep_reversals``, any sign when that fails (halved steps, one compiled
+   (:func:`~.continuation_map.signed_kernel`), least-squares, halved and damped steps in
+   Python where its systems were singular. Unless ``keep_reversals``, any sign when that fails (halved steps, one compiled
    call, :func:`~.continuation_map.halving_kernel`). The
    remaining law is kept when nothing was split or stopped early; otherwise every piece runs
    rest to rest in equal times (:func:`~.plan_state.law_after_stop`).
