@@ -11,7 +11,8 @@ from scipy.integrate import solve_ivp
 
 from optimizer.model import Robot
 from optimizer import native
-from optimizer.planner.continuation_map import (CompiledCall, PieceMap, correct_pieces,
+from optimizer.planner.continuation_map import (CheckedCall, CompiledCall, PieceMap,
+                                                correct_pieces,
                                                 correct_signed, halving_correct,
                                                 kernel_correct, piece_weights, signed_kernel,
                                                 signed_step)
@@ -168,6 +169,19 @@ def test_the_kernel_says_when_it_cannot_keep_the_signs(pieces) -> None:
     err, W3 = kernel_correct(emap, q0, goal, W, signed=False, floor=None)
     assert err < 1e-9 and np.any(W3 * np.sign(W) < 0.0)
     assert np.max(np.abs(scipy_end(q0, W3)[1:] - goal)) < 1e-7
+
+
+def test_a_failed_evaluation_answers_nan() -> None:
+    """A linear solve of a singular system fails in CasADi's virtual machine; through the
+    buffer the failure is silent and the results unwritten: the checked call answers NaN
+    (the kernels then report no finite miss), and the same call on a regular system the
+    solution."""
+    import casadi as ca
+
+    A, b = ca.MX.sym("A", 2, 2), ca.MX.sym("b", 2)
+    call = CheckedCall(ca.Function("solve", [A, b], [ca.solve(A, b)]), 2)
+    assert np.all(np.isnan(call(np.zeros((2, 2)), np.ones(2))[0]))
+    assert np.allclose(call(np.array([[2.0, 0.0], [0.0, 4.0]]), np.ones(2))[0], [0.5, 0.25])
 
 
 def test_the_compiled_kernel_is_the_virtual_machines(pieces, tmp_path, monkeypatch) -> None:
