@@ -21,8 +21,11 @@ Usage::
     .venv/bin/python -m bench.replan --goals 3 --joints 3 --no-loop
     .venv/bin/python -m bench.replan --http
 
-Timings depend on the machine's load (2 shared cores here): compare the ratio to the cold
-plan, measured in the same run, rather than the milliseconds.
+Compiled functions are on (:mod:`optimizer.native`, the service's default; ``--no-native``:
+CasADi's virtual machine), and the replanner's kernels are compiled before anything is
+timed (:func:`optimizer.planner.continuation_map.prepare`, ``build=True``): the cold plans
+use the compiled NLP too. Timings depend on the machine's load (2 shared cores here):
+compare the ratio to the cold plan, measured in the same run, rather than the milliseconds.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from optimizer.analysis import closed_loop_run
 from optimizer.errors import PlannerError
 from optimizer.planner.plan import plan
 from optimizer.planner.continuation_map import prepare
+from optimizer.planner.piece_proof import prepare as prepare_proof
 from optimizer.planner.replan import replan
 from optimizer.model import Robot
 from optimizer.problem import PlanRequest
@@ -76,7 +80,9 @@ def latency(joints: list[int], goals: int, replans: int,
         for g in generate(n, goals):
             req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(n))
             warm = plan(req).to_dict()             # the NLP built, as in a warm worker
-            prepare(tuple(req.robot.gains), tuple(req.robot.exponents))
+            # the kernels compiled (when compiled functions are on: the service's default)
+            prepare(tuple(req.robot.gains), tuple(req.robot.exponents), build=True)
+            prepare_proof(tuple(req.robot.gains), tuple(req.robot.exponents), build=True)
             try:
                 replan(warm, *_perturbed_state(warm, np.random.default_rng(0)))
             except PlannerError:
@@ -231,15 +237,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--period", type=float, default=0.05)
     ap.add_argument("--keep-reversals", action="store_true",
                     help="closed loop: refuse continuations that add reversals")
+    ap.add_argument("--no-native", action="store_true",
+                    help="CasADi's virtual machine only (no compiled kernels)")
     ap.add_argument("--out", help="write the JSON here too")
     args = ap.parse_args(argv)
-    report: dict[str, Any] = {
-        "latency": latency(args.joints, args.goals, args.replans, args.state_error_deg)}
+    from .inprocess import configure_native
+
+    report: dict[str, Any] = {"native": configure_native(args.no_native)}
+    report["latency"] = latency(args.joints, args.goals, args.replans, args.state_error_deg)
     if args.http:
         report["http"] = http_latency(10 * args.replans)
     if not args.no_loop:
         report["closed_loop"] = closed_loop(args.joints, args.goals, args.gain_error,
                                             args.spread_deg, args.period, args.keep_reversals)
+    print(f"compiled functions: {report['native']}")
     print(f"latency: states off the plan by up to {args.state_error_deg:g} deg per joint")
     for n, r in report["latency"].items():
         print(f"n = {n}: replan p50 {r['p50_ms']:.2f} ms, p99 {r['p99_ms']:.2f} ms; cold "

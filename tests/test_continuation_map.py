@@ -10,8 +10,13 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from optimizer.model import Robot
-from optimizer.planner.continuation_map import (PieceMap, correct_pieces, correct_signed,
-                                                piece_weights, signed_step)
+from optimizer import native
+from optimizer.planner.continuation_map import (CheckedCall, CompiledCall, PieceMap,
+                                                correct_pieces,
+                                                correct_signed, halving_correct,
+                                                kernel_correct, piece_weights, signed_kernel,
+                                                signed_step)
+from optimizer.planner.piece_proof import integrate_pieces
 from optimizer.planner.plan import plan
 from optimizer.planner.replan import read_plan, replan, sign_changes
 from optimizer.problem import PlanRequest
@@ -95,6 +100,138 @@ def test_signed_step_solves_the_system_within_the_signs() -> None:
         assert np.allclose(J @ dx, r, atol=1e-9)
         assert np.all((W - dx) * np.sign(W) >= -1e-15)
     assert crossed >= 5        # the sign constraint was active in some of them
+
+
+def test_the_compiled_kernel_keeps_the_signs_and_reaches_the_goal_on_scipy(pieces) -> None:
+    """The one-call correction (full sign-keeping steps) reaches a nearby goal on scipy's
+    integration of the tests' model, keeps every rate's sign and agrees with the Python loop
+    of :func:`correct_signed`; where one rate must stop to keep its sign, it stops at 0."""
+    q0, W = pieces
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    goal = scipy_end(q0, W)[1:] + np.array([-1e-3, 1e-3, 1e-3])
+    err, W1 = kernel_correct(emap, q0, goal, W)
+    assert err < 1e-10
+    assert np.all(W1 * np.sign(W) >= 0.0)
+    assert np.max(np.abs(scipy_end(q0, W1)[1:] - goal)) < 1e-8
+    _, W2, _ = correct_signed(emap, q0, goal, W)
+    assert np.allclose(W1, W2, rtol=1e-6, atol=1e-9)
+    # any sign: the plain weighted Gauss-Newton, on scipy too
+    err, W3 = kernel_correct(emap, q0, goal, W, signed=False)
+    assert err < 1e-10 and np.max(np.abs(scipy_end(q0, W3)[1:] - goal)) < 1e-8
+
+
+def test_the_kernel_with_fewer_free_rates_than_joints(pieces) -> None:
+    """Late in a motion few rates are left free (the others at rest, held there): the
+    kernel's systems are (nearly) singular. It does not claim the goal (the replanner then
+    runs the Python loop) and keeps the resting rates at rest; the loop takes the miss
+    lower."""
+    q0, _ = pieces
+    W = np.zeros((4, 2))
+    W[2] = [0.05, 0.02]                               # one piece moves: 2 rates, 3 joints
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 4)
+    goal = scipy_end(q0, W)[1:] + np.array([3e-8, -2e-8, 1e-8])
+    err, W1 = kernel_correct(emap, q0, goal, W)
+    assert not err <= 1e-9
+    assert np.all(W1[[0, 1, 3]] == 0.0)
+    err_loop, W2, _ = correct_signed(emap, q0, goal, W)
+    assert err_loop < min(err, 2e-8) and np.all(W2[[0, 1, 3]] == 0.0)
+
+
+def test_the_halving_kernel_is_the_python_loop(pieces) -> None:
+    """The any-sign correction with halved steps in one call: on scipy's model and equal to
+    :func:`correct_pieces`, for a goal far enough that full steps overshoot."""
+    q0, W = pieces
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    # (the far goal needs rates whose 4 RK4 steps per piece are 1e-5 rad off the model: the
+    # map's own error, which the replanner's verification measures and its defect step
+    # removes)
+    for offset, on_model in (([2e-3, -1e-3, 1.5e-3], 1e-8), ([0.04, -0.05, 0.06], 1e-4)):
+        goal = scipy_end(q0, W)[1:] + np.array(offset)
+        err, W1 = halving_correct(emap, q0, goal, W)
+        err_loop, W2, _ = correct_pieces(emap, q0, goal, W)
+        assert err < 1e-10 and err_loop < 1e-10
+        assert np.max(np.abs(scipy_end(q0, W1)[1:] - goal)) < on_model
+        assert np.allclose(W1, W2, rtol=1e-6, atol=1e-9)
+
+
+def test_the_kernel_says_when_it_cannot_keep_the_signs(pieces) -> None:
+    """A goal that no rates of the same signs reach (th2 back by 0.05 rad, th1 and th3 where
+    they are, every rate forward) is out of the signed kernel's reach: it says so by its
+    miss, and no rate crossed 0; with any sign it is reached, some rate reversed."""
+    q0, _ = pieces
+    W = np.tile([0.05, 0.02], (7, 1))                 # phi and th1 forward on every piece
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    end = scipy_end(q0, W)
+    goal = end[1:] - np.array([0.0, 0.05, 0.0])      # th2 back, th1 and th3 where they are
+    err, W1 = kernel_correct(emap, q0, goal, W)
+    assert not err <= 1e-6
+    assert np.all(W1 * np.sign(W) >= 0.0)
+    err, W3 = kernel_correct(emap, q0, goal, W, signed=False, floor=None)
+    assert err < 1e-9 and np.any(W3 * np.sign(W) < 0.0)
+    assert np.max(np.abs(scipy_end(q0, W3)[1:] - goal)) < 1e-7
+
+
+def test_a_failed_evaluation_answers_nan() -> None:
+    """A linear solve of a singular system fails in CasADi's virtual machine; through the
+    buffer the failure is silent and the results unwritten: the checked call answers NaN
+    (the kernels then report no finite miss), and the same call on a regular system the
+    solution."""
+    import casadi as ca
+
+    A, b = ca.MX.sym("A", 2, 2), ca.MX.sym("b", 2)
+    call = CheckedCall(ca.Function("solve", [A, b], [ca.solve(A, b)]), 2)
+    assert np.all(np.isnan(call(np.zeros((2, 2)), np.ones(2))[0]))
+    assert np.allclose(call(np.array([[2.0, 0.0], [0.0, 4.0]]), np.ones(2))[0], [0.5, 0.25])
+
+
+def test_the_compiled_kernel_is_the_virtual_machines(pieces, tmp_path, monkeypatch) -> None:
+    """The kernel generated as C and compiled (optimizer.native) gives the virtual machine's
+    answer."""
+    monkeypatch.setattr(native, "_config", None)      # (restored after the test)
+    cfg = native.configure(tmp_path / "native")
+    if cfg is None:
+        pytest.skip("no C compiler")
+    q0, W = pieces
+    robot = Robot.default(3)
+    call = signed_kernel(tuple(robot.gains), tuple(robot.exponents), 8)
+    fresh = CompiledCall(call.function, 5, (0, 1))   # not the cached one: built here
+    compiled = fresh.current(wait=True)
+    assert compiled is not fresh.vm
+    full = np.vstack([np.zeros((1, 2)), W])
+    emap = PieceMap(tuple(robot.gains), tuple(robot.exponents), 8)
+    goal = scipy_end(q0, W)[1:] + np.array([-1e-3, 1e-3, 1e-3])
+    D2 = piece_weights(full, np.vstack([[True, True], np.zeros((7, 2), bool)]))
+    args = (q0, full, goal, D2, np.sign(full))
+    for a, b in zip(fresh.vm(*args), compiled(*args)):
+        assert np.allclose(a, b, rtol=1e-12, atol=1e-14)
+    assert emap.P == 8
+
+
+def test_the_compiled_verification_matches_scipy(pieces) -> None:
+    """The compiled integration of constant-rate pieces (the replanner's proof): its states
+    at the breaks within 1e-11 rad of scipy's DOP853 on the tests' own model, its Richardson
+    estimate below the target, its samples within 1e-9; none where the estimate is above."""
+    q0, W = pieces
+    robot = Robot.default(3)
+    breaks = np.concatenate([[0.0], np.cumsum([0.3, 0.1, 0.25, 0.05, 0.2, 0.4, 0.15])])
+    rates = W / np.diff(breaks)[:, None]               # the same displacements as W
+    s_eval = np.array([0.0, 0.02, 0.31, 0.77, breaks[-1]])
+    proof = integrate_pieces(tuple(robot.gains), tuple(robot.exponents), q0, breaks, rates,
+                             s_eval)
+    assert proof is not None and not proof.singular
+    for k in range(1, W.shape[0] + 1):
+        assert np.max(np.abs(proof.q[k] - scipy_end(q0, W[:k]))) < 1e-11
+    assert proof.error_estimate < 1e-11
+    for j, s in enumerate(s_eval):
+        k = min(int(np.searchsorted(breaks, s, side="right")) - 1, W.shape[0] - 1)
+        frac = (s - breaks[k]) / (breaks[k + 1] - breaks[k])
+        ref = scipy_end(q0, np.vstack([W[:k], W[k] * frac]))
+        assert np.max(np.abs(proof.q[breaks.size + j] - ref)) < 1e-9
+    # rates ten times larger: the coarse run is off, the estimate says so (and the caller
+    # then integrates by the cascade quadrature)
+    big = integrate_pieces(tuple(robot.gains), tuple(robot.exponents), q0,
+                           breaks, 12.0 * rates, s_eval)
+    assert big is None
 
 
 @pytest.fixture(scope="module")
