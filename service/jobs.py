@@ -60,7 +60,9 @@ def warm_up() -> dict[str, Any]:
     # the shooting NLP (0.1 s): not paid by the first 'shooting' request, and with compiled
     # functions configured their build starts now, in the background
     shooting = prepare(robot.gains, robot.exponents)
-    # the replans' compiled continuation maps (about 0.3 s): not paid by the first replan
+    # the replans' continuation maps and kernels (0.5-1 s of CPU): not paid by the first replan
+    # (the proof's functions, piece_proof.prepare, about as much again, are built per size at
+    # the first replan that needs them: every server start in the tests would pay them)
     continuation_map.prepare(robot.gains, robot.exponents)
     # the reversal budget's NLP and solvers (0.3-0.4 s): not paid by the first
     # max_reversals or pareto request
