@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 from numpy.polynomial import chebyshev as cheb
 
+from . import cascade_kernel
 from .dynamics import joint_rate
 from .integration import CASCADE_NAME, HALF_PI, Replay, integrate
 from .model import Robot
@@ -186,17 +187,20 @@ def _cuts(k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _cut(rule: _ChebRule, cuts: tuple[np.ndarray, np.ndarray], a: np.ndarray, h: np.ndarray,
-         U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+         U: np.ndarray, graded: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """New panels from the panels ``(a, h)``: each cut as :func:`_cuts`, graded toward the end
-    where ``u1^2 + u2^2`` is steeper (by more than 4x; else uniformly).
+    where ``u1^2 + u2^2`` is steeper (by more than 4x; else, or without ``graded``, uniformly:
+    constant rates have no steeper end, and their computed slopes are rounding noise).
 
     A nearby singularity of the inputs (a joint close to 0 at the start of the motion) makes
     the function steep at the panel's end that faces it; geometric grading reaches it in a few
     rounds where bisection would need many.
     """
+    starts, widths = cuts
+    if not graded:
+        return ((a[:, None] + h[:, None] * starts[0]).ravel(), (h[:, None] * widths[0]).ravel())
     slope = np.abs((U[0] * U[0] + U[1] * U[1]) @ rule.slopes.T)   # (Pm, 2): at -1, at 1
     kind = (slope[:, 0] > 4.0 * slope[:, 1]) + 2 * (slope[:, 1] > 4.0 * slope[:, 0])
-    starts, widths = cuts
     return ((a[:, None] + h[:, None] * starts[kind]).ravel(),
             (h[:, None] * widths[kind]).ravel())
 
@@ -209,7 +213,7 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                       initial_width: float | None = None, split: int = CASCADE_SPLIT,
                       max_rounds: int = CASCADE_MAX_ROUNDS, max_panels: int = CASCADE_MAX_PANELS,
                       fallback: Callable[[float, np.ndarray], np.ndarray] | None = None,
-                      constant_pieces: bool = False) -> Replay:
+                      constant_pieces: bool = False, compiled: bool = True) -> Replay:
     """Integrate the original model under OPEN-LOOP inputs by cumulative quadrature.
 
     The model is triangular: ``phi = int u1``, ``th1 = int u2``, then
@@ -256,7 +260,12 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
     constant_pieces : bool
         The inputs are constant between ``breaks`` (actuator schedules): they are read once
         per panel, at its middle, and their quadrature is exact (no error estimate of their
-        own); the joints' integrands are resolved as always.
+        own); the joints' integrands are resolved as always. Refined panels are cut
+        uniformly. The compiled kernel (:mod:`optimizer.cascade_kernel`) computes this case
+        when it is available: the same panels, estimate and outputs, to rounding.
+    compiled : bool
+        Use the compiled kernel for ``constant_pieces`` when it is available (False: always
+        the numpy code; the tests compare both).
 
     Returns
     -------
@@ -305,7 +314,9 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
     edges = np.array([0.0, T]) if breaks is None else np.asarray(breaks, float)
     if edges.size < 2 or edges[0] != 0.0 or edges[-1] != T or not np.all(np.diff(edges) > 0.0):
         edges = np.unique(np.concatenate([[0.0, T], np.clip(edges, 0.0, T)]))
-    if initial_width is None:
+    if initial_width is None and int(initial_panels) <= 1:  # (the same numbers, fewer steps)
+        new_a, new_h = edges[:-1], np.diff(edges)
+    elif initial_width is None:
         k = max(int(initial_panels), 1)
         new_a = (edges[:-1, None] + np.diff(edges)[:, None] * (np.arange(k) / k)).ravel()
         new_h = np.repeat(np.diff(edges) / k, k)
@@ -338,6 +349,17 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                       singular=singular_time is not None, singular_time=singular_time,
                       success=False, message=reason, energy=0.0, integrator=CASCADE_NAME,
                       evaluations=evaluations, panels=a.size + new_a.size)
+
+    if constant_pieces and compiled and new_a.size and cascade_kernel.ready():
+        run = _run_kernel(robot, u_of_t, q0, T, t_eval, new_a, new_h, rule, cuts, tol,
+                          max_rounds, max_panels)
+        if run is not None:
+            if run.status != "ok":
+                return failed("a state is not finite")
+            if not run.estimate <= max(accept, tol):
+                return failed(f"error estimate {run.estimate:.3g} above {max(accept, tol):.3g} "
+                              f"after {run.rounds} refinements ({run.panels} panels)")
+            return _kernel_replay(run, t_eval, p, tol)
 
     def fits(mark: np.ndarray) -> bool:  # may the marked panels be cut?
         more = (cuts[0].shape[1] - 1) * int(mark.sum())
@@ -425,7 +447,7 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                 break
         rounds += 1
         # cut the marked panels (toward their rough end); inputs evaluated in the next round
-        new_a, new_h = _cut(rule, cuts, a[mark], h[mark], U[:, mark])
+        new_a, new_h = _cut(rule, cuts, a[mark], h[mark], U[:, mark], not constant_pieces)
         keep = ~mark
         a, h, tn = a[keep], h[keep], tn[keep]
         U, in_err, in_coef = U[:, keep], in_err[:, keep], in_coef[:, keep]
@@ -477,3 +499,46 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                   singular_time=singular_time, success=True, message=msg, energy=energy,
                   integrator=CASCADE_NAME, error_estimate=estimate, evaluations=evaluations,
                   panels=a.size, mesh_t=mesh_t, mesh_q=mesh_q)
+
+
+@functools.lru_cache(maxsize=16)
+def _packed_rule(p: int, k: int) -> np.ndarray:
+    r = _cheb_rule(p)
+    starts, widths = _cuts(k)
+    packed = cascade_kernel.pack_rule(r.x, r.cum_total, r.to_coef, r.xb, r.wb, starts[0],
+                                      widths[0])
+    packed.setflags(write=False)
+    return packed
+
+
+def _run_kernel(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], q0: np.ndarray,
+                T: float, t_eval: np.ndarray, a0: np.ndarray, h0: np.ndarray, rule: _ChebRule,
+                cuts: tuple[np.ndarray, np.ndarray], tol: float, max_rounds: int,
+                max_panels: int) -> cascade_kernel.KernelRun | None:
+    """:func:`integrate_cascade` of constant pieces by the compiled kernel, from the initial
+    panels ``(a0, h0)``; None when the kernel is not there (or the rates are not finite: the
+    numpy code reports those)."""
+    k = cuts[0].shape[1]
+    rates = np.asarray(u_of_t(a0 + 0.5 * h0), float).reshape(a0.size, 2)
+    if not np.isfinite(rates).all():
+        return None
+    return cascade_kernel.run(
+        np.asarray(robot.gains, float), np.asarray(robot.exponents, float), q0, T, t_eval, a0,
+        h0, rates, _packed_rule(rule.x.size, k), rule.x.size, k, tol=tol,
+        half_pi=HALF_PI, plateau=CASCADE_PLATEAU, noise=CASCADE_NOISE, tail=CASCADE_TAIL,
+        max_rounds=int(max_rounds), max_panels=int(max_panels))
+
+
+def _kernel_replay(run: cascade_kernel.KernelRun, t_eval: np.ndarray, p: int,
+                   tol: float) -> Replay:
+    """The :class:`Replay` of an accepted kernel run (as the numpy code builds it)."""
+    msg = (f"cascade quadrature: {run.panels} panels x {p} nodes, {run.rounds} refinements, "
+           f"error estimate {run.estimate:.2g}")
+    if run.estimate > tol:
+        msg += (" (above the target: refinement bounds reached)" if run.bounded else
+                " (above the target: limited by the inputs' rounding noise)")
+    return Replay(t=t_eval, q=run.q, final=run.mesh_q[-1].copy(),
+                  singular=run.singular_time is not None, singular_time=run.singular_time,
+                  success=True, message=msg, energy=run.energy, integrator=CASCADE_NAME,
+                  error_estimate=run.estimate, evaluations=run.evaluations, panels=run.panels,
+                  mesh_t=run.mesh_t, mesh_q=run.mesh_q)
