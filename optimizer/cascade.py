@@ -331,15 +331,11 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
         new_a = np.repeat(edges[:-1], ks) + np.repeat(widths, ks) * (j / kk)
         new_h = np.repeat(widths / ks, ks)
     # panels (in no particular order until the cascade sorts them) and what is known on them
-    a = h = np.empty(0)
-    tn = np.empty((0, p))
-    U = np.empty((2, 0, p))             # u1, u2 at the nodes
-    in_err = np.empty((3, 0))           # tails of u1, u2, u1^2 + u2^2
-    in_coef = np.empty((3, 0, p))       # and their coefficients (magnitudes)
-    w_in = np.ones(3)
+    a = np.empty(0)                     # panels (in no particular order until sorted)
     evaluations = rounds = 0
 
-    def failed(reason: str, singular_time: float | None = None) -> Replay:
+    def failed(reason: str, singular_time: float | None = None,
+               panels: int | None = None) -> Replay:
         if singular_time is None and fallback is not None:
             rep = integrate(robot, fallback, q0, T, t_eval)
             return dataclasses.replace(
@@ -348,18 +344,29 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
         return Replay(t=t_eval, q=np.zeros((t_eval.size, nq)), final=np.zeros(nq),
                       singular=singular_time is not None, singular_time=singular_time,
                       success=False, message=reason, energy=0.0, integrator=CASCADE_NAME,
-                      evaluations=evaluations, panels=a.size + new_a.size)
+                      evaluations=evaluations,
+                      panels=a.size + new_a.size if panels is None else panels)
 
     if constant_pieces and compiled and new_a.size and cascade_kernel.ready():
         run = _run_kernel(robot, u_of_t, q0, T, t_eval, new_a, new_h, rule, cuts, tol,
                           max_rounds, max_panels)
-        if run is not None:
+        if run is not None:  # (else the numpy code below)
+            evaluations = run.evaluations
             if run.status != "ok":
-                return failed("a state is not finite")
+                return failed("a state is not finite", panels=run.panels)
             if not run.estimate <= max(accept, tol):
                 return failed(f"error estimate {run.estimate:.3g} above {max(accept, tol):.3g} "
-                              f"after {run.rounds} refinements ({run.panels} panels)")
+                              f"after {run.rounds} refinements ({run.panels} panels)",
+                              panels=run.panels)
             return _kernel_replay(run, t_eval, p, tol)
+
+    # what is known on the panels
+    h = np.empty(0)
+    tn = np.empty((0, p))
+    U = np.empty((2, 0, p))             # u1, u2 at the nodes
+    in_err = np.empty((3, 0))           # tails of u1, u2, u1^2 + u2^2
+    in_coef = np.empty((3, 0, p))       # and their coefficients (magnitudes)
+    w_in = np.ones(3)
 
     def fits(mark: np.ndarray) -> bool:  # may the marked panels be cut?
         more = (cuts[0].shape[1] - 1) * int(mark.sum())
@@ -501,6 +508,15 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                   panels=a.size, mesh_t=mesh_t, mesh_q=mesh_q)
 
 
+@functools.lru_cache(maxsize=64)
+def _model_arrays(gains: tuple[float, ...],
+                  exponents: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    out = np.asarray(gains, float), np.asarray(exponents, float)
+    for arr in out:
+        arr.setflags(write=False)
+    return out
+
+
 @functools.lru_cache(maxsize=16)
 def _packed_rule(p: int, k: int) -> np.ndarray:
     r = _cheb_rule(p)
@@ -522,9 +538,10 @@ def _run_kernel(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], q0: np
     rates = np.asarray(u_of_t(a0 + 0.5 * h0), float).reshape(a0.size, 2)
     if not np.isfinite(rates).all():
         return None
+    gains, exponents = _model_arrays(robot.gains, robot.exponents)
     return cascade_kernel.run(
-        np.asarray(robot.gains, float), np.asarray(robot.exponents, float), q0, T, t_eval, a0,
-        h0, rates, _packed_rule(rule.x.size, k), rule.x.size, k, tol=tol,
+        gains, exponents, q0, T, t_eval, a0, h0, rates, _packed_rule(rule.x.size, k),
+        rule.x.size, k, tol=tol,
         half_pi=HALF_PI, plateau=CASCADE_PLATEAU, noise=CASCADE_NOISE, tail=CASCADE_TAIL,
         max_rounds=int(max_rounds), max_panels=int(max_panels))
 

@@ -188,11 +188,11 @@ def run(gains: np.ndarray, exponents: np.ndarray, q0: np.ndarray, T: float, t_ev
     head = [n, nodes, P0, split, max_rounds, max_panels, tail, M, capacity,
             tol, half_pi, plateau, noise, T]
     din = np.concatenate([head, gains, exponents, q0, a0, h0, rates0.T.ravel(), t_eval])
-    rule_at = rule.ctypes.data
+    rule_at = _address(rule)
     while True:
         rows = capacity * (nodes + 1) + 1
         dout = np.empty(7 + M * nq + rows * (1 + nq))
-        status = fn(din.ctypes.data, rule_at, dout.ctypes.data)
+        status = fn(_address(din), rule_at, _address(dout))
         if status != _STATUS_CAPACITY:
             break
         capacity = int(dout[0])
@@ -206,6 +206,14 @@ def run(gains: np.ndarray, exponents: np.ndarray, q0: np.ndarray, T: float, t_ev
                      estimate, None if math.isnan(sing) else sing, int(P), int(rounds),
                      bounded != 0.0, int(evaluations), dout[mesh:mesh + used],
                      dout[mesh + rows:mesh + rows + used * nq].reshape(used, nq))
+
+
+def _address(arr: np.ndarray) -> int:
+    """The address of a C-contiguous float array's data (a third of ``arr.ctypes.data``'s
+    time, which builds a helper object; that only for a read-only array)."""
+    if not arr.flags.writeable:
+        return int(arr.ctypes.data)
+    return ctypes.addressof(ctypes.c_char.from_buffer(arr))
 
 
 def pack_rule(x: np.ndarray, cum_total: np.ndarray, to_coef: np.ndarray, xb: np.ndarray,
