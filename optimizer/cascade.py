@@ -16,7 +16,7 @@ import dataclasses
 import functools
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 from numpy.polynomial import chebyshev as cheb
@@ -360,6 +360,9 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                               panels=run.panels)
             return _kernel_replay(run, t_eval, p, tol)
 
+    # the general case: one cascade per round and the outputs by the kernel when it is loaded
+    use_kernel = compiled and cascade_kernel.ready()
+    packed = _packed_rule(p, cuts[0].shape[1])
     # what is known on the panels
     h = np.empty(0)
     tn = np.empty((0, p))
@@ -420,33 +423,16 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                 order = np.argsort(a)
                 a, h, tn = a[order], h[order], tn[order]
                 U, in_err, in_coef = U[:, order], in_err[:, order], in_coef[:, order]
-            half = 0.5 * h
-            P = a.size
-            F = np.empty((nq + 1, P, p))     # u1, u2, K_i cos(th_{i-1})^m_i u1, energy
-            X = np.empty((nq, P, p))         # states at the nodes
-            ends = np.empty((nq, P + 1))     # states at the panel ends
-            cosx = np.empty((n - 1, P, p))   # cos(th_1..th_{n-1}) at the nodes
-            F[0], F[1] = U[0], U[1]
-            F[nq] = U[0] * U[0] + U[1] * U[1]
-            for s in range(nq):
-                R = (F[s] @ rule.cum_total.T) * half[:, None]  # cumulative at nodes; total
-                ends[s, 0] = q0[s]
-                np.cumsum(R[:, p], out=ends[s, 1:])
-                ends[s, 1:] += q0[s]
-                X[s] = R[:, :p] + ends[s, :-1, None]
-                if 1 <= s < n:  # th_s drives th_{s+1}
-                    cosx[s - 1] = np.cos(X[s])
-                    F[s + 1] = joint_rate(robot.gains, robot.exponents, s + 1, X[s], F[0])
-            energy = float(F[nq] @ rule.total @ half)
+            compiled_step = (cascade_kernel.general_pass(
+                *_model_arrays(robot.gains, robot.exponents), q0, h, U, packed, p, CASCADE_TAIL)
+                if use_kernel else None)
+            energy, lam, X, ends, e, c = (compiled_step if compiled_step is not None else
+                                          _cascade_numpy(robot, rule, q0, h, U))
             if not (math.isfinite(float(ends[:, -1].sum())) and math.isfinite(energy)):
                 return failed("a state is not finite")
-            # Lambda_i = int |d f_i / d th_{i-1}| dt = K_i m_i int |cos^(m_i-1) sin u1| dt
-            mm = m[:, None, None]
-            lam = K * m * (np.abs(cosx ** (mm - 1.0) * np.sin(X[1:n]) * F[0]) @ rule.total @ half)
             chain = _chain_weights(lam)
             w = np.concatenate([[1.0], chain, [1.0 / abs(energy) if energy != 0.0 else 1.0]])
-            # the inputs' tails are known: only the joints' integrands are new
-            e, c = _tails(rule, F[2:nq], h)
+            # the inputs' tails are known: only the joints' integrands (e, c) are new
             err = np.concatenate([in_err[:2], e, in_err[2:]])
             mark = _marks(err, np.concatenate([in_coef[:2], c, in_coef[2:]]), w, share * h)
             if not (mark.any() and fits(mark)):
@@ -470,6 +456,77 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
         return failed(f"error estimate {estimate:.3g} above {max(accept, tol):.3g} after "
                       f"{rounds} refinements ({a.size} panels)")
 
+    final = ends[:, -1].copy()
+    outs = (cascade_kernel.general_outputs(a, h, X, ends, T, HALF_PI, t_eval, packed, p)
+            if use_kernel else None)
+    singular_time, q, mesh_t, mesh_q = (outs if outs is not None else
+                                        _outputs_numpy(rule, a, h, X, ends, T, t_eval))
+    msg = (f"cascade quadrature: {a.size} panels x {p} nodes, {rounds} refinements, error "
+           f"estimate {estimate:.2g}")
+    if estimate > tol:
+        msg += (" (above the target: refinement bounds reached)" if bounded else
+                " (above the target: limited by the inputs' rounding noise)")
+    return Replay(t=t_eval, q=q, final=final, singular=singular_time is not None,
+                  singular_time=singular_time, success=True, message=msg, energy=energy,
+                  integrator=CASCADE_NAME, error_estimate=estimate, evaluations=evaluations,
+                  panels=a.size, mesh_t=mesh_t, mesh_q=mesh_q)
+
+
+class _Cascade(NamedTuple):
+    """One cascade on a mesh: energy, ``Lambda_2..n``, states at the nodes ``X`` (nq, P, p)
+    and panel ends ``ends`` (nq, P+1), the joints' integrands' tails ``err`` (n-1, P) and
+    coefficient magnitudes ``coef`` (n-1, P, p)."""
+
+    energy: float
+    lam: np.ndarray
+    X: np.ndarray
+    ends: np.ndarray
+    err: np.ndarray
+    coef: np.ndarray
+
+
+def _cascade_numpy(robot: Robot, rule: _ChebRule, q0: np.ndarray, h: np.ndarray,
+                   U: np.ndarray) -> _Cascade:
+    """The cascade on panels in time order (widths ``h``) with inputs ``U`` (2, P, p) at their
+    nodes: each state the cumulative quadrature of its integrand, joint after joint."""
+    n = robot.n
+    nq = n + 1
+    P, p = U.shape[1], U.shape[2]
+    K = np.asarray(robot.gains, float)
+    m = np.asarray(robot.exponents, float)
+    half = 0.5 * h
+    F = np.empty((nq + 1, P, p))     # u1, u2, K_i cos(th_{i-1})^m_i u1, energy
+    X = np.empty((nq, P, p))         # states at the nodes
+    ends = np.empty((nq, P + 1))     # states at the panel ends
+    cosx = np.empty((n - 1, P, p))   # cos(th_1..th_{n-1}) at the nodes
+    F[0], F[1] = U[0], U[1]
+    F[nq] = U[0] * U[0] + U[1] * U[1]
+    for s in range(nq):
+        R = (F[s] @ rule.cum_total.T) * half[:, None]  # cumulative at nodes; total
+        ends[s, 0] = q0[s]
+        np.cumsum(R[:, p], out=ends[s, 1:])
+        ends[s, 1:] += q0[s]
+        X[s] = R[:, :p] + ends[s, :-1, None]
+        if 1 <= s < n:  # th_s drives th_{s+1}
+            cosx[s - 1] = np.cos(X[s])
+            F[s + 1] = joint_rate(robot.gains, robot.exponents, s + 1, X[s], F[0])
+    energy = float(F[nq] @ rule.total @ half)
+    # Lambda_i = int |d f_i / d th_{i-1}| dt = K_i m_i int |cos^(m_i-1) sin u1| dt
+    mm = m[:, None, None]
+    with np.errstate(all="ignore"):  # (non-finite states are reported by the caller)
+        lam = K * m * (np.abs(cosx ** (mm - 1.0) * np.sin(X[1:n]) * F[0]) @ rule.total @ half)
+        err, coef = _tails(rule, F[2:nq], h)
+    return _Cascade(energy, lam, X, ends, err, coef)
+
+
+def _outputs_numpy(rule: _ChebRule, a: np.ndarray, h: np.ndarray, X: np.ndarray,
+                   ends: np.ndarray, T: float, t_eval: np.ndarray
+                   ) -> tuple[float | None, np.ndarray, np.ndarray, np.ndarray]:
+    """The first singular time, the samples at ``t_eval``, ``mesh_t`` and ``mesh_q`` of a run
+    on panels ``(a, h)`` in time order."""
+    nq, P, p = X.shape
+    n = nq - 1
+    half = 0.5 * h
     # samples: the integrated interpolant, a polynomial of degree p on each panel, known at the
     # p nodes and both ends: barycentric interpolation through those p + 2 values is exact
     Xb = np.concatenate([ends[:, :-1, None], X, ends[:, 1:, None]], axis=2)  # (nq, P, p+2)
@@ -484,9 +541,9 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
     hit = np.nonzero(~np.isfinite(q[:, 0]))[0]  # a sample exactly on a node or a panel end
     if hit.size:
         q[hit] = Xb[idx[hit], :, np.argmin(np.abs(d[hit]), axis=1)]
-    final = ends[:, -1].copy()
 
     # singularity: th_1..th_{n-1} outside (0, pi/2) at a node, a sample or a panel end
+    tn = a[:, None] + half[:, None] * (rule.x + 1.0)
     singular_time: float | None = None
     checks = ((tn, X[1:n]), (te, q[:, 1:n].T), (np.append(a, T), ends[1:n]))
     if any(v.min() <= 0.0 or v.max() >= HALF_PI for _, v in checks):
@@ -495,17 +552,9 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
             if out.any():
                 ts = float(np.min(tt[out]))
                 singular_time = ts if singular_time is None else min(singular_time, ts)
-    msg = (f"cascade quadrature: {a.size} panels x {p} nodes, {rounds} refinements, error "
-           f"estimate {estimate:.2g}")
-    if estimate > tol:
-        msg += (" (above the target: refinement bounds reached)" if bounded else
-                " (above the target: limited by the inputs' rounding noise)")
     mesh_t = np.append((a[:, None] + half[:, None] * (rule.xb[:p + 1] + 1.0)).ravel(), T)
-    mesh_q = np.vstack([Xb[:, :, :p + 1].transpose(0, 2, 1).reshape(-1, nq), final])
-    return Replay(t=t_eval, q=q, final=final, singular=singular_time is not None,
-                  singular_time=singular_time, success=True, message=msg, energy=energy,
-                  integrator=CASCADE_NAME, error_estimate=estimate, evaluations=evaluations,
-                  panels=a.size, mesh_t=mesh_t, mesh_q=mesh_q)
+    mesh_q = np.vstack([Xb[:, :, :p + 1].transpose(0, 2, 1).reshape(-1, nq), ends[:, -1]])
+    return singular_time, q, mesh_t, mesh_q
 
 
 @functools.lru_cache(maxsize=64)

@@ -100,22 +100,15 @@ static int is_noise(const Ctx *c, const double *C) {
 }
 
 /* The cascade on the mesh (a, h, u1, u2 in time order): states, energy, Lambda_i, tails. */
-static int cascade_pass(const Ctx *c, Pass *w, const double *a, const double *h,
-                        const double *u1, const double *u2) {
+/* w->F[0], w->F[1] hold u1, u2 at the nodes (filled by the caller) */
+static int cascade_pass(const Ctx *c, Pass *w, const double *h) {
     const int P = w->P, p = c->p, nq = c->nq, n = c->n;
     const size_t Pp = (size_t)P * p;
+    const double *u1 = w->F, *u2 = w->F + Pp;
     double *R = malloc(sizeof(double) * (size_t)(p + 1));
-    double *cosx = malloc(sizeof(double) * Pp * (size_t)(n - 1));
+    double *cosx = malloc(sizeof(double) * Pp * (size_t)(n > 1 ? n - 1 : 1));
     if (!R || !cosx) { free(R); free(cosx); return CK_NOMEM; }
-    (void)a;
-    for (int j = 0; j < P; j++) {
-        double e = u1[j] * u1[j] + u2[j] * u2[j];
-        for (int k = 0; k < p; k++) {
-            w->F[j * p + k] = u1[j];
-            w->F[Pp + j * p + k] = u2[j];
-            w->F[(size_t)nq * Pp + j * p + k] = e;
-        }
-    }
+    for (size_t i = 0; i < Pp; i++) w->F[(size_t)nq * Pp + i] = u1[i] * u1[i] + u2[i] * u2[i];
     for (int s = 0; s < nq; s++) {
         const double *Fs = w->F + (size_t)s * Pp;
         double *Xs = w->X + (size_t)s * Pp;
@@ -139,7 +132,7 @@ static int cascade_pass(const Ctx *c, Pass *w, const double *a, const double *h,
                 double cv = cos(Xs[i]), pw = cv;
                 for (int e = 1; e < m; e++) pw = pw * cv;
                 cs[i] = cv;
-                Fn[i] = K * pw * u1[i / p];
+                Fn[i] = K * pw * u1[i];
             }
         }
     }
@@ -165,7 +158,7 @@ static int cascade_pass(const Ctx *c, Pass *w, const double *a, const double *h,
                 size_t idx = (size_t)j * p + k;
                 double pw = 1.0;
                 for (int e = 0; e < mm; e++) pw *= cs[idx];
-                acc += fabs(pw * sin(Xs[idx]) * u1[j]) * c->total[k];
+                acc += fabs(pw * sin(Xs[idx]) * u1[idx]) * c->total[k];
             }
             acc_all += acc * (0.5 * h[j]);
         }
@@ -234,6 +227,72 @@ static int nearest(const Ctx *c, double d0) {
     return at;
 }
 
+/* The outputs on the final mesh: mesh_t, mesh_q (every panel's start and nodes, then T),
+ * the samples q_out at t_eval (clipped to [0, T]) and the first time a joint th_1..th_{n-1}
+ * is outside (0, pi/2) at a node, a panel end or a sample (NaN: never). */
+static double outputs(const Ctx *c, int P, const double *a, const double *h, const double *X,
+                      const double *ends, double T, double half_pi, int M,
+                      const double *t_eval, double *q_out, double *mesh_t, double *mesh_q) {
+    const int p = c->p, nq = c->nq, n = c->n;
+    const size_t Pp = (size_t)P * p;
+    /* mesh: every panel's start and nodes, then T */
+    double wd[64];
+    for (int j = 0; j < P; j++) {
+        const double half = 0.5 * h[j];
+        for (int r = 0; r <= p; r++) {
+            size_t row = (size_t)j * (p + 1) + r;
+            mesh_t[row] = a[j] + half * (c->xb[r] + 1.0);
+            for (int s = 0; s < nq; s++)
+                mesh_q[row * nq + s] = r == 0 ? ends[(size_t)s * (P + 1) + j]
+                                              : X[(size_t)s * Pp + (size_t)j * p + r - 1];
+        }
+    }
+    mesh_t[(size_t)P * (p + 1)] = T;
+    for (int s = 0; s < nq; s++)
+        mesh_q[(size_t)P * (p + 1) * nq + s] = ends[(size_t)s * (P + 1) + P];
+    /* singularity at the nodes and panel ends (samples below) */
+    double sing = NAN;
+    for (int j = 0; j < P && isnan(sing); j++)
+        for (int r = 0; r <= p && isnan(sing); r++) {
+            const double *row = mesh_q + ((size_t)j * (p + 1) + r) * nq;
+            for (int s = 1; s < n; s++)
+                if (row[s] <= 0.0 || row[s] >= half_pi) { sing = mesh_t[(size_t)j * (p + 1) + r]; break; }
+        }
+    for (int s = 1; s < n && !(sing <= T); s++) {
+        double v = ends[(size_t)s * (P + 1) + P];
+        if (v <= 0.0 || v >= half_pi) sing = T;
+    }
+    /* samples: the integrated interpolant (degree p) through the panel ends and nodes */
+    for (int i = 0; i < M; i++) {
+        double te = t_eval[i] < 0.0 ? 0.0 : (t_eval[i] > T ? T : t_eval[i]);
+        int lo = 0, hi = P;  /* first panel whose start is > te, minus one */
+        while (lo < hi) { int mid = (lo + hi) / 2; if (a[mid] <= te) lo = mid + 1; else hi = mid; }
+        int j = lo - 1 < 0 ? 0 : lo - 1;
+        double d0 = 2.0 * (te - a[j]) / h[j] - 1.0;
+        double den = bary(c, d0, wd);
+        /* the panel's p + 2 points (start, nodes, end) are consecutive rows of the mesh */
+        const double *Xb = mesh_q + (size_t)j * (p + 1) * nq;
+        double *qi = q_out + (size_t)i * nq;
+        for (int s = 0; s < nq; s++) {
+            double acc0 = 0.0, acc1 = 0.0;  /* two chains: the sum's latency halved */
+            int k = 0;
+            for (; k + 1 < p + 2; k += 2) {
+                acc0 += wd[k] * Xb[(size_t)k * nq + s];
+                acc1 += wd[k + 1] * Xb[(size_t)(k + 1) * nq + s];
+            }
+            if (k < p + 2) acc0 += wd[k] * Xb[(size_t)k * nq + s];
+            qi[s] = (acc0 + acc1) / den;
+        }
+        if (!isfinite(qi[0])) {  /* as cascade.py: phi decides whether the formula holds */
+            const int at = nearest(c, d0);
+            for (int s = 0; s < nq; s++) qi[s] = Xb[(size_t)at * nq + s];
+        }
+        for (int s = 1; s < n; s++)
+            if ((qi[s] <= 0.0 || qi[s] >= half_pi) && !(sing <= te)) sing = te;
+    }
+    return sing;
+}
+
 int cascade_constant_pieces(const double *din, const double *rule, double *dout) {
     Ctx c;
     const int n = (int)din[0], p = (int)din[1], P0 = (int)din[2], split = (int)din[3];
@@ -277,7 +336,12 @@ int cascade_constant_pieces(const double *din, const double *rule, double *dout)
     while (status == CK_OK) {
         status = pass_alloc(&w, &c, P);
         if (status != CK_OK) break;
-        status = cascade_pass(&c, &w, a, h, u1, u2);
+        for (int j = 0; j < P; j++)  /* constant on each panel */
+            for (int k = 0; k < p; k++) {
+                w.F[(size_t)j * p + k] = u1[j];
+                w.F[(size_t)(P + j) * p + k] = u2[j];
+            }
+        status = cascade_pass(&c, &w, h);
         if (status != CK_OK) break;
         double sum = 0.0;
         for (int s = 0; s < c.nq; s++) sum += w.ends[(size_t)s * (P + 1) + P];
@@ -309,7 +373,6 @@ int cascade_constant_pieces(const double *din, const double *rule, double *dout)
     if (status == CK_OK) {
         /* the estimate: est_i = quad_i + Lambda_i est_{i-1}; rates and energy exact */
         const int nq = c.nq;
-        const size_t Pp = (size_t)P * p;
         double est = 0.0, estimate = 0.0;
         for (int s = 2; s < nq; s++) {
             double quad = 0.0;
@@ -317,61 +380,8 @@ int cascade_constant_pieces(const double *din, const double *rule, double *dout)
             est = quad + w.lam[s - 2] * est;
             estimate = est > estimate ? est : estimate;
         }
-        /* mesh: every panel's start and nodes, then T */
-        double wd[64];
-        for (int j = 0; j < P; j++) {
-            const double half = 0.5 * h[j];
-            for (int r = 0; r <= p; r++) {
-                size_t row = (size_t)j * (p + 1) + r;
-                mesh_t[row] = a[j] + half * (c.xb[r] + 1.0);
-                for (int s = 0; s < nq; s++)
-                    mesh_q[row * nq + s] = r == 0 ? w.ends[(size_t)s * (P + 1) + j]
-                                                  : w.X[(size_t)s * Pp + (size_t)j * p + r - 1];
-            }
-        }
-        mesh_t[(size_t)P * (p + 1)] = T;
-        for (int s = 0; s < nq; s++)
-            mesh_q[(size_t)P * (p + 1) * nq + s] = w.ends[(size_t)s * (P + 1) + P];
-        /* singularity at the nodes and panel ends (samples below) */
-        double sing = NAN;
-        for (int j = 0; j < P && isnan(sing); j++)
-            for (int r = 0; r <= p && isnan(sing); r++) {
-                const double *row = mesh_q + ((size_t)j * (p + 1) + r) * nq;
-                for (int s = 1; s < n; s++)
-                    if (row[s] <= 0.0 || row[s] >= half_pi) { sing = mesh_t[(size_t)j * (p + 1) + r]; break; }
-            }
-        for (int s = 1; s < n && !(sing <= T); s++) {
-            double v = w.ends[(size_t)s * (P + 1) + P];
-            if (v <= 0.0 || v >= half_pi) sing = T;
-        }
-        /* samples: the integrated interpolant (degree p) through the panel ends and nodes */
-        for (int i = 0; i < M; i++) {
-            double te = t_eval[i] < 0.0 ? 0.0 : (t_eval[i] > T ? T : t_eval[i]);
-            int lo = 0, hi = P;  /* first panel whose start is > te, minus one */
-            while (lo < hi) { int mid = (lo + hi) / 2; if (a[mid] <= te) lo = mid + 1; else hi = mid; }
-            int j = lo - 1 < 0 ? 0 : lo - 1;
-            double d0 = 2.0 * (te - a[j]) / h[j] - 1.0;
-            double den = bary(&c, d0, wd);
-            /* the panel's p + 2 points (start, nodes, end) are consecutive rows of the mesh */
-            const double *Xb = mesh_q + (size_t)j * (p + 1) * nq;
-            double *qi = q_out + (size_t)i * nq;
-            for (int s = 0; s < nq; s++) {
-                double acc0 = 0.0, acc1 = 0.0;  /* two chains: the sum's latency halved */
-                int k = 0;
-                for (; k + 1 < p + 2; k += 2) {
-                    acc0 += wd[k] * Xb[(size_t)k * nq + s];
-                    acc1 += wd[k + 1] * Xb[(size_t)(k + 1) * nq + s];
-                }
-                if (k < p + 2) acc0 += wd[k] * Xb[(size_t)k * nq + s];
-                qi[s] = (acc0 + acc1) / den;
-            }
-            if (!isfinite(qi[0])) {  /* as cascade.py: phi decides whether the formula holds */
-                const int at = nearest(&c, d0);
-                for (int s = 0; s < nq; s++) qi[s] = Xb[(size_t)at * nq + s];
-            }
-            for (int s = 1; s < n; s++)
-                if ((qi[s] <= 0.0 || qi[s] >= half_pi) && !(sing <= te)) sing = te;
-        }
+        double sing = outputs(&c, P, a, h, w.X, w.ends, T, half_pi, M, t_eval, q_out, mesh_t,
+                              mesh_q);
         scalars[0] = w.energy;
         scalars[1] = estimate;
         scalars[2] = sing;
@@ -380,4 +390,76 @@ int cascade_constant_pieces(const double *din, const double *rule, double *dout)
     pass_free(&w);
     free(a); free(h); free(u1); free(u2); free(chain); free(mark);
     return status;
+}
+
+/* ---- the general case: inputs known at the nodes, the refinement loop in Python ---- */
+
+static void rule_init(Ctx *c, int n, int p, int tail, const double *rule, const double *model,
+                      const double *q0) {
+    memset(c, 0, sizeof *c);
+    c->n = n; c->nq = n + 1; c->p = p; c->tail = tail;
+    c->x = rule;
+    c->cum = rule + p;
+    c->total = c->cum + (size_t)p * p;
+    c->to_coef = c->cum + (size_t)(p + 1) * p;
+    c->xb = c->to_coef + (size_t)p * p;
+    c->wb = c->xb + p + 2;
+    c->gains = model; c->exps = model ? model + (n - 1) : NULL;
+    c->q0 = q0;
+}
+
+/* One cascade on a mesh in time order, as cascade.py's loop body.
+ * din:  n, p, P, tail; gains (n-1), exponents (n-1); q0 (nq); h (P)
+ * U:    u1 (P x p), u2 (P x p) at the nodes
+ * dout: energy; Lambda_2..n (n-1); X (nq x P x p); ends (nq x (P+1));
+ *       tails of the joints' integrands th_2'..th_n' ((n-1) x P) and their coefficients'
+ *       magnitudes ((n-1) x P x p) */
+int cascade_general_pass(const double *din, const double *rule, const double *U, double *dout) {
+    Ctx c;
+    const int n = (int)din[0], p = (int)din[1], P = (int)din[2];
+    const double *model = din + 4, *q0 = model + 2 * (n - 1), *h = q0 + (n + 1);
+    if (p + 2 > 64) return CK_NOMEM;
+    rule_init(&c, n, p, (int)din[3], rule, model, q0);
+    const int nq = c.nq;
+    const size_t Pp = (size_t)P * p;
+    Pass w;
+    memset(&w, 0, sizeof w);
+    int status = pass_alloc(&w, &c, P);
+    if (status == CK_OK) {
+        memcpy(w.F, U, sizeof(double) * 2 * Pp);
+        status = cascade_pass(&c, &w, h);
+    }
+    if (status == CK_OK) {
+        double *lam = dout + 1, *X = lam + (n - 1), *ends = X + (size_t)nq * Pp;
+        double *err = ends + (size_t)nq * (P + 1), *coef = err + (size_t)(n - 1) * P;
+        dout[0] = w.energy;
+        memcpy(lam, w.lam, sizeof(double) * (n - 1));
+        memcpy(X, w.X, sizeof(double) * nq * Pp);
+        memcpy(ends, w.ends, sizeof(double) * nq * (P + 1));
+        memcpy(err, w.err + 2 * (size_t)P, sizeof(double) * (n - 1) * P);
+        for (int s = 2; s < nq; s++)
+            for (int j = 0; j < P; j++)
+                coefficients(&c, w.F + (size_t)s * Pp + (size_t)j * p,
+                             coef + ((size_t)(s - 2) * P + j) * p);
+    }
+    pass_free(&w);
+    return status;
+}
+
+/* The outputs of a finished run (see outputs()).
+ * din:  n, p, P, M, T, half_pi; a (P), h (P); t_eval (M)
+ * X, ends: as cascade_general_pass gives them
+ * dout: singular_time (NaN: none); q (M x nq); mesh_t (P (p+1) + 1); mesh_q (same rows x nq) */
+int cascade_general_outputs(const double *din, const double *rule, const double *X,
+                            const double *ends, double *dout) {
+    Ctx c;
+    const int n = (int)din[0], p = (int)din[1], P = (int)din[2], M = (int)din[3];
+    const double T = din[4], half_pi = din[5];
+    const double *a = din + 6, *h = a + P, *t_eval = h + P;
+    if (p + 2 > 64) return CK_NOMEM;
+    rule_init(&c, n, p, 4, rule, NULL, NULL);
+    const size_t rows = (size_t)P * (p + 1) + 1;
+    double *q_out = dout + 1, *mesh_t = q_out + (size_t)M * c.nq, *mesh_q = mesh_t + rows;
+    dout[0] = outputs(&c, P, a, h, X, ends, T, half_pi, M, t_eval, q_out, mesh_t, mesh_q);
+    return CK_OK;
 }

@@ -1,4 +1,5 @@
-"""The cascade quadrature of piecewise-constant rates, compiled (``cascade_kernel.c``).
+"""The cascade quadrature compiled (``cascade_kernel.c``): all of it for piecewise-constant
+rates, the heavy steps for general inputs.
 
 Why
 ---
@@ -6,16 +7,19 @@ Why
 actuator schedule a plan hands out. Its numpy code makes about a hundred small array operations
 per call (12 panels of 12 nodes for a 3-joint plan): ~1 ms, of a ~10 ms plan. The same
 algorithm in C, step for step (the same panels, refinement decisions, error estimate, samples
-and singularity test), takes a few tens of microseconds.
+and singularity test), takes a few tens of microseconds. For general inputs (the linear forms'
+replays, a few hundred panels) the numpy code keeps the refinement loop and the inputs'
+evaluations; each round's cascade and the final samples are computed here.
 
 How
 ---
 The C source is compiled by :mod:`optimizer.native` (cached on disk by the hash of its source,
 once :func:`optimizer.native.configure` has been given a directory) when :func:`prepare` asks
 for it, and loaded with :mod:`ctypes` once it is in the cache. Until then, when compiled
-functions are off, or when no compiler exists, :func:`run` returns None and the numpy code
-answers: both give the same results to rounding (``tests/test_cascade_kernel.py``). The quadrature rule and the model
-are passed from Python, so that one definition of every matrix serves both.
+functions are off, or when no compiler exists, the functions here return None and the numpy
+code answers: both give the same results to rounding (``tests/test_cascade_kernel.py``). The
+quadrature rule and the model are passed from Python, so that one definition of every matrix
+serves both.
 """
 
 from __future__ import annotations
@@ -31,8 +35,11 @@ from . import native
 
 #: The kernel's source, next to this module.
 SOURCE_PATH = Path(__file__).with_name("cascade_kernel.c")
-#: Entry point of the library.
+#: Entry points of the library: the whole quadrature of constant pieces; one cascade on a
+#: mesh and the outputs of a finished run (general inputs, refined by the numpy code).
 ENTRY = "cascade_constant_pieces"
+GENERAL_PASS = "cascade_general_pass"
+GENERAL_OUTPUTS = "cascade_general_outputs"
 #: Largest number of Chebyshev nodes per panel the kernel takes (its stack buffers hold
 #: ``nodes + 2`` values and 64 coefficients).
 MAX_NODES = 62
@@ -79,7 +86,9 @@ class _Loaded:
     def __init__(self) -> None:
         self.config: native.NativeConfig | None = None
         self.library: native.Library | None = None
-        self.function: Callable[..., int] | None = None
+        self.function: Callable[..., int] | None = None       # the constant pieces
+        self.general_pass: Callable[..., int] | None = None   # the general case's steps
+        self.general_outputs: Callable[..., int] | None = None
 
 
 _state = _Loaded()
@@ -132,14 +141,17 @@ def _function(build: bool = False, wait: bool = False,
     if path is None:
         return None
     try:
-        fn = getattr(ctypes.CDLL(str(path)), ENTRY)
+        lib = ctypes.CDLL(str(path))
+        fns = [getattr(lib, name) for name in (ENTRY, GENERAL_PASS, GENERAL_OUTPUTS)]
     except (OSError, AttributeError):
         st.library = None
         return None
-    fn.restype = ctypes.c_int
-    fn.argtypes = [ctypes.c_void_p] * 3
-    st.function = fn
-    return fn
+    for fn, args in zip(fns, (3, 4, 5)):
+        fn.restype = ctypes.c_int
+        fn.argtypes = [ctypes.c_void_p] * args
+    st.general_pass, st.general_outputs = fns[1], fns[2]
+    st.function = fns[0]
+    return st.function
 
 
 def ready() -> bool:
@@ -213,7 +225,7 @@ def _address(arr: np.ndarray) -> int:
     time, which builds a helper object; that only for a read-only array)."""
     if not arr.flags.writeable:
         return int(arr.ctypes.data)
-    return ctypes.addressof(ctypes.c_char.from_buffer(arr))
+    return ctypes.addressof(ctypes.c_char.from_buffer(arr))  # type: ignore[arg-type]
 
 
 def pack_rule(x: np.ndarray, cum_total: np.ndarray, to_coef: np.ndarray, xb: np.ndarray,
@@ -222,3 +234,83 @@ def pack_rule(x: np.ndarray, cum_total: np.ndarray, to_coef: np.ndarray, xb: np.
     contiguous vector)."""
     return np.concatenate([x, cum_total.ravel(), to_coef.ravel(), xb, wb, cut_starts,
                            cut_widths]).astype(float)
+
+
+class GeneralPass(NamedTuple):
+    """One cascade on a mesh (:func:`general_pass`).
+
+    Attributes
+    ----------
+    energy : float
+    lam : ndarray (n-1,)
+        ``Lambda_2..Lambda_n``.
+    X : ndarray (n+1, P, p)
+        States at the nodes.
+    ends : ndarray (n+1, P+1)
+        States at the panel ends.
+    err : ndarray (n-1, P)
+        Tails of the joints' integrands ``th_2'..th_n'``.
+    coef : ndarray (n-1, P, p)
+        Their Chebyshev coefficients' magnitudes.
+    """
+
+    energy: float
+    lam: np.ndarray
+    X: np.ndarray
+    ends: np.ndarray
+    err: np.ndarray
+    coef: np.ndarray
+
+
+def general_pass(gains: np.ndarray, exponents: np.ndarray, q0: np.ndarray, h: np.ndarray,
+                 U: np.ndarray, rule: np.ndarray, nodes: int, tail: int) -> GeneralPass | None:
+    """The cascade on a mesh in time order with inputs ``U`` (2, P, p) at its nodes; None
+    when the kernel is not loaded."""
+    fn = _state.general_pass
+    if fn is None or _state.config is not native.config() or nodes > MAX_NODES:
+        return None
+    n = int(gains.size) + 1
+    nq = n + 1
+    P = int(h.size)
+    Pp = P * nodes
+    din = np.concatenate([(n, nodes, P, tail), gains, exponents, q0, h])
+    Uc = np.ascontiguousarray(U, dtype=float)
+    size = 1 + (n - 1) + nq * Pp + nq * (P + 1) + (n - 1) * P + (n - 1) * Pp
+    dout = np.empty(size)
+    if fn(_address(din), _address(rule), _address(Uc), _address(dout)) != 0:
+        return None
+    at = 1 + (n - 1)
+    X = dout[at:at + nq * Pp].reshape(nq, P, nodes)
+    at += nq * Pp
+    ends = dout[at:at + nq * (P + 1)].reshape(nq, P + 1)
+    at += nq * (P + 1)
+    err = dout[at:at + (n - 1) * P].reshape(n - 1, P)
+    at += (n - 1) * P
+    return GeneralPass(float(dout[0]), dout[1:n], X, ends, err,
+                       dout[at:].reshape(n - 1, P, nodes))
+
+
+def general_outputs(a: np.ndarray, h: np.ndarray, X: np.ndarray, ends: np.ndarray, T: float,
+                    half_pi: float, t_eval: np.ndarray, rule: np.ndarray, nodes: int
+                    ) -> tuple[float | None, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Samples at ``t_eval``, the first singular time, ``mesh_t`` and ``mesh_q`` of a finished
+    run (panels ``a, h`` in time order, ``X``, ``ends`` as :func:`general_pass` gives them);
+    None when the kernel is not loaded."""
+    fn = _state.general_outputs
+    if fn is None or _state.config is not native.config() or nodes > MAX_NODES:
+        return None
+    nq = int(X.shape[0])
+    P = int(a.size)
+    M = int(t_eval.size)
+    rows = P * (nodes + 1) + 1
+    din = np.concatenate([(nq - 1, nodes, P, M, T, half_pi), a, h, t_eval])
+    Xc = np.ascontiguousarray(X, dtype=float)
+    Ec = np.ascontiguousarray(ends, dtype=float)
+    dout = np.empty(1 + M * nq + rows * (1 + nq))
+    if fn(_address(din), _address(rule), _address(Xc), _address(Ec),
+          _address(dout)) != 0:
+        return None
+    sing = float(dout[0])
+    at = 1 + M * nq
+    return (None if math.isnan(sing) else sing, dout[1:at].reshape(M, nq),
+            dout[at:at + rows], dout[at + rows:].reshape(rows, nq))
