@@ -101,7 +101,7 @@ static int is_noise(const Ctx *c, const double *C) {
 
 /* The cascade on the mesh (a, h, u1, u2 in time order): states, energy, Lambda_i, tails. */
 /* w->F[0], w->F[1] hold u1, u2 at the nodes (filled by the caller) */
-static int cascade_pass(const Ctx *c, Pass *w, const double *h) {
+static int cascade_pass(const Ctx *c, Pass *w, const double *h, double *coef_out) {
     const int P = w->P, p = c->p, nq = c->nq, n = c->n;
     const size_t Pp = (size_t)P * p;
     const double *u1 = w->F, *u2 = w->F + Pp;
@@ -165,14 +165,13 @@ static int cascade_pass(const Ctx *c, Pass *w, const double *h) {
         w->lam[i] = c->gains[i] * c->exps[i] * acc_all;
     }
     /* tails of the joints' integrands (the rates' and the energy's quadrature is exact) */
-    {
-        double *C = R;  /* p + 1 >= p */
-        for (int s = 2; s < nq; s++)
-            for (int j = 0; j < P; j++) {
-                coefficients(c, w->F + (size_t)s * Pp + (size_t)j * p, C);
-                w->err[(size_t)s * P + j] = 2.0 * h[j] * tail_max(c, C);
-            }
-    }
+    for (int s = 2; s < nq; s++)
+        for (int j = 0; j < P; j++) {
+            /* the magnitudes kept in coef_out ((n-1) x P x p) when asked for */
+            double *C = coef_out ? coef_out + ((size_t)(s - 2) * P + j) * p : R;
+            coefficients(c, w->F + (size_t)s * Pp + (size_t)j * p, C);
+            w->err[(size_t)s * P + j] = 2.0 * h[j] * tail_max(c, C);
+        }
     free(R);
     free(cosx);
     return CK_OK;
@@ -341,7 +340,7 @@ int cascade_constant_pieces(const double *din, const double *rule, double *dout)
                 w.F[(size_t)j * p + k] = u1[j];
                 w.F[(size_t)(P + j) * p + k] = u2[j];
             }
-        status = cascade_pass(&c, &w, h);
+        status = cascade_pass(&c, &w, h, NULL);
         if (status != CK_OK) break;
         double sum = 0.0;
         for (int s = 0; s < c.nq; s++) sum += w.ends[(size_t)s * (P + 1) + P];
@@ -425,22 +424,18 @@ int cascade_general_pass(const double *din, const double *rule, const double *U,
     Pass w;
     memset(&w, 0, sizeof w);
     int status = pass_alloc(&w, &c, P);
+    double *lam = dout + 1, *X = lam + (n - 1), *ends = X + (size_t)nq * Pp;
+    double *err = ends + (size_t)nq * (P + 1), *coef = err + (size_t)(n - 1) * P;
     if (status == CK_OK) {
         memcpy(w.F, U, sizeof(double) * 2 * Pp);
-        status = cascade_pass(&c, &w, h);
+        status = cascade_pass(&c, &w, h, coef);
     }
     if (status == CK_OK) {
-        double *lam = dout + 1, *X = lam + (n - 1), *ends = X + (size_t)nq * Pp;
-        double *err = ends + (size_t)nq * (P + 1), *coef = err + (size_t)(n - 1) * P;
         dout[0] = w.energy;
         memcpy(lam, w.lam, sizeof(double) * (n - 1));
         memcpy(X, w.X, sizeof(double) * nq * Pp);
         memcpy(ends, w.ends, sizeof(double) * nq * (P + 1));
         memcpy(err, w.err + 2 * (size_t)P, sizeof(double) * (n - 1) * P);
-        for (int s = 2; s < nq; s++)
-            for (int j = 0; j < P; j++)
-                coefficients(&c, w.F + (size_t)s * Pp + (size_t)j * p,
-                             coef + ((size_t)(s - 2) * P + j) * p);
     }
     pass_free(&w);
     return status;
