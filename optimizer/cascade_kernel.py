@@ -15,9 +15,10 @@ How
 ---
 The C source is compiled by :mod:`optimizer.native` (cached on disk by the hash of its source,
 once :func:`optimizer.native.configure` has been given a directory) when :func:`prepare` asks
-for it, and loaded with :mod:`ctypes` once it is in the cache. Until then, when compiled
-functions are off, or when no compiler exists, the functions here return None and the numpy
-code answers: both give the same results to rounding (``tests/test_cascade_kernel.py``). The
+for it, and loaded with :mod:`ctypes` once it is in the cache; a process that never calls
+:func:`prepare` keeps the numpy code (its numbers differ in the last bits). Until then, when
+compiled functions are off, or when no compiler exists, the functions here return None and the
+numpy code answers: both give the same results to rounding (``tests/test_cascade_kernel.py``). The
 quadrature rule and the model are passed from Python, so that one definition of every matrix
 serves both.
 """
@@ -84,6 +85,7 @@ class _Loaded:
     """The library of the current native configuration (loaded once it is built)."""
 
     def __init__(self) -> None:
+        self.prepared = False   # :func:`prepare` was called in this process
         self.config: native.NativeConfig | None = None
         self.library: native.Library | None = None
         self.function: Callable[..., int] | None = None       # the constant pieces
@@ -106,9 +108,12 @@ def prepare(wait: bool = True) -> bool:
     """Build the kernel (``wait``: now; else in the background, as the NLPs' libraries are)
     unless it is in the cache already, and load it when it is ready.
 
-    Nothing else builds it: the quadrature only looks for it in the cache (a plan never starts
-    a compiler of its own). Call this where the NLPs are prepared (a service worker's start,
-    an image build, a benchmark's preparation).
+    Until this is called in a process the quadrature is the numpy code's alone, even with
+    the library in the cache (its numbers differ from numpy's in the last bits: a process
+    opts in). Nothing else builds it (a plan never starts a compiler of its own). Call this
+    where the NLPs are prepared (a service worker's start, an image build, a benchmark's
+    preparation); under a later :func:`optimizer.native.configure` the library is looked
+    for again (not built).
 
     Returns
     -------
@@ -116,15 +121,16 @@ def prepare(wait: bool = True) -> bool:
         Whether the compiled kernel is in use (False: compiled functions are off, no
         compiler, the build failed, or it is still running).
     """
+    _state.prepared = True
     return _function(build=True, wait=wait, every=0.0) is not None
 
 
 def _function(build: bool = False, wait: bool = False,
               every: float = 1.0) -> Callable[..., int] | None:
     cfg = native.config()
-    if cfg is None:
-        return None
     st = _state
+    if cfg is None or not st.prepared:
+        return None
     if st.config is not cfg or (build and st.function is None):
         # a new configuration, or a build asked for: look the library up again
         st.config, st.library, st.function = cfg, None, None
@@ -155,8 +161,9 @@ def _function(build: bool = False, wait: bool = False,
 
 
 def ready() -> bool:
-    """Whether :func:`run` will use the compiled kernel: it is loaded, or found in the cache
-    (looked for at most once a second; nothing is built)."""
+    """Whether :func:`run` will use the compiled kernel: :func:`prepare` was called in this
+    process and the library is loaded, or found in the cache (looked for at most once a
+    second; nothing is built)."""
     return _function() is not None
 
 

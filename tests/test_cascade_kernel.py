@@ -252,9 +252,10 @@ def test_a_failed_build_falls_back(tmp_path, monkeypatch):
 
 
 @needs_cc
-def test_the_quadrature_builds_nothing_and_finds_a_prepared_kernel(tmp_path):
-    """A plan never starts a compiler: the quadrature only looks in the cache. A library
-    prepared there (by another process, say) is found and used."""
+def test_the_quadrature_builds_nothing_and_finds_a_prepared_kernel(tmp_path, monkeypatch):
+    """A plan never starts a compiler: the quadrature only looks in the cache, and only in a
+    process that called ``prepare`` (its numbers differ from numpy's in the last bits: a
+    process opts in). A library prepared there is found again under a new configuration."""
     robot = Robot.default(3)
     sched = ActuatorSchedule(breaks=np.array([0.0, 0.4, 1.0]),
                              rates=np.array([[0.2, 0.1], [-0.3, 0.2]]))
@@ -267,10 +268,17 @@ def test_the_quadrature_builds_nothing_and_finds_a_prepared_kernel(tmp_path):
         assert rep.success and not cascade_kernel.ready()
         assert not list(tmp_path.iterdir())    # no source, no build started
         assert cascade_kernel.prepare(wait=True)
-        native.configure(tmp_path)              # another process: a new configuration
+        native.configure(tmp_path)              # a new configuration: looked up again
         assert cascade_kernel.ready()
         fast, slow = both(robot, sched, q0, t, nodes=12, initial_panels=1)
         assert_same(fast, slow)
+        # another process that did not prepare it: the numpy code, the library in the cache
+        monkeypatch.setattr(cascade_kernel, "_state", cascade_kernel._Loaded())
+        native.configure(tmp_path)
+        assert not cascade_kernel.ready() and list(tmp_path.glob("*.so"))
+        plain = integrate_cascade(robot, sched.u, q0, 1.0, t, sched.breaks, nodes=12,
+                                  initial_panels=1, constant_pieces=True)
+        np.testing.assert_array_equal(plain.q, slow.q)
     finally:
         native.configure(None)
         native._builds.clear()
