@@ -16,11 +16,12 @@ import dataclasses
 import functools
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 from numpy.polynomial import chebyshev as cheb
 
+from . import cascade_kernel
 from .dynamics import joint_rate
 from .integration import CASCADE_NAME, HALF_PI, Replay, integrate
 from .model import Robot
@@ -186,17 +187,20 @@ def _cuts(k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _cut(rule: _ChebRule, cuts: tuple[np.ndarray, np.ndarray], a: np.ndarray, h: np.ndarray,
-         U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+         U: np.ndarray, graded: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """New panels from the panels ``(a, h)``: each cut as :func:`_cuts`, graded toward the end
-    where ``u1^2 + u2^2`` is steeper (by more than 4x; else uniformly).
+    where ``u1^2 + u2^2`` is steeper (by more than 4x; else, or without ``graded``, uniformly:
+    constant rates have no steeper end, and their computed slopes are rounding noise).
 
     A nearby singularity of the inputs (a joint close to 0 at the start of the motion) makes
     the function steep at the panel's end that faces it; geometric grading reaches it in a few
     rounds where bisection would need many.
     """
+    starts, widths = cuts
+    if not graded:
+        return ((a[:, None] + h[:, None] * starts[0]).ravel(), (h[:, None] * widths[0]).ravel())
     slope = np.abs((U[0] * U[0] + U[1] * U[1]) @ rule.slopes.T)   # (Pm, 2): at -1, at 1
     kind = (slope[:, 0] > 4.0 * slope[:, 1]) + 2 * (slope[:, 1] > 4.0 * slope[:, 0])
-    starts, widths = cuts
     return ((a[:, None] + h[:, None] * starts[kind]).ravel(),
             (h[:, None] * widths[kind]).ravel())
 
@@ -209,7 +213,7 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                       initial_width: float | None = None, split: int = CASCADE_SPLIT,
                       max_rounds: int = CASCADE_MAX_ROUNDS, max_panels: int = CASCADE_MAX_PANELS,
                       fallback: Callable[[float, np.ndarray], np.ndarray] | None = None,
-                      constant_pieces: bool = False) -> Replay:
+                      constant_pieces: bool = False, compiled: bool = True) -> Replay:
     """Integrate the original model under OPEN-LOOP inputs by cumulative quadrature.
 
     The model is triangular: ``phi = int u1``, ``th1 = int u2``, then
@@ -256,7 +260,12 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
     constant_pieces : bool
         The inputs are constant between ``breaks`` (actuator schedules): they are read once
         per panel, at its middle, and their quadrature is exact (no error estimate of their
-        own); the joints' integrands are resolved as always.
+        own); the joints' integrands are resolved as always. Refined panels are cut
+        uniformly. The compiled kernel (:mod:`optimizer.cascade_kernel`) computes this case
+        when it is available: the same panels, estimate and outputs, to rounding.
+    compiled : bool
+        Use the compiled kernel for ``constant_pieces`` when it is available (False: always
+        the numpy code; the tests compare both).
 
     Returns
     -------
@@ -305,7 +314,9 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
     edges = np.array([0.0, T]) if breaks is None else np.asarray(breaks, float)
     if edges.size < 2 or edges[0] != 0.0 or edges[-1] != T or not np.all(np.diff(edges) > 0.0):
         edges = np.unique(np.concatenate([[0.0, T], np.clip(edges, 0.0, T)]))
-    if initial_width is None:
+    if initial_width is None and int(initial_panels) <= 1:  # (the same numbers, fewer steps)
+        new_a, new_h = edges[:-1], np.diff(edges)
+    elif initial_width is None:
         k = max(int(initial_panels), 1)
         new_a = (edges[:-1, None] + np.diff(edges)[:, None] * (np.arange(k) / k)).ravel()
         new_h = np.repeat(np.diff(edges) / k, k)
@@ -320,15 +331,11 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
         new_a = np.repeat(edges[:-1], ks) + np.repeat(widths, ks) * (j / kk)
         new_h = np.repeat(widths / ks, ks)
     # panels (in no particular order until the cascade sorts them) and what is known on them
-    a = h = np.empty(0)
-    tn = np.empty((0, p))
-    U = np.empty((2, 0, p))             # u1, u2 at the nodes
-    in_err = np.empty((3, 0))           # tails of u1, u2, u1^2 + u2^2
-    in_coef = np.empty((3, 0, p))       # and their coefficients (magnitudes)
-    w_in = np.ones(3)
+    a = np.empty(0)                     # panels (in no particular order until sorted)
     evaluations = rounds = 0
 
-    def failed(reason: str, singular_time: float | None = None) -> Replay:
+    def failed(reason: str, singular_time: float | None = None,
+               panels: int | None = None) -> Replay:
         if singular_time is None and fallback is not None:
             rep = integrate(robot, fallback, q0, T, t_eval)
             return dataclasses.replace(
@@ -337,7 +344,32 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
         return Replay(t=t_eval, q=np.zeros((t_eval.size, nq)), final=np.zeros(nq),
                       singular=singular_time is not None, singular_time=singular_time,
                       success=False, message=reason, energy=0.0, integrator=CASCADE_NAME,
-                      evaluations=evaluations, panels=a.size + new_a.size)
+                      evaluations=evaluations,
+                      panels=a.size + new_a.size if panels is None else panels)
+
+    if constant_pieces and compiled and new_a.size and cascade_kernel.ready():
+        run = _run_kernel(robot, u_of_t, q0, T, t_eval, new_a, new_h, rule, cuts, tol,
+                          max_rounds, max_panels)
+        if run is not None:  # (else the numpy code below)
+            evaluations = run.evaluations
+            if run.status != "ok":
+                return failed("a state is not finite", panels=run.panels)
+            if not run.estimate <= max(accept, tol):
+                return failed(f"error estimate {run.estimate:.3g} above {max(accept, tol):.3g} "
+                              f"after {run.rounds} refinements ({run.panels} panels)",
+                              panels=run.panels)
+            return _kernel_replay(run, t_eval, p, tol)
+
+    # the general case: one cascade per round and the outputs by the kernel when it is loaded
+    use_kernel = compiled and cascade_kernel.ready()
+    packed = _packed_rule(p, cuts[0].shape[1])
+    # what is known on the panels
+    h = np.empty(0)
+    tn = np.empty((0, p))
+    U = np.empty((2, 0, p))             # u1, u2 at the nodes
+    in_err = np.empty((3, 0))           # tails of u1, u2, u1^2 + u2^2
+    in_coef = np.empty((3, 0, p))       # and their coefficients (magnitudes)
+    w_in = np.ones(3)
 
     def fits(mark: np.ndarray) -> bool:  # may the marked panels be cut?
         more = (cuts[0].shape[1] - 1) * int(mark.sum())
@@ -391,33 +423,16 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                 order = np.argsort(a)
                 a, h, tn = a[order], h[order], tn[order]
                 U, in_err, in_coef = U[:, order], in_err[:, order], in_coef[:, order]
-            half = 0.5 * h
-            P = a.size
-            F = np.empty((nq + 1, P, p))     # u1, u2, K_i cos(th_{i-1})^m_i u1, energy
-            X = np.empty((nq, P, p))         # states at the nodes
-            ends = np.empty((nq, P + 1))     # states at the panel ends
-            cosx = np.empty((n - 1, P, p))   # cos(th_1..th_{n-1}) at the nodes
-            F[0], F[1] = U[0], U[1]
-            F[nq] = U[0] * U[0] + U[1] * U[1]
-            for s in range(nq):
-                R = (F[s] @ rule.cum_total.T) * half[:, None]  # cumulative at nodes; total
-                ends[s, 0] = q0[s]
-                np.cumsum(R[:, p], out=ends[s, 1:])
-                ends[s, 1:] += q0[s]
-                X[s] = R[:, :p] + ends[s, :-1, None]
-                if 1 <= s < n:  # th_s drives th_{s+1}
-                    cosx[s - 1] = np.cos(X[s])
-                    F[s + 1] = joint_rate(robot.gains, robot.exponents, s + 1, X[s], F[0])
-            energy = float(F[nq] @ rule.total @ half)
+            compiled_step = (cascade_kernel.general_pass(
+                *_model_arrays(robot.gains, robot.exponents), q0, h, U, packed, p, CASCADE_TAIL)
+                if use_kernel else None)
+            energy, lam, X, ends, e, c = (compiled_step if compiled_step is not None else
+                                          _cascade_numpy(robot, rule, q0, h, U))
             if not (math.isfinite(float(ends[:, -1].sum())) and math.isfinite(energy)):
                 return failed("a state is not finite")
-            # Lambda_i = int |d f_i / d th_{i-1}| dt = K_i m_i int |cos^(m_i-1) sin u1| dt
-            mm = m[:, None, None]
-            lam = K * m * (np.abs(cosx ** (mm - 1.0) * np.sin(X[1:n]) * F[0]) @ rule.total @ half)
             chain = _chain_weights(lam)
             w = np.concatenate([[1.0], chain, [1.0 / abs(energy) if energy != 0.0 else 1.0]])
-            # the inputs' tails are known: only the joints' integrands are new
-            e, c = _tails(rule, F[2:nq], h)
+            # the inputs' tails are known: only the joints' integrands (e, c) are new
             err = np.concatenate([in_err[:2], e, in_err[2:]])
             mark = _marks(err, np.concatenate([in_coef[:2], c, in_coef[2:]]), w, share * h)
             if not (mark.any() and fits(mark)):
@@ -425,7 +440,7 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                 break
         rounds += 1
         # cut the marked panels (toward their rough end); inputs evaluated in the next round
-        new_a, new_h = _cut(rule, cuts, a[mark], h[mark], U[:, mark])
+        new_a, new_h = _cut(rule, cuts, a[mark], h[mark], U[:, mark], not constant_pieces)
         keep = ~mark
         a, h, tn = a[keep], h[keep], tn[keep]
         U, in_err, in_coef = U[:, keep], in_err[:, keep], in_coef[:, keep]
@@ -441,6 +456,77 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
         return failed(f"error estimate {estimate:.3g} above {max(accept, tol):.3g} after "
                       f"{rounds} refinements ({a.size} panels)")
 
+    final = ends[:, -1].copy()
+    outs = (cascade_kernel.general_outputs(a, h, X, ends, T, HALF_PI, t_eval, packed, p)
+            if use_kernel else None)
+    singular_time, q, mesh_t, mesh_q = (outs if outs is not None else
+                                        _outputs_numpy(rule, a, h, X, ends, T, t_eval))
+    msg = (f"cascade quadrature: {a.size} panels x {p} nodes, {rounds} refinements, error "
+           f"estimate {estimate:.2g}")
+    if estimate > tol:
+        msg += (" (above the target: refinement bounds reached)" if bounded else
+                " (above the target: limited by the inputs' rounding noise)")
+    return Replay(t=t_eval, q=q, final=final, singular=singular_time is not None,
+                  singular_time=singular_time, success=True, message=msg, energy=energy,
+                  integrator=CASCADE_NAME, error_estimate=estimate, evaluations=evaluations,
+                  panels=a.size, mesh_t=mesh_t, mesh_q=mesh_q)
+
+
+class _Cascade(NamedTuple):
+    """One cascade on a mesh: energy, ``Lambda_2..n``, states at the nodes ``X`` (nq, P, p)
+    and panel ends ``ends`` (nq, P+1), the joints' integrands' tails ``err`` (n-1, P) and
+    coefficient magnitudes ``coef`` (n-1, P, p)."""
+
+    energy: float
+    lam: np.ndarray
+    X: np.ndarray
+    ends: np.ndarray
+    err: np.ndarray
+    coef: np.ndarray
+
+
+def _cascade_numpy(robot: Robot, rule: _ChebRule, q0: np.ndarray, h: np.ndarray,
+                   U: np.ndarray) -> _Cascade:
+    """The cascade on panels in time order (widths ``h``) with inputs ``U`` (2, P, p) at their
+    nodes: each state the cumulative quadrature of its integrand, joint after joint."""
+    n = robot.n
+    nq = n + 1
+    P, p = U.shape[1], U.shape[2]
+    K = np.asarray(robot.gains, float)
+    m = np.asarray(robot.exponents, float)
+    half = 0.5 * h
+    F = np.empty((nq + 1, P, p))     # u1, u2, K_i cos(th_{i-1})^m_i u1, energy
+    X = np.empty((nq, P, p))         # states at the nodes
+    ends = np.empty((nq, P + 1))     # states at the panel ends
+    cosx = np.empty((n - 1, P, p))   # cos(th_1..th_{n-1}) at the nodes
+    F[0], F[1] = U[0], U[1]
+    F[nq] = U[0] * U[0] + U[1] * U[1]
+    for s in range(nq):
+        R = (F[s] @ rule.cum_total.T) * half[:, None]  # cumulative at nodes; total
+        ends[s, 0] = q0[s]
+        np.cumsum(R[:, p], out=ends[s, 1:])
+        ends[s, 1:] += q0[s]
+        X[s] = R[:, :p] + ends[s, :-1, None]
+        if 1 <= s < n:  # th_s drives th_{s+1}
+            cosx[s - 1] = np.cos(X[s])
+            F[s + 1] = joint_rate(robot.gains, robot.exponents, s + 1, X[s], F[0])
+    energy = float(F[nq] @ rule.total @ half)
+    # Lambda_i = int |d f_i / d th_{i-1}| dt = K_i m_i int |cos^(m_i-1) sin u1| dt
+    mm = m[:, None, None]
+    with np.errstate(all="ignore"):  # (non-finite states are reported by the caller)
+        lam = K * m * (np.abs(cosx ** (mm - 1.0) * np.sin(X[1:n]) * F[0]) @ rule.total @ half)
+        err, coef = _tails(rule, F[2:nq], h)
+    return _Cascade(energy, lam, X, ends, err, coef)
+
+
+def _outputs_numpy(rule: _ChebRule, a: np.ndarray, h: np.ndarray, X: np.ndarray,
+                   ends: np.ndarray, T: float, t_eval: np.ndarray
+                   ) -> tuple[float | None, np.ndarray, np.ndarray, np.ndarray]:
+    """The first singular time, the samples at ``t_eval``, ``mesh_t`` and ``mesh_q`` of a run
+    on panels ``(a, h)`` in time order."""
+    nq, P, p = X.shape
+    n = nq - 1
+    half = 0.5 * h
     # samples: the integrated interpolant, a polynomial of degree p on each panel, known at the
     # p nodes and both ends: barycentric interpolation through those p + 2 values is exact
     Xb = np.concatenate([ends[:, :-1, None], X, ends[:, 1:, None]], axis=2)  # (nq, P, p+2)
@@ -455,9 +541,9 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
     hit = np.nonzero(~np.isfinite(q[:, 0]))[0]  # a sample exactly on a node or a panel end
     if hit.size:
         q[hit] = Xb[idx[hit], :, np.argmin(np.abs(d[hit]), axis=1)]
-    final = ends[:, -1].copy()
 
     # singularity: th_1..th_{n-1} outside (0, pi/2) at a node, a sample or a panel end
+    tn = a[:, None] + half[:, None] * (rule.x + 1.0)
     singular_time: float | None = None
     checks = ((tn, X[1:n]), (te, q[:, 1:n].T), (np.append(a, T), ends[1:n]))
     if any(v.min() <= 0.0 or v.max() >= HALF_PI for _, v in checks):
@@ -466,14 +552,59 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
             if out.any():
                 ts = float(np.min(tt[out]))
                 singular_time = ts if singular_time is None else min(singular_time, ts)
-    msg = (f"cascade quadrature: {a.size} panels x {p} nodes, {rounds} refinements, error "
-           f"estimate {estimate:.2g}")
-    if estimate > tol:
-        msg += (" (above the target: refinement bounds reached)" if bounded else
-                " (above the target: limited by the inputs' rounding noise)")
     mesh_t = np.append((a[:, None] + half[:, None] * (rule.xb[:p + 1] + 1.0)).ravel(), T)
-    mesh_q = np.vstack([Xb[:, :, :p + 1].transpose(0, 2, 1).reshape(-1, nq), final])
-    return Replay(t=t_eval, q=q, final=final, singular=singular_time is not None,
-                  singular_time=singular_time, success=True, message=msg, energy=energy,
-                  integrator=CASCADE_NAME, error_estimate=estimate, evaluations=evaluations,
-                  panels=a.size, mesh_t=mesh_t, mesh_q=mesh_q)
+    mesh_q = np.vstack([Xb[:, :, :p + 1].transpose(0, 2, 1).reshape(-1, nq), ends[:, -1]])
+    return singular_time, q, mesh_t, mesh_q
+
+
+@functools.lru_cache(maxsize=64)
+def _model_arrays(gains: tuple[float, ...],
+                  exponents: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    out = np.asarray(gains, float), np.asarray(exponents, float)
+    for arr in out:
+        arr.setflags(write=False)
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _packed_rule(p: int, k: int) -> np.ndarray:
+    r = _cheb_rule(p)
+    starts, widths = _cuts(k)
+    packed = cascade_kernel.pack_rule(r.x, r.cum_total, r.to_coef, r.xb, r.wb, starts[0],
+                                      widths[0])
+    packed.setflags(write=False)
+    return packed
+
+
+def _run_kernel(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], q0: np.ndarray,
+                T: float, t_eval: np.ndarray, a0: np.ndarray, h0: np.ndarray, rule: _ChebRule,
+                cuts: tuple[np.ndarray, np.ndarray], tol: float, max_rounds: int,
+                max_panels: int) -> cascade_kernel.KernelRun | None:
+    """:func:`integrate_cascade` of constant pieces by the compiled kernel, from the initial
+    panels ``(a0, h0)``; None when the kernel is not there (or the rates are not finite: the
+    numpy code reports those)."""
+    k = cuts[0].shape[1]
+    rates = np.asarray(u_of_t(a0 + 0.5 * h0), float).reshape(a0.size, 2)
+    if not np.isfinite(rates).all():
+        return None
+    gains, exponents = _model_arrays(robot.gains, robot.exponents)
+    return cascade_kernel.run(
+        gains, exponents, q0, T, t_eval, a0, h0, rates, _packed_rule(rule.x.size, k),
+        rule.x.size, k, tol=tol,
+        half_pi=HALF_PI, plateau=CASCADE_PLATEAU, noise=CASCADE_NOISE, tail=CASCADE_TAIL,
+        max_rounds=int(max_rounds), max_panels=int(max_panels))
+
+
+def _kernel_replay(run: cascade_kernel.KernelRun, t_eval: np.ndarray, p: int,
+                   tol: float) -> Replay:
+    """The :class:`Replay` of an accepted kernel run (as the numpy code builds it)."""
+    msg = (f"cascade quadrature: {run.panels} panels x {p} nodes, {run.rounds} refinements, "
+           f"error estimate {run.estimate:.2g}")
+    if run.estimate > tol:
+        msg += (" (above the target: refinement bounds reached)" if run.bounded else
+                " (above the target: limited by the inputs' rounding noise)")
+    return Replay(t=t_eval, q=run.q, final=run.mesh_q[-1].copy(),
+                  singular=run.singular_time is not None, singular_time=run.singular_time,
+                  success=True, message=msg, energy=run.energy, integrator=CASCADE_NAME,
+                  error_estimate=run.estimate, evaluations=run.evaluations, panels=run.panels,
+                  mesh_t=run.mesh_t, mesh_q=run.mesh_q)
