@@ -24,12 +24,14 @@ RUN useradd --system --create-home --uid 10001 planner
 USER planner
 WORKDIR /home/planner
 
-# The default robot's compiled shooting NLP, built into the image (other robots' are built on
-# first use, in the background, into the same cache: ~/.cache/chained-planner/native).
-RUN python -c "from optimizer import native; from optimizer.model import Robot; \
+# The default robot's compiled shooting NLP and the proofs' compiled quadrature, built into the
+# image (other robots' NLPs are built on first use, in the background, into the same cache:
+# ~/.cache/chained-planner/native).
+RUN python -c "from optimizer import cascade_kernel, native; from optimizer.model import Robot; \
 from optimizer.planner.shooting import prepare; \
 native.configure(native.default_cache_dir()); r = Robot(); \
-print('compiled:', prepare(r.gains, r.exponents, wait=True).compiled)"
+print('compiled:', prepare(r.gains, r.exponents, wait=True).compiled, \
+cascade_kernel.prepare(wait=True))"
 
 ENV PLANNER_HOST=0.0.0.0 \
     PLANNER_PORT=8000

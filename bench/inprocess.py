@@ -73,7 +73,11 @@ def configure_native(off: bool = False) -> dict[str, Any]:
         return {"on": False, "reason": f"{type(exc).__name__}: {exc}"}
     if cfg is None:
         return {"on": False, "reason": "no C compiler found"}
-    return {"on": True, "compiler": cfg.compiler, "cache_dir": str(cfg.cache_dir)}
+    from optimizer import cascade_kernel
+    # the compiled quadrature, as the service's workers prepare it
+    kernel = cascade_kernel.prepare(wait=True)
+    return {"on": True, "compiler": cfg.compiler, "cache_dir": str(cfg.cache_dir),
+            "cascade_kernel": kernel}
 
 
 def status_of(exc: BaseException | None) -> str:

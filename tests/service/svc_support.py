@@ -139,3 +139,30 @@ def assert_problem(response: Any, status: int, code: str) -> dict[str, Any]:
     for leak in ("Traceback", str(ROOT), "site-packages", ".py\", line"):
         assert leak not in response.text
     return body
+
+
+def same_json(a: object, b: object, rel: float = 1e-12, path: str = "",
+              abs_tol: float = 1e-12) -> list[str]:
+    """Where two JSON documents differ: the same structure, keys, strings, integers, booleans
+    and nulls, and floats equal within ``rel`` of the larger magnitude plus ``abs_tol`` (the
+    values are radians and seconds of order 1; small ones, differences of such, carry their
+    absolute rounding).
+    The service's workers prove with the compiled quadrature, a library process that did not
+    opt in with numpy's: the same sums in another order, 1e-15 apart."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return [f"{path}: keys {sorted(a.keys() ^ b.keys())}"]
+        return [d for k in a for d in same_json(a[k], b[k], rel, f"{path}.{k}", abs_tol)]
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{path}: lengths {len(a)} != {len(b)}"]
+        return [d for i, (x, y) in enumerate(zip(a, b))
+                for d in same_json(x, y, rel, f"{path}[{i}]", abs_tol)]
+    if isinstance(a, float) or isinstance(b, float):
+        if isinstance(a, bool) or isinstance(b, bool) or not isinstance(a, (int, float)) \
+                or not isinstance(b, (int, float)):
+            return [f"{path}: {a!r} != {b!r}"]
+        if abs(a - b) > rel * max(abs(a), abs(b)) + abs_tol:
+            return [f"{path}: {a!r} != {b!r}"]
+        return []
+    return [] if a == b and type(a) is type(b) else [f"{path}: {a!r} != {b!r}"]

@@ -8,6 +8,8 @@ import sys
 
 import numpy as np
 
+from svc_support import same_json
+
 REQUESTS = [
     {"start": np.deg2rad([10, 10, 10]).tolist(), "goal": np.deg2rad([30, 30, 30]).tolist(),
      "method": "polynomial", "samples": 21},
@@ -41,7 +43,9 @@ def test_cli_prints_the_endpoint_json(client, tmp_path):
             # the service names the path's columns (q_names, u_names); the rest is the same
             for name in ("q_names", "u_names"):
                 api["path"].pop(name)
-            assert _strip(out) == _strip(api)
+            # floats to 1e-12: the workers prove with the compiled quadrature, the CLI with
+            # numpy's (the same sums in another order)
+            assert same_json(_strip(out), _strip(api))[:5] == []
         else:
             assert cli.returncode == 1
             assert out["code"] == api["code"] == "infeasible"

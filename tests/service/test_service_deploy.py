@@ -154,8 +154,8 @@ def test_container_start_command_serves_healthz(tmp_path):
 @pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
                     reason="no C compiler")
 def test_the_image_builds_the_default_robots_compiled_nlp(tmp_path):
-    """The Dockerfile's step that bakes the default robot's compiled shooting NLP into the
-    image, run here as written (HOME of the image's user replaced by a temporary one)."""
+    """The Dockerfile's step that bakes the default robot's compiled shooting NLP (and the
+    proofs' compiled quadrature) into the image, run here as written (HOME of the image's user replaced by a temporary one)."""
     steps = [rest for word, rest in dockerfile_instructions()
              if word == "RUN" and "optimizer.native" not in rest and "native.configure" in rest]
     assert len(steps) == 1
@@ -168,5 +168,5 @@ def test_the_image_builds_the_default_robots_compiled_nlp(tmp_path):
     res = subprocess.run(["sh", "-c", steps[0]], env=env, cwd=tmp_path, capture_output=True,
                          text=True, timeout=300, check=False)
     assert res.returncode == 0, res.stderr
-    assert "compiled: True" in res.stdout
-    assert len(list((tmp_path / ".cache" / "chained-planner" / "native").glob("*.so"))) == 1
+    assert "compiled: True True" in res.stdout  # the NLP and the quadrature's kernel
+    assert len(list((tmp_path / ".cache" / "chained-planner" / "native").glob("*.so"))) == 2
