@@ -21,9 +21,11 @@ import pytest
 
 from svc_support import DEG, ROOT, WORKED, free_port
 
-#: ~1.5-2 s of work for the only worker: a plan, then 40 open-loop replays.
+#: Work for the only worker, long enough to be caught in flight: a plan, then 160 open-loop
+#: replays (with 40, and the proofs' compiled quadrature, the job once ended between two
+#: polls of /readyz on a loaded machine).
 SLOWISH = {"plan": {**WORKED, "phi_change": 34 * DEG, "samples": 51},
-           "random": {"count": 40, "spread": 0.01, "seed": 5}, "time_limit": 30}
+           "random": {"count": 160, "spread": 0.01, "seed": 5}, "time_limit": 30}
 
 
 def _start(port: int, log: Any) -> subprocess.Popen[bytes]:
@@ -71,7 +73,8 @@ def test_sigterm_lets_the_request_in_flight_finish_and_exits_0(tmp_path, target)
             client.start()
             deadline = time.monotonic() + 30
             while httpx.get(base + "/readyz").json()["busy"] == 0:  # the job is running
-                assert time.monotonic() < deadline
+                assert time.monotonic() < deadline and not answer, (
+                    "the job was never seen in flight", answer.get("seconds"))
                 time.sleep(0.01)
             sent_at = time.monotonic()
             if target == "server":
@@ -91,7 +94,7 @@ def test_sigterm_lets_the_request_in_flight_finish_and_exits_0(tmp_path, target)
     log_text = log_path.read_text(errors="replace")
     assert answer.get("status") == 200, (answer, log_text[-2000:])
     body = json.loads(answer["text"])  # complete JSON
-    assert body["summary"]["runs"] == 40 and len(body["runs"]) == 40
+    assert body["summary"]["runs"] == 160 and len(body["runs"]) == 160
     assert answer["at"] > sent_at  # it was in flight when SIGTERM came
     assert code == 0, log_text[-2000:]
     # the workers were stopped by the server; the forkserver follows its parent out
