@@ -16,7 +16,7 @@ import dataclasses
 import functools
 import math
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import numpy as np
 from numpy.polynomial import chebyshev as cheb
@@ -472,21 +472,8 @@ def integrate_cascade(robot: Robot, u_of_t: Callable[[np.ndarray], np.ndarray], 
                   panels=a.size, mesh_t=mesh_t, mesh_q=mesh_q)
 
 
-class _Cascade(NamedTuple):
-    """One cascade on a mesh: energy, ``Lambda_2..n``, states at the nodes ``X`` (nq, P, p)
-    and panel ends ``ends`` (nq, P+1), the joints' integrands' tails ``err`` (n-1, P) and
-    coefficient magnitudes ``coef`` (n-1, P, p)."""
-
-    energy: float
-    lam: np.ndarray
-    X: np.ndarray
-    ends: np.ndarray
-    err: np.ndarray
-    coef: np.ndarray
-
-
 def _cascade_numpy(robot: Robot, rule: _ChebRule, q0: np.ndarray, h: np.ndarray,
-                   U: np.ndarray) -> _Cascade:
+                   U: np.ndarray) -> cascade_kernel.GeneralPass:
     """The cascade on panels in time order (widths ``h``) with inputs ``U`` (2, P, p) at their
     nodes: each state the cumulative quadrature of its integrand, joint after joint."""
     n = robot.n
@@ -516,7 +503,7 @@ def _cascade_numpy(robot: Robot, rule: _ChebRule, q0: np.ndarray, h: np.ndarray,
     with np.errstate(all="ignore"):  # (non-finite states are reported by the caller)
         lam = K * m * (np.abs(cosx ** (mm - 1.0) * np.sin(X[1:n]) * F[0]) @ rule.total @ half)
         err, coef = _tails(rule, F[2:nq], h)
-    return _Cascade(energy, lam, X, ends, err, coef)
+    return cascade_kernel.GeneralPass(energy, lam, X, ends, err, coef)
 
 
 def _outputs_numpy(rule: _ChebRule, a: np.ndarray, h: np.ndarray, X: np.ndarray,
