@@ -115,19 +115,6 @@ def piece_function(gains: tuple[float, ...], exponents: tuple[int, ...], substep
         q, u, 1.0, substeps)])
 
 
-class CheckedCall(BufferedCall):
-    """A :class:`~.solvers.BufferedCall` whose failed evaluations answer NaN: in CasADi's
-    virtual machine a kernel's linear solve raises on a singular system, and through the
-    buffer that failure is silent and the results are left unwritten (memory, not numbers)."""
-
-    def __call__(self, *args: object) -> list[np.ndarray]:
-        results = super().__call__(*args)
-        if self._buffer.ret() != 0:
-            for out in results:
-                out.fill(np.nan)
-        return results
-
-
 class CompiledCall:
     """A CasADi Function called through its buffer (:class:`~.solvers.BufferedCall`), in its
     compiled form (:mod:`optimizer.native`: generated C, built once per machine and cached)
@@ -137,7 +124,7 @@ class CompiledCall:
     def __init__(self, function: ca.Function, n_args: int, outputs: tuple[int, ...]) -> None:
         self.function = function
         self._n_args, self._outputs = n_args, outputs
-        self.vm = CheckedCall(function, n_args, outputs)
+        self.vm = BufferedCall(function, n_args, outputs)
         self.compiled: BufferedCall | None = None
         self._cfg: object = None
         self._library: native.Library | None = None
@@ -161,7 +148,7 @@ class CompiledCall:
         if path is None:
             return self.vm
         try:
-            self.compiled = CheckedCall(ca.external(self.function.name(), str(path)),
+            self.compiled = BufferedCall(ca.external(self.function.name(), str(path)),
                                         self._n_args, self._outputs)
         except Exception:  # noqa: BLE001 - an unloadable library: keep the virtual machine
             self._library = None
@@ -540,6 +527,6 @@ def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
     return err, W, steps
 
 
-__all__ = ["CheckedCall", "jacobian_map", "piece_function", "HALVING_STEPS", "HALVING_TRIES", "halving_correct", "halving_kernel", "CompiledCall", "KERNEL_STEPS", "KERNEL_ROUNDS", "kernel_correct", "signed_kernel", "DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
+__all__ = ["jacobian_map", "piece_function", "HALVING_STEPS", "HALVING_TRIES", "halving_correct", "halving_kernel", "CompiledCall", "KERNEL_STEPS", "KERNEL_ROUNDS", "kernel_correct", "signed_kernel", "DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
            "correct_pieces", "piece_end", "prepare", "piece_weights", "size_for",
            "weighted_step"]

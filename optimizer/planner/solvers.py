@@ -199,6 +199,12 @@ class BufferedCall:
     to evaluate, and about 0.3 ms per fatrop solve. Through the buffer the Function reads the
     arguments' memory in place and writes the results into fresh numpy arrays.
 
+    An evaluation that fails (an exception inside CasADi, such as a linear solve of a
+    singular system in the virtual machine) is silent through the buffer and leaves the
+    results unwritten, memory rather than numbers: such a call answers NaN in every result,
+    which callers treat as no answer. (A solver that stops unconverged is not a failed
+    evaluation: its status says so.)
+
     Parameters
     ----------
     function : casadi.Function
@@ -247,6 +253,9 @@ class BufferedCall:
             results.append(out)
             self._buffer.set_res(j, out.data)
         self._eval()
+        if self._buffer.ret() != 0:
+            for out in results:
+                out.fill(np.nan)
         return results
 
     def stats(self) -> dict[str, Any]:
