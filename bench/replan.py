@@ -13,7 +13,9 @@ Three parts, each on the benchmark's generated goals (:func:`bench.goals.generat
   a start off by up to +-0.5 deg per joint, the plan run open loop and in closed loop (a
   replan from the measured state every 0.05 s) by scipy's DOP853
   (:func:`optimizer.analysis.closed_loop_run`): the median ratio of the terminal errors,
-  every joint inside throughout, no more reversals than the plan.
+  every joint inside throughout, no more reversals than the plan; with ``--identify`` the
+  loop also estimates the plant's gains from the measured motion and replans on them
+  (:mod:`optimizer.identification`), and the report gives both loops side by side.
 
 Usage::
 
@@ -187,7 +189,8 @@ def http_latency(replans: int) -> dict[str, Any]:
 
 
 def closed_loop(joints: list[int], goals: int, gain_error: float, spread_deg: float,
-                period: float, keep_reversals: bool = False) -> dict[str, Any]:
+                period: float, keep_reversals: bool = False,
+                identify: bool = False) -> dict[str, Any]:
     """Open against closed loop on perturbed plants (see the module)."""
     rng = np.random.default_rng(SEED + 1)
     out: dict[str, Any] = {}
@@ -199,14 +202,19 @@ def closed_loop(joints: list[int], goals: int, gain_error: float, spread_deg: fl
             start = np.asarray(g.start) + rng.uniform(-spread_deg, spread_deg, n) * DEG
             e = rng.uniform(-gain_error, gain_error, n - 1)
             op = closed_loop_run(answer, start, e, None)
-            cl = closed_loop_run(answer, start, e, period, keep_reversals=keep_reversals)
+            cl = closed_loop_run(answer, start, e, period, keep_reversals=keep_reversals,
+                                 identify=identify)
             nominal = p.indicators.reversals_phi + p.indicators.reversals_th1
             rows.append({"goal": g.name, "open": op["terminal_error"],
                          "closed": cl["terminal_error"],
                          "ratio": op["terminal_error"] / max(cl["terminal_error"], 1e-300),
                          "inside": cl["margin"] > 0.0, "reversals_plan": nominal,
                          "reversals_open": op["reversals"], "reversals_closed": cl["reversals"],
-                         "replan_failures": cl["replan_failures"]})
+                         "replan_failures": cl["replan_failures"],
+                         **({"gain_estimate_error": float(np.max(np.abs(
+                             np.asarray(cl["gains_estimated"])
+                             / (np.asarray(p.robot.gains) * (1.0 + e)) - 1.0)))}
+                            if identify else {})})
         ratios = [r["ratio"] for r in rows]
         out[str(n)] = {
             "goals": len(rows),
@@ -237,6 +245,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--period", type=float, default=0.05)
     ap.add_argument("--keep-reversals", action="store_true",
                     help="closed loop: refuse continuations that add reversals")
+    ap.add_argument("--identify", action="store_true",
+                    help="closed loop: also run it estimating the plant's gains as it goes")
     ap.add_argument("--no-native", action="store_true",
                     help="CasADi's virtual machine only (no compiled kernels)")
     ap.add_argument("--out", help="write the JSON here too")
@@ -250,6 +260,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_loop:
         report["closed_loop"] = closed_loop(args.joints, args.goals, args.gain_error,
                                             args.spread_deg, args.period, args.keep_reversals)
+        if args.identify:
+            report["closed_loop_identified"] = closed_loop(
+                args.joints, args.goals, args.gain_error, args.spread_deg, args.period,
+                args.keep_reversals, identify=True)
     print(f"compiled functions: {report['native']}")
     print(f"latency: states off the plan by up to {args.state_error_deg:g} deg per joint")
     for n, r in report["latency"].items():
@@ -262,8 +276,10 @@ def main(argv: list[str] | None = None) -> int:
                   f"{h['p50_ms']:.2f} ms, p99 {h['p99_ms']:.2f} ms; server CPU "
                   f"{h['server_cpu_ms']:.2f} ms per replan ({h['replans']} sequential, "
                   f"answer {h['answer_bytes']} B, {h['answered']} answered)")
-    for n, r in report.get("closed_loop", {}).items():
-        print(f"closed loop n = {n} ({r['goals']} goals): terminal error median open "
+    loops = [("closed loop", report.get("closed_loop", {})),
+             ("closed loop, gains identified", report.get("closed_loop_identified", {}))]
+    for label, n, r in ((label, n, r) for label, rs in loops for n, r in rs.items()):
+        print(f"{label} n = {n} ({r['goals']} goals): terminal error median open "
               f"{r['open_median_rad']:.3g} rad, closed {r['closed_median_rad']:.3g} rad, median "
               f"ratio {r['ratio_median']:.0f}x; inside {r['inside']}/{r['goals']}; no more "
               f"reversals than the plan {r['no_more_reversals']}/{r['goals']}")

@@ -16,6 +16,7 @@ from scipy.integrate import solve_ivp
 from .chained_form import chained_form
 from .errors import InvalidRequestError, NumericalError, PlannerError
 from .execution import HandedOutInputs
+from .identification import GainEstimator
 from .indicators import (compute_indicators, count_reversals, segment_distance,
                          sensitivity_frobenius)
 from .model import Robot
@@ -272,7 +273,7 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
                     gain_errors: Sequence[float] | np.ndarray, period: float | None,
                     noise: float = 0.0, seed: int = 0,
                     joint_limits: tuple[np.ndarray, np.ndarray] | None = None,
-                    keep_reversals: bool = False) -> dict[str, Any]:
+                    keep_reversals: bool = False, identify: bool = False) -> dict[str, Any]:
     """Run a plan on a plant whose gains are off, from ``start``; with ``period``, replan from
     the measured state every ``period`` s (:func:`~optimizer.planner.replan.replan`), else
     open loop.
@@ -296,6 +297,12 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
     keep_reversals : bool
         Passed to the replanner: a continuation that adds a reversal is refused, and the run
         goes on with the current plan.
+    identify : bool
+        Estimate the plant's gains from the measured motion
+        (:class:`~optimizer.identification.GainEstimator`, every period) and replan on them.
+        Once the estimate has moved off the plan's gains, a replan is the fast path alone
+        (the full planner would build a new NLP for every estimate): where it fails, the run
+        goes on with the current plan.
 
     Returns
     -------
@@ -304,7 +311,7 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
         (``phi`` and ``th1`` of the executed path), ``deviation`` (largest distance of the
         executed joints from the segment start -> goal, rad), ``margin`` (smallest distance
         to the limits along the path, rad), ``replans`` (accepted), ``replan_failures``,
-        ``path_t``, ``path_q``.
+        ``path_t``, ``path_q``; with ``identify``, ``gains_estimated`` (the last estimate).
     """
     ps = read_plan(plan)
     if ps.rates is None:
@@ -322,18 +329,31 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
     out_q = [q.copy()]
     replans = failures = 0
     step = (T - t) / 50 if period is None else float(period)
+    estimator = GainEstimator(robot) if identify and period is not None else None
+    last: tuple[float, np.ndarray, PlanState] | None = None  # the previous measurement
     while t < T - 1e-12:
         t_next = min(t + step, T)
         if period is not None:
             measured = q + (rng.normal(0.0, noise, q.size) if noise > 0.0 else 0.0)
+            gains = None
+            if estimator is not None:
+                if last is not None:
+                    t_a, q_a, driven = last
+
+                    def commanded(s: float, ps_: PlanState = driven) -> np.ndarray:
+                        return _commanded_rates(ps_, np.array([s]))[0]
+                    estimator.update(q_a, measured, commanded, t_a, t, driven.law.phases[:, 0])
+                gains = estimator.gains
             try:
                 cont = replan(current, t, measured,
                               rates=_commanded_rates(current, np.array([t]))[0], plain=False,
-                              keep_reversals=keep_reversals)
+                              keep_reversals=keep_reversals, gains=gains,
+                              fallback=estimator is None or estimator.periods == 0)
                 current = read_plan(cont)
                 replans += 1
             except PlannerError:
                 failures += 1
+            last = (t, measured, current)
         grid = np.linspace(t, t_next, PATH_POINTS_PER_PERIOD + 1)[1:]
         q, states = _drive(plant, current, q, t, t_next, grid)
         out_t.extend(grid.tolist())
@@ -353,6 +373,7 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
         "replan_failures": failures,
         "path_t": out_t,
         "path_q": path_q.tolist(),
+        **({"gains_estimated": estimator.gains.tolist()} if estimator is not None else {}),
     }
 
 
@@ -369,14 +390,18 @@ def _phi_start(plan: Plan | dict[str, Any]) -> float:
 #: What each closed-loop run reports side by side (open and closed loop), besides its path.
 RUN_FIELDS = ("terminal_error", "reversals", "deviation", "margin", "replans",
               "replan_failures", "final")
+#: ... and, closed loop with identification, the last estimate of the plant's gains.
+ESTIMATE_FIELD = "gains_estimated"
 
 
 def closed_loop_robustness(plan: Plan, starts: np.ndarray, gain_error: float, period: float,
                            noise: float = 0.0, seed: int = 0, *, paths: bool = False,
-                           deadline: Deadline | None = None) -> dict[str, Any]:
+                           deadline: Deadline | None = None,
+                           identify: bool = False) -> dict[str, Any]:
     """Each start on its own plant (gains ``K_i (1 + e_i)``, ``e_i`` uniform in
     ``+-gain_error``, seeded), open loop and closed loop (:func:`closed_loop_run` with
-    ``period`` and measurement ``noise``), side by side.
+    ``period`` and measurement ``noise``; ``identify``: estimating the plant's gains as it
+    goes), side by side.
 
     Returns
     -------
@@ -406,9 +431,11 @@ def closed_loop_robustness(plan: Plan, starts: np.ndarray, gain_error: float, pe
             deadline.check(f"the closed-loop runs ({i} of {len(np.atleast_2d(starts))} done)")
         e = rng.uniform(-gain_error, gain_error, plan.robot.n - 1)
         op = closed_loop_run(answer, s, e, None)
-        cl = closed_loop_run(answer, s, e, period, noise=noise, seed=seed + 1 + i)
+        cl = closed_loop_run(answer, s, e, period, noise=noise, seed=seed + 1 + i,
+                             identify=identify)
+        closed = {k: cl[k] for k in keep + ((ESTIMATE_FIELD,) if identify else ())}
         runs.append({"start": np.asarray(s, float).tolist(), "gain_errors": e.tolist(),
-                     "open": {k: op[k] for k in keep}, "closed": {k: cl[k] for k in keep}})
+                     "open": {k: op[k] for k in keep}, "closed": closed})
 
     def column(side: str, key: str) -> np.ndarray:
         return np.array([r[side][key] for r in runs], float)
@@ -416,6 +443,7 @@ def closed_loop_robustness(plan: Plan, starts: np.ndarray, gain_error: float, pe
     eo, ec = column("open", "terminal_error"), column("closed", "terminal_error")
     summary = {
         "runs": len(runs), "gain_error": gain_error, "period": period, "noise": noise,
+        "identify": identify,
         "plan_reversals": nominal,
         "open": {"terminal_error_median": float(np.median(eo)),
                  "terminal_error_max": float(np.max(eo)),

@@ -36,7 +36,7 @@ def power(c: Any, m: int) -> Any:
     return out
 
 
-def joint_rate(gains: Sequence[float], exponents: Sequence[int], i: int, th_prev: Any, u1: Any,
+def joint_rate(gains: Sequence[Any], exponents: Sequence[int], i: int, th_prev: Any, u1: Any,
                cos: Callable[[Any], Any] = np.cos) -> Any:
     """``th_i' = K_i cos(th_{i-1})^{m_i} u1`` of joint ``i`` (2..n) from ``th_{i-1}``: the one
     place the transmission's law is written (the cascade quadrature of
@@ -44,14 +44,15 @@ def joint_rate(gains: Sequence[float], exponents: Sequence[int], i: int, th_prev
     return gains[i - 2] * power(cos(th_prev), exponents[i - 2]) * u1
 
 
-def vector_field(gains: Sequence[float], exponents: Sequence[int], q: Any, u1: Any, u2: Any,
+def vector_field(gains: Sequence[Any], exponents: Sequence[int], q: Any, u1: Any, u2: Any,
                  cos: Callable[[Any], Any] = np.cos) -> list[Any]:
     """The components ``[phi', th1', th2', ..., thn']`` of the model (eq 2-3).
 
     Parameters
     ----------
     gains, exponents : sequence
-        ``K_2..K_n`` and ``m_2..m_n``.
+        ``K_2..K_n`` (numbers, or CasADi symbols: the compiled maps take them as an input)
+        and ``m_2..m_n``.
     q : indexable
         ``q[0] = phi, q[i] = th_i``: a 1-D numpy array, an array whose FIRST axis is the
         state (``q[i]`` then holds many states' ``th_i``), or a CasADi column vector.

@@ -144,7 +144,8 @@ def job_robustness(payload: Payload) -> dict[str, Any]:
         out["closed_loop"] = analysis.closed_loop_robustness(
             nominal, np.asarray(starts, float), float(loop["gain_error"]),
             float(loop["period"]), float(loop["noise"]), int(loop["seed"]),
-            paths=bool(payload.get("include_paths")), deadline=deadline)
+            paths=bool(payload.get("include_paths")), deadline=deadline,
+            identify=bool(loop.get("identify", False)))
     return out
 
 
@@ -154,7 +155,8 @@ def job_replan(payload: Payload) -> dict[str, Any]:
     return replan(payload["plan"], payload["time"], payload["state"], payload.get("rates"),
                   payload.get("duration"), plain=False,
                   time_limit=float(payload.get("time_limit", 10.0)),
-                  keep_reversals=bool(payload.get("keep_reversals", False)))
+                  keep_reversals=bool(payload.get("keep_reversals", False)),
+                  gains=payload.get("gains"), fallback=bool(payload.get("fallback", True)))
 
 
 JOBS: dict[str, Callable[[Payload], Any]] = {

@@ -72,6 +72,15 @@ class ReplanRequest(RequestModel):
         False, description="true: no continuation that reverses phi or th1 more often than the "
                            "plan's rest (a 422 naming keep_reversals instead); false: the goal "
                            "first (indicators.reversals say what the continuation does).")
+    gains: Optional[list[num(gt=0.0, hi=100.0)]] = Field(  # type: ignore[valid-type]
+        None, min_length=MIN_JOINTS - 1, max_length=MAX_JOINTS - 1,
+        description="The plant's K2..Kn as estimated from its measured motion (the library's "
+                    "optimizer.identification.GainEstimator); the continuation is planned and "
+                    "verified on them and its robot says so. Default: the plan's robot.")
+    fallback: bool = Field(
+        True, description="false: the fast path only (a 422 naming fallback where it fails) "
+                          "instead of the full planner, which builds a new NLP for gains it "
+                          "has not seen.")
     time_limit: num(hi=MAX_REPLAN_TIME_LIMIT, gt=0.0) = Field(  # type: ignore[valid-type]
         5.0, description="Seconds for the job (the full planner is the fast path's fallback).")
 
@@ -92,6 +101,11 @@ class ClosedLoop(RequestModel):
         0.0, description="Standard deviation (rad) of the measurement noise (Gaussian, on "
                          "phi and every joint).")
     seed: StrictInt = Field(0, description="Seed of the gain errors and the noise.")
+    identify: bool = Field(
+        False, description="true: every period the closed loop estimates the plant's gains "
+                           "from the measured motion and replans on them (after the first "
+                           "estimate the replans are fast-path only); false: replans on the "
+                           "plan's model.")
 
 
 # ---------------------------------------------------------------------- limit-dependent requests

@@ -50,6 +50,29 @@ def test_end_map_matches_scipy(pieces) -> None:
     assert np.max(np.abs(end - scipy_end(q0, W))) < 1e-9
 
 
+def test_the_maps_take_any_gains_without_a_build(pieces) -> None:
+    """The gains are an input of the compiled functions, not constants: a robot with other
+    gains (a plant 7 % and -4 % off) gets its end map and proof from the same functions (no
+    new CasADi function is built), each matching scipy on that robot's model."""
+    from optimizer.planner import continuation_map, piece_proof
+
+    q0, W = pieces
+    K = (PROTOTYPE_K[0] * 1.07, PROTOTYPE_K[1] * 0.96)
+    PieceMap(tuple(PROTOTYPE_K), tuple(PROTOTYPE_M), 7)
+    built = continuation_map._jacobian_map.cache_info().currsize
+    end, _ = PieceMap(K, tuple(PROTOTYPE_M), 7)(q0, W)
+    assert continuation_map._jacobian_map.cache_info().currsize == built
+    q = np.asarray(q0, float)
+    for w in W:
+        q = solve_ivp(lambda t, x, w=w: model_rhs(x, w, K, PROTOTYPE_M), (0.0, 1.0), q,
+                      method="DOP853", rtol=1e-12, atol=1e-13).y[:, -1]
+    assert np.max(np.abs(end - q)) < 1e-9
+    assert np.max(np.abs(end - scipy_end(q0, W))) > 1e-4     # the gains did change the end
+    breaks = np.arange(W.shape[0] + 1, dtype=float)
+    proof = piece_proof.integrate_pieces(K, tuple(PROTOTYPE_M), q0, breaks, W, breaks[1:])
+    assert proof is not None and np.max(np.abs(proof.final - q)) < 1e-11
+
+
 def test_jacobian_matches_central_differences(pieces) -> None:
     q0, W = pieces
     emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
@@ -196,14 +219,14 @@ def test_the_compiled_kernel_is_the_virtual_machines(pieces, tmp_path, monkeypat
     q0, W = pieces
     robot = Robot.default(3)
     call = signed_kernel(tuple(robot.gains), tuple(robot.exponents), 8)
-    fresh = CompiledCall(call.function, 5, (0, 1))   # not the cached one: built here
+    fresh = CompiledCall(call.call.function, 6, (0, 1))   # not the cached one: built here
     compiled = fresh.current(wait=True)
     assert compiled is not fresh.vm
     full = np.vstack([np.zeros((1, 2)), W])
     emap = PieceMap(tuple(robot.gains), tuple(robot.exponents), 8)
     goal = scipy_end(q0, W)[1:] + np.array([-1e-3, 1e-3, 1e-3])
     D2 = piece_weights(full, np.vstack([[True, True], np.zeros((7, 2), bool)]))
-    args = (q0, full, goal, D2, np.sign(full))
+    args = (q0, full, goal, D2, np.sign(full), np.asarray(robot.gains))
     for a, b in zip(fresh.vm(*args), compiled(*args)):
         assert np.allclose(a, b, rtol=1e-12, atol=1e-14)
     assert emap.P == 8

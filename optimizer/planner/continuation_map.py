@@ -1,5 +1,11 @@
-"""The end map of a continuation's pieces and its Jacobian, compiled once per robot, and the
-weighted Gauss-Newton corrections that move the pieces onto the goal.
+"""The end map of a continuation's pieces and its Jacobian, compiled once per joint count and
+exponents (the gains are an input), and the weighted Gauss-Newton corrections that move the
+pieces onto the goal.
+
+The robot's gains ``K_2..K_n`` are an input of every compiled function (the last), not
+constants in it: the functions are built and compiled once per joint count and exponents, and
+serve every robot of that shape (a plant's gains as estimated from its motion, a study's
+designs) without another build. :class:`BoundCall` binds them.
 
 A continuation's later pieces are constant geometric rates ``g_k`` over plan-time lengths
 ``L_k``; the model is driftless, so each piece is the unit-length flow under the displacement
@@ -57,16 +63,40 @@ STALL = 0.9
 MAX_ACTIVE = 6
 
 
+class BoundCall:
+    """A call of a function whose last input is the robot's gains, with the gains bound:
+    ``call(*args)`` is ``function(*args, gains)``."""
+
+    def __init__(self, call: "BufferedCall | CompiledCall", gains: tuple[float, ...]) -> None:
+        self.call = call
+        self.gains = np.asarray(gains, float)
+
+    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
+        return self.call(*args, self.gains)
+
+
+def _gains_symbol(exponents: tuple[int, ...]) -> tuple[ca.SX, list[ca.SX]]:
+    """The gains as a symbolic input ``K`` (``n - 1``) and as its elements (for
+    :func:`~optimizer.dynamics.vector_field`)."""
+    K = ca.SX.sym("K", len(exponents))
+    return K, [K[i] for i in range(len(exponents))]
+
+
 @functools.lru_cache(maxsize=16)
-def piece_end(gains: tuple[float, ...], exponents: tuple[int, ...]) -> BufferedCall:
-    """The compiled end state of one unit piece ``(q0, w) -> q_end``, with twice
-    :data:`SUBSTEPS` RK4 steps (the motion under way, run on as commanded)."""
-    nq = len(gains) + 2
+def _piece_end(exponents: tuple[int, ...]) -> BufferedCall:
+    nq = len(exponents) + 2
     q = ca.SX.sym("q", nq)
     u = ca.SX.sym("u", 2)
+    K, gains = _gains_symbol(exponents)
     end = rk4_step(lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1],
                                                           ca.cos)), q, u, 1.0, 2 * SUBSTEPS)
-    return BufferedCall(ca.Function("piece_end", [q, u], [end]), 2)
+    return BufferedCall(ca.Function("piece_end", [q, u, K], [end]), 3)
+
+
+def piece_end(gains: tuple[float, ...], exponents: tuple[int, ...]) -> BoundCall:
+    """The end state of one unit piece ``(q0, w) -> q_end``, with twice :data:`SUBSTEPS` RK4
+    steps (the motion under way, run on as commanded)."""
+    return BoundCall(_piece_end(tuple(exponents)), gains)
 
 
 #: Sign-keeping Gauss-Newton steps of the compiled kernel (:func:`signed_kernel`): from a
@@ -78,24 +108,27 @@ KERNEL_ROUNDS = 4
 
 
 @functools.lru_cache(maxsize=16)
-def _piece_step(gains: tuple[float, ...], exponents: tuple[int, ...]) -> ca.Function:
-    """One unit piece with its sensitivities: ``(q, w) -> (q_end, d q_end / d q,
+def _piece_step(exponents: tuple[int, ...]) -> ca.Function:
+    """One unit piece with its sensitivities: ``(q, w, K) -> (q_end, d q_end / d q,
     d q_end / d w)`` (the kernel's building block: its C stays small for any size)."""
-    nq = len(gains) + 2
+    nq = len(exponents) + 2
     q = ca.SX.sym("q", nq)
     u = ca.SX.sym("u", 2)
+    K, gains = _gains_symbol(exponents)
     end = rk4_step(lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1],
                                                           ca.cos)), q, u, 1.0, SUBSTEPS)
-    return ca.Function("continuation_piece", [q, u],
+    return ca.Function("continuation_piece", [q, u, K],
                        [end, ca.densify(ca.jacobian(end, q)), ca.densify(ca.jacobian(end, u))])
 
 
-def _end_and_jacobian(F: ca.Function, q0: ca.MX, w: ca.MX, P: int) -> tuple[ca.MX, ca.MX]:
-    """The end state of ``P`` pieces (rates ``w``, flat) and its Jacobian: forward through
-    the pieces, then the chain rule backwards (``d end / d w_k = A_{P-1} ... A_{k+1} B_k``)."""
+def _end_and_jacobian(F: ca.Function, q0: ca.MX, w: ca.MX, K: ca.MX, P: int
+                      ) -> tuple[ca.MX, ca.MX]:
+    """The end state of ``P`` pieces (rates ``w``, flat; gains ``K``) and its Jacobian:
+    forward through the pieces, then the chain rule backwards (``d end / d w_k = A_{P-1} ...
+    A_{k+1} B_k``)."""
     x, As, Bs = q0, [], []
     for k in range(P):
-        x, A, B = F(x, w[2 * k:2 * k + 2])
+        x, A, B = F(x, w[2 * k:2 * k + 2], K)
         As.append(A)
         Bs.append(B)
     S, cols = ca.MX.eye(q0.shape[0]), []
@@ -105,12 +138,13 @@ def _end_and_jacobian(F: ca.Function, q0: ca.MX, w: ca.MX, P: int) -> tuple[ca.M
     return x, ca.horzcat(*reversed(cols))
 
 
-def piece_function(gains: tuple[float, ...], exponents: tuple[int, ...], substeps: int
-                    ) -> ca.Function:
-    nq = len(gains) + 2
+def piece_function(exponents: tuple[int, ...], substeps: int) -> ca.Function:
+    """One unit piece by ``substeps`` RK4 steps, ``(q, w, K) -> q_end``."""
+    nq = len(exponents) + 2
     q = ca.SX.sym("q", nq)
     u = ca.SX.sym("u", 2)
-    return ca.Function(f"piece_rk4_{substeps}", [q, u], [rk4_step(
+    K, gains = _gains_symbol(exponents)
+    return ca.Function(f"piece_rk4_{substeps}", [q, u, K], [rk4_step(
         lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1], ca.cos)),
         q, u, 1.0, substeps)])
 
@@ -159,22 +193,26 @@ class CompiledCall:
         return self.current()(*args)
 
 
-@functools.lru_cache(maxsize=64)
-def jacobian_map(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> CompiledCall:
+def jacobian_map(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> BoundCall:
     """The compiled map ``(q0, W) -> (q_end, d q_end / d W)`` of ``P`` unit pieces (``W``:
     ``(2, P)`` column-major, so the C-contiguous ``(P, 2)`` array of the rates; the Jacobian
     comes back flat column-major, ``(n+1, 2P)``), built as the kernels are (one piece and its
     sensitivities, the chain rule backwards: its C compiles in seconds): the Python loops'
     map (:class:`PieceMap`)."""
-    F = _piece_step(gains, exponents)
-    q0 = ca.MX.sym("q0", len(gains) + 2)
-    W = ca.MX.sym("W", 2, P)
-    x, J = _end_and_jacobian(F, q0, ca.vec(W), P)
-    return CompiledCall(ca.Function(f"continuation_map_{P}", [q0, W], [x, J]), 2, (0, 1))
+    return BoundCall(_jacobian_map(tuple(exponents), P), gains)
 
 
 @functools.lru_cache(maxsize=64)
-def signed_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> CompiledCall:
+def _jacobian_map(exponents: tuple[int, ...], P: int) -> CompiledCall:
+    F = _piece_step(exponents)
+    q0 = ca.MX.sym("q0", len(exponents) + 2)
+    W = ca.MX.sym("W", 2, P)
+    K = ca.MX.sym("K", len(exponents))
+    x, J = _end_and_jacobian(F, q0, ca.vec(W), K, P)
+    return CompiledCall(ca.Function(f"continuation_map_{P}", [q0, W, K], [x, J]), 3, (0, 1))
+
+
+def signed_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> BoundCall:
     """:data:`KERNEL_STEPS` full sign-keeping Gauss-Newton steps in one call:
     ``(q0, W, goal, D2, signs) -> (W_end, th_end - goal)`` (``W``: ``(2, P)`` as for
     :func:`jacobian_map`; ``D2``, ``signs``: flat like ``vec(W)``).
@@ -186,8 +224,14 @@ def signed_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) 
     (:func:`correct_signed`). One CasADi call instead of a Python loop of map calls and small
     solves: the replanner's common case (n = 3: 82 % of the states 0.05 deg off a plan, the
     same cases as the long way keeps the signs on)."""
-    n = len(gains) + 1
-    F = _piece_step(gains, exponents)
+    return BoundCall(_signed_kernel(tuple(exponents), P), gains)
+
+
+@functools.lru_cache(maxsize=64)
+def _signed_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
+    n = len(exponents) + 1
+    F = _piece_step(exponents)
+    K = ca.MX.sym("K", n - 1)
     q0 = ca.MX.sym("q0", n + 1)
     W = ca.MX.sym("W", 2, P)
     goal = ca.MX.sym("goal", n)
@@ -198,7 +242,7 @@ def signed_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) 
     ones = ca.DM.ones(n, 1)
 
     for _ in range(KERNEL_STEPS):
-        x, J = _end_and_jacobian(F, q0, w, P)
+        x, J = _end_and_jacobian(F, q0, w, K, P)
         r = x[1:] - goal
         Jt = J[1:, :]
         fixed = held
@@ -215,10 +259,10 @@ def signed_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) 
         w = w - (dx * (1 - crossed) + w * crossed)
     x = q0
     for k in range(P):
-        x = F(x, w[2 * k:2 * k + 2])[0]
-    fn = ca.Function(f"continuation_kernel_{P}", [q0, W, goal, D2, signs],
+        x = F(x, w[2 * k:2 * k + 2], K)[0]
+    fn = ca.Function(f"continuation_kernel_{P}", [q0, W, goal, D2, signs, K],
                      [ca.reshape(w, 2, P), x[1:] - goal])
-    return CompiledCall(fn, 5, (0, 1))
+    return CompiledCall(fn, 6, (0, 1))
 
 
 #: Steps and halvings of the any-sign kernel (:func:`halving_kernel`).
@@ -226,23 +270,28 @@ HALVING_STEPS = 12
 HALVING_TRIES = 7
 
 
-@functools.lru_cache(maxsize=64)
 def halving_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int
-                   ) -> CompiledCall:
+                   ) -> BoundCall:
     """:func:`correct_pieces` in one call: :data:`HALVING_STEPS` weighted least-norm
     Gauss-Newton steps with any sign, each the largest of :data:`HALVING_TRIES` halvings
     that shrinks the miss (none: the rates stay), ``(q0, W, goal, D2) -> (W_end, th_end -
     goal)``. Every candidate is the map's end state without its Jacobian (RK4 as
     :func:`jacobian_map`'s)."""
-    n = len(gains) + 1
-    F = _piece_step(gains, exponents)
-    forward = piece_function(gains, exponents, SUBSTEPS).mapaccum("forward", P)
+    return BoundCall(_halving_kernel(tuple(exponents), P), gains)
+
+
+@functools.lru_cache(maxsize=64)
+def _halving_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
+    n = len(exponents) + 1
+    F = _piece_step(exponents)
+    forward = piece_function(exponents, SUBSTEPS).mapaccum("forward", P)
+    K = ca.MX.sym("K", n - 1)
     q0 = ca.MX.sym("q0", n + 1)
     w = ca.MX.sym("w", 2 * P)
     goal = ca.MX.sym("goal", n)
     D2 = ca.MX.sym("D2", 2 * P)
     ones = ca.DM.ones(n, 1)
-    x, J = _end_and_jacobian(F, q0, w, P)
+    x, J = _end_and_jacobian(F, q0, w, K, P)
     Jt = J[1:, :]
     r = x[1:] - goal
     JD = Jt * ca.mtimes(ones, D2.T)
@@ -251,20 +300,20 @@ def halving_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int
     chosen_w, chosen_r = w, r
     for j in reversed(range(HALVING_TRIES)):
         V = w - 0.5 ** j * dx
-        rV = forward(q0, ca.reshape(V, 2, P))[1:, P - 1] - goal
+        rV = forward(q0, ca.reshape(V, 2, P), ca.repmat(K, 1, P))[1:, P - 1] - goal
         better = ca.sumsqr(rV) < size
         chosen_w = ca.if_else(better, V, chosen_w)
         chosen_r = ca.if_else(better, rV, chosen_r)
     # one step, a Function of its own: the generated C holds it once, called in turn
-    step = ca.Function(f"continuation_halving_step_{P}", [q0, w, goal, D2],
+    step = ca.Function(f"continuation_halving_step_{P}", [q0, w, goal, D2, K],
                        [chosen_w, chosen_r])
     W = ca.MX.sym("W", 2, P)
     w = ca.vec(W)
     for _ in range(HALVING_STEPS):
-        w, r = step(q0, w, goal, D2)
-    fn = ca.Function(f"continuation_halving_{P}", [q0, W, goal, D2],
+        w, r = step(q0, w, goal, D2, K)
+    fn = ca.Function(f"continuation_halving_{P}", [q0, W, goal, D2, K],
                      [ca.reshape(w, 2, P), r])
-    return CompiledCall(fn, 4, (0, 1))
+    return CompiledCall(fn, 5, (0, 1))
 
 
 def halving_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
@@ -331,11 +380,12 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], build: bool = 
     a kernel's build starts in the background at its first call (a service does not start
     some thirty compilers at once at its start-up). The verification's functions:
     :func:`~.piece_proof.prepare`."""
-    piece_end(gains, exponents)
+    exponents = tuple(exponents)
+    _piece_end(exponents)
     kernels: list[CompiledCall] = []
     for P in SIZES:
-        kernels += [signed_kernel(gains, exponents, P), halving_kernel(gains, exponents, P),
-                    jacobian_map(gains, exponents, P)]
+        kernels += [_signed_kernel(exponents, P), _halving_kernel(exponents, P),
+                    _jacobian_map(exponents, P)]
     if build:
         for kernel in kernels:
             kernel.current(wait=True)
@@ -528,5 +578,5 @@ def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
 
 
 __all__ = ["jacobian_map", "piece_function", "HALVING_STEPS", "HALVING_TRIES", "halving_correct", "halving_kernel", "CompiledCall", "KERNEL_STEPS", "KERNEL_ROUNDS", "kernel_correct", "signed_kernel", "DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
-           "correct_pieces", "piece_end", "prepare", "piece_weights", "size_for",
+           "correct_pieces", "piece_end", "BoundCall", "prepare", "piece_weights", "size_for",
            "weighted_step"]

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .continuation_map import CompiledCall, SIZES, piece_function, size_for
+from .continuation_map import BoundCall, CompiledCall, SIZES, piece_function, size_for
 
 
 #: RK4 steps per unit piece of the compiled verification's coarse run (its fine run takes
@@ -39,31 +39,43 @@ SAMPLE_SIZES = (64, 128, 256, 512, 1024, 2048, 4096)
 SAMPLE_SUBSTEPS = 8
 
 
-@functools.lru_cache(maxsize=64)
-def break_states(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> CompiledCall:
+def break_states(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> BoundCall:
     """The states at the ends of ``P`` unit pieces twice, ``(q0, W) -> (X_fine, X_coarse)``
     (``(n+1, P)`` each, flat column-major; RK4 with 2 :data:`VERIFY_SUBSTEPS` and
     :data:`VERIFY_SUBSTEPS` steps per piece): the fine states and, from their difference,
     Richardson's estimate of their error."""
-    fine = piece_function(gains, exponents, 2 * VERIFY_SUBSTEPS).mapaccum("fine", P)
-    coarse = piece_function(gains, exponents, VERIFY_SUBSTEPS).mapaccum("coarse", P)
-    q0 = ca.MX.sym("q0", len(gains) + 2)
-    W = ca.MX.sym("W", 2, P)
-    fn = ca.Function(f"continuation_breaks_{P}", [q0, W], [fine(q0, W), coarse(q0, W)])
-    return CompiledCall(fn, 2, (0, 1))
+    return BoundCall(_break_states(tuple(exponents), P), gains)
 
 
 @functools.lru_cache(maxsize=64)
-def sample_states(gains: tuple[float, ...], exponents: tuple[int, ...], N: int) -> CompiledCall:
+def _break_states(exponents: tuple[int, ...], P: int) -> CompiledCall:
+    fine = piece_function(exponents, 2 * VERIFY_SUBSTEPS).mapaccum("fine", P)
+    coarse = piece_function(exponents, VERIFY_SUBSTEPS).mapaccum("coarse", P)
+    q0 = ca.MX.sym("q0", len(exponents) + 2)
+    W = ca.MX.sym("W", 2, P)
+    K = ca.MX.sym("K", len(exponents))
+    Ks = ca.repmat(K, 1, P)
+    fn = ca.Function(f"continuation_breaks_{P}", [q0, W, K],
+                     [fine(q0, W, Ks), coarse(q0, W, Ks)])
+    return CompiledCall(fn, 3, (0, 1))
+
+
+def sample_states(gains: tuple[float, ...], exponents: tuple[int, ...], N: int) -> BoundCall:
     """``N`` partial pieces at once, ``(Q, W) -> Q_end`` (``(n+1, N)`` starts, ``(2, N)``
     displacement rates; RK4 with :data:`SAMPLE_SUBSTEPS` steps each): the handed-out
     samples from the states at their pieces' starts."""
-    fine = piece_function(gains, exponents, SAMPLE_SUBSTEPS).map(N)
-    nq = len(gains) + 2
+    return BoundCall(_sample_states(tuple(exponents), N), gains)
+
+
+@functools.lru_cache(maxsize=64)
+def _sample_states(exponents: tuple[int, ...], N: int) -> CompiledCall:
+    fine = piece_function(exponents, SAMPLE_SUBSTEPS).map(N)
+    nq = len(exponents) + 2
     Q = ca.MX.sym("Q", nq, N)
     W = ca.MX.sym("W", 2, N)
-    return CompiledCall(ca.Function(f"continuation_samples_{N}", [Q, W], [fine(Q, W)]), 2,
-                        (0,))
+    K = ca.MX.sym("K", nq - 2)
+    return CompiledCall(ca.Function(f"continuation_samples_{N}", [Q, W, K],
+                                    [fine(Q, W, ca.repmat(K, 1, N))]), 3, (0,))
 
 
 @dataclass(frozen=True)
@@ -119,10 +131,12 @@ def integrate_pieces(gains: tuple[float, ...], exponents: tuple[int, ...], q0: n
 
 def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], build: bool = False
             ) -> None:
-    """Every size's break-state function and the smaller sample maps of a robot, built now
+    """Every size's break-state function and the smaller sample maps of a robot's shape (they
+    serve every gains of its exponents), built now
     (``build``: their compiled libraries too, as :func:`~.continuation_map.prepare`)."""
-    functions = ([break_states(gains, exponents, P) for P in SIZES]
-                 + [sample_states(gains, exponents, N) for N in SAMPLE_SIZES[:3]])
+    exponents = tuple(exponents)
+    functions = ([_break_states(exponents, P) for P in SIZES]
+                 + [_sample_states(exponents, N) for N in SAMPLE_SIZES[:3]])
     if build:
         for f in functions:
             f.current(wait=True)

@@ -129,7 +129,8 @@ def _commanded(ps: PlanState, t: float) -> np.ndarray:
 def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
            rates: Any = None, duration: float | None = None, *,
            plain: bool = True, time_limit: float = 10.0,
-           keep_reversals: bool = False) -> dict[str, Any]:
+           keep_reversals: bool = False, gains: Any = None,
+           fallback: bool = True) -> dict[str, Any]:
     """The continuation of ``plan`` from the measured ``state`` at ``time_`` (see the module).
 
     Parameters
@@ -154,6 +155,13 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
     plain : bool
         True: Python lists and floats (:func:`~optimizer.results.json_safe`); False: numpy
         arrays left in, for an encoder that writes them (the service's orjson).
+    gains : sequence of n - 1 floats, optional
+        The robot's ``K_2..K_n`` to continue on (a plant's gains as estimated from its
+        motion, :mod:`optimizer.identification`); default the plan's. The continuation is
+        planned and verified on that model, and its answer's ``robot`` says so.
+    fallback : bool
+        False: only the fast path (no full plan: on a model of new gains that would build
+        its NLP); :class:`InfeasibleError` where it fails.
 
     Returns
     -------
@@ -171,6 +179,11 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
     t_start = time.perf_counter()
     ps = read_plan(plan)
     n = ps.robot.n
+    if gains is not None:
+        K = finite_array(gains, "gains")
+        if K.shape != (n - 1,) or np.any(K <= 0.0):
+            raise invalid(f"gains must give K_2..K_{n} ({n - 1} positive numbers)", "gains")
+        ps = replace(ps, robot=Robot(tuple(float(k) for k in K), ps.robot.exponents))
     t = float(time_)
     if not math.isfinite(t) or t < ps.start_time - 1e-12 or t >= ps.end_time:
         raise invalid(f"time = {t!r} s must lie in [{ps.start_time:.6g}, {ps.end_time:.6g}) s, "
@@ -219,6 +232,10 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
         except PlannerError as exc:
             errors.append(f"{exc.code}: {exc.message}")
     if result is None:
+        if not fallback:
+            raise InfeasibleError("the fast path found no continuation, and the full planner "
+                                  "was not asked for (fallback=false)", field="fallback",
+                                  diagnostics={"fast_path_failed": errors})
         cont = _fallback(ps, req, t, q_m, u_c, T_end)
         if keep_reversals and ps.rates is not None:
             sig = float(ps.law.evaluate(np.array([t]))[0][0])

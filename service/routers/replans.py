@@ -28,8 +28,8 @@ def _payload(body: ReplanRequest) -> dict[str, Any]:
     the replan; the library checks the plan itself)."""
     payload: dict[str, Any] = {"plan": body.plan, "time": body.time, "state": body.state,
                                "keep_reversals": body.keep_reversals,
-                               "time_limit": body.time_limit}
-    for name in ("rates", "duration"):
+                               "fallback": body.fallback, "time_limit": body.time_limit}
+    for name in ("rates", "duration", "gains"):
         if getattr(body, name) is not None:
             payload[name] = getattr(body, name)
     return payload

@@ -61,6 +61,8 @@ def test_same_request_same_answer(client: TestClient, answer: dict) -> None:
     ({"plan": "x"}, "plan"),
     ({"state": [0.1, 0.2]}, "state"),
     ({"rates": [1.0, 2.0, 3.0]}, "rates"),
+    ({"gains": [1.0, 1.0, 1.0]}, "gains"),                 # three for a 3-joint plan
+    ({"gains": [1.0, -0.5]}, "gains"),
 ])
 def test_bad_requests_are_422_naming_the_field(client: TestClient, answer: dict,
                                                change: dict, field: str) -> None:
@@ -98,6 +100,28 @@ def test_robustness_closed_loop_side_by_side(client: TestClient) -> None:
     fig = client.post("/v1/figures/robustness", json={**body, "random": {
         "count": 1, "spread": math.radians(1.0), "seed": 3}})
     assert fig.status_code == 200 and fig.content[:4] == b"\x89PNG"
+
+
+def test_identified_gains_over_http(client: TestClient, answer: dict) -> None:
+    """A replan on gains as a client estimated them answers on those gains; the closed-loop
+    mode that estimates them ends far closer than the one on the plan's model, and reports
+    its estimate (within 1e-6 of each run's plant)."""
+    K = [k * f for k, f in zip(answer["robot"]["gains"], (1.03, 0.98))]
+    r = client.post("/v1/replans", json={"plan": answer, "time": 0.5,
+                                         "state": _state_at(answer, 0.5), "gains": K})
+    assert r.status_code == 200, r.text
+    assert r.json()["robot"]["gains"] == pytest.approx(K, rel=1e-15)
+    body = {"plan": PLAN, "random": {"count": 2, "spread": math.radians(0.5), "seed": 3},
+            "closed_loop": {"gain_error": 0.05, "period": 0.05, "seed": 1}}
+    plain = client.post("/v1/robustness", json=body)
+    body["closed_loop"]["identify"] = True
+    ident = client.post("/v1/robustness", json=body)
+    assert plain.status_code == 200 and ident.status_code == 200, ident.text
+    assert ident.json()["closed_loop"]["summary"]["identify"] is True
+    for a, b in zip(plain.json()["closed_loop"]["runs"], ident.json()["closed_loop"]["runs"]):
+        assert b["closed"]["terminal_error"] < 1e-3 * max(a["closed"]["terminal_error"], 1e-9)
+        plant = [k * (1 + e) for k, e in zip(answer["robot"]["gains"], b["gain_errors"])]
+        assert b["closed"]["gains_estimated"] == pytest.approx(plant, rel=1e-6)
 
 
 def test_robustness_closed_loop_needs_actuator_rates(client: TestClient) -> None:
