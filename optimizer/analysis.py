@@ -300,9 +300,6 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
     identify : bool
         Estimate the plant's gains from the measured motion
         (:class:`~optimizer.identification.GainEstimator`, every period) and replan on them.
-        Once the estimate has moved off the plan's gains, a replan is the fast path alone
-        (the full planner would build a new NLP for every estimate): where it fails, the run
-        goes on with the current plan.
 
     Returns
     -------
@@ -347,8 +344,7 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
             try:
                 cont = replan(current, t, measured,
                               rates=_commanded_rates(current, np.array([t]))[0], plain=False,
-                              keep_reversals=keep_reversals, gains=gains,
-                              fallback=estimator is None or estimator.periods == 0)
+                              keep_reversals=keep_reversals, gains=gains)
                 current = read_plan(cont)
                 replans += 1
             except PlannerError:

@@ -78,9 +78,9 @@ class ReplanRequest(RequestModel):
                     "optimizer.identification.GainEstimator); the continuation is planned and "
                     "verified on them and its robot says so. Default: the plan's robot.")
     fallback: bool = Field(
-        True, description="false: the fast path only (a 422 naming fallback where it fails) "
-                          "instead of the full planner, which builds a new NLP for gains it "
-                          "has not seen.")
+        True, description="false: the fast path only (a 422 naming fallback where it fails), "
+                          "never the full planner: a bounded answer time for a controller's "
+                          "period.")
     time_limit: num(hi=MAX_REPLAN_TIME_LIMIT, gt=0.0) = Field(  # type: ignore[valid-type]
         5.0, description="Seconds for the job (the full planner is the fast path's fallback).")
 
@@ -103,9 +103,8 @@ class ClosedLoop(RequestModel):
     seed: StrictInt = Field(0, description="Seed of the gain errors and the noise.")
     identify: bool = Field(
         False, description="true: every period the closed loop estimates the plant's gains "
-                           "from the measured motion and replans on them (after the first "
-                           "estimate the replans are fast-path only); false: replans on the "
-                           "plan's model.")
+                           "from the measured motion and replans on them; false: replans on "
+                           "the plan's model.")
 
 
 # ---------------------------------------------------------------------- limit-dependent requests

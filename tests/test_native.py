@@ -37,10 +37,10 @@ pytestmark = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc
 def fresh():
     """Every test starts and ends with compiled functions off and no cached NLP."""
     native.configure(None)
-    nlp.multiple_shooting_nlp.cache_clear()
+    nlp._shaped_nlp.cache_clear()
     yield
     native.configure(None)
-    nlp.multiple_shooting_nlp.cache_clear()
+    nlp._shaped_nlp.cache_clear()
     native._builds.clear()
 
 
@@ -70,7 +70,7 @@ def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(default_c
     req = _request()
     vm = plan(req)
     assert vm.diagnostics["shooting"]["compiled"] is False
-    nlp.multiple_shooting_nlp.cache_clear()
+    nlp._shaped_nlp.cache_clear()
     assert native.configure(default_cache) is not None
     assert shooting.prepare(req.robot.gains, req.robot.exponents, wait=True).compiled
     p = plan(req)
@@ -93,12 +93,13 @@ def test_the_correction_maps_are_compiled_with_the_nlp(default_cache):
     assert m.compiled
     q0 = req.q_start()
     rates = np.random.default_rng(5).uniform(-1.0, 1.0, (m.N, 2))
-    vm_end = np.asarray(m.fine_path(q0, rates.T), float)[:, -1]
-    vm_jac = np.asarray(m.end_jacobian(q0, rates.ravel()), float)
+    K = req.robot.gains
+    vm_end = np.asarray(m.fine_path(q0, rates.T, K), float)[:, -1]
+    vm_jac = np.asarray(m.end_jacobian(q0, rates.ravel(), K), float)
     for call in (m._fine_end, m._end_jacobian):
         assert call.function.class_name() != "SXFunction"  # loaded from the library
-    np.testing.assert_allclose(m.fine_end(q0, rates), vm_end, rtol=0, atol=1e-13)
-    np.testing.assert_allclose(m.rk4_end_jacobian(q0, rates), vm_jac, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(m.fine_end(q0, rates, K), vm_end, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(m.rk4_end_jacobian(q0, rates, K), vm_jac, rtol=0, atol=1e-12)
 
 
 def test_the_penalty_nlp_is_compiled_too_and_plans_the_same(tmp_path):
@@ -107,7 +108,7 @@ def test_the_penalty_nlp_is_compiled_too_and_plans_the_same(tmp_path):
     req = PlanRequest(start=OPP_B[0], goal=OPP_B[1], method="penalty")
     vm = plan(req)
     assert vm.diagnostics["penalty"]["compiled"] is False
-    nlp.multiple_shooting_nlp.cache_clear()
+    nlp._shaped_nlp.cache_clear()
     native.configure(tmp_path)
     assert penalty.prepare(req.robot.gains, req.robot.exponents, wait=True).compiled
     p = plan(req)
@@ -142,7 +143,7 @@ def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp
     time.sleep(1.05)                         # the library is looked for at most once a second
     assert plan(req).diagnostics["shooting"]["compiled"] is True
     # another process (no cached NLP): found at once, nothing compiled
-    nlp.multiple_shooting_nlp.cache_clear()
+    nlp._shaped_nlp.cache_clear()
     native._builds.clear()
     native.configure(tmp_path)
     q = plan(req)

@@ -412,10 +412,10 @@ def test_correction_with_a_measured_miss_aims_past_the_goal_by_that_miss():
     nlp = shooting.nlp_for(req, shooting.ladder(req.n)[0])
     phi_end = float(sol.nodes[-1, 0])
     rates, _ = shooting.correct_rates(req, nlp, sol.rates, phi_end)
-    fine_end = np.asarray(nlp.fine_path(req.q_start(), rates.T))[:, -1]
+    fine_end = np.asarray(nlp.fine_path(req.q_start(), rates.T, req.robot.gains))[:, -1]
     miss = np.array([0.0, 2e-8, -1e-8, 3e-8, 5e-9])
     again, errors = shooting.correct_rates(req, nlp, rates, phi_end, fine_end + miss)
-    end = np.asarray(nlp.fine_path(req.q_start(), again.T))[:, -1]
+    end = np.asarray(nlp.fine_path(req.q_start(), again.T, req.robot.gains))[:, -1]
     assert np.max(np.abs(end[1:] - (np.array(req.goal) - miss[1:]))) < 1e-12
     assert errors[-1] < 1e-12
 

@@ -28,6 +28,19 @@ class AttemptableNLP(SolvableNLP, Protocol):
 MIN_ATTEMPT_TIME = 1e-3
 
 
+class MissedGoal(InfeasibleError):
+    """Every attempt failed, one of them by converging off the goal (the elastic goal's miss
+    stayed; :func:`~.solvers.run_solver`): its solution vector ``x`` (and, where the caller
+    unpacked it, its node states ``nodes``) is a start for a finer transcription, closer to a
+    path than any straight line."""
+
+    def __init__(self, message: str, *, x: np.ndarray, nodes: np.ndarray | None = None,
+                 diagnostics: dict[str, Any] | None = None) -> None:
+        super().__init__(message, diagnostics=diagnostics)
+        self.x = x
+        self.nodes = nodes
+
+
 @dataclass(frozen=True)
 class Attempt:
     """One try: solver ``solver`` (a name of the NLP's ``solvers``) from ``x0``, the guess
@@ -76,12 +89,14 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
         A solver stopped at the deadline, or the deadline left no time for an attempt
         (``field="time_limit"``; ``diagnostics["tried"]``).
     InfeasibleError
-        Every attempt failed (``diagnostics["blocking"] = "nlp_failed"``, ``["tried"]``).
+        Every attempt failed (``diagnostics["blocking"] = "nlp_failed"``, ``["tried"]``);
+        :class:`MissedGoal` when one converged off the goal (its ``x``, the first such).
     NumericalError
         A solver raised (:func:`~.solvers.run_solver`).
     """
     names = {name for name, _ in nlp.solvers}
     tried: list[dict[str, Any]] = []
+    missed: np.ndarray | None = None
 
     def timeout() -> SolverTimeoutError:
         return SolverTimeoutError(
@@ -101,11 +116,17 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
                              iterations=out.iterations, guess=at.guess, tried=tuple(tried))
         if out.kind == "timeout":
             raise timeout()
+        if out.kind == "infeasible" and out.x is not None and missed is None:
+            missed = out.x
     if not tried or deadline.remaining <= MIN_ATTEMPT_TIME:
         raise timeout()
-    raise InfeasibleError(f"{what} found no path from any start: "
-                          + "; ".join(f"{t['solver']} {t['status']}" for t in tried),
-                          diagnostics={"blocking": "nlp_failed", "tried": tried})
+    message = (f"{what} found no path from any start: "
+               + "; ".join(f"{t['solver']} {t['status']}" for t in tried))
+    diagnostics = {"blocking": "nlp_failed", "tried": tried}
+    if missed is not None:
+        raise MissedGoal(message, x=missed, diagnostics=diagnostics)
+    raise InfeasibleError(message, diagnostics=diagnostics)
 
 
-__all__ = ["Attempt", "AttemptableNLP", "Converged", "MIN_ATTEMPT_TIME", "first_converged"]
+__all__ = ["Attempt", "AttemptableNLP", "Converged", "MIN_ATTEMPT_TIME", "MissedGoal",
+           "first_converged"]

@@ -40,8 +40,8 @@ naming ``max_reversals`` and the fewest reversals found.
 
 Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-200 iterations; the second
 fatrop below 5 joints), then one sign-held NLP (30-90 iterations) and one finishing per other
-candidate, and one NLP per failed merge. The NLP and its solvers are built once per robot and
-transcription per process (:func:`prepare`, :func:`~.nlp.multiple_shooting_nlp`): start, goal,
+candidate, and one NLP per failed merge. The NLP and its solvers are built once per robot shape
+(exponents; the gains are parameters) and transcription per process (:func:`prepare`, :func:`~.nlp.multiple_shooting_nlp`): start, goal,
 weights, bounds and signs are parameters and bounds, and every solve takes a fresh solver
 memory, so nothing of one request reaches the next (tests/test_budget_purity.py). Measured
 (``diagnostics.budget.tried`` records each NLP's and each finishing's CPU seconds;
@@ -261,7 +261,7 @@ def _finish(req: PlanRequest, tr: Transcription, sol: ShootingSolution,
 
 def _nlp(req: PlanRequest, tr: Transcription) -> nlp_layer.MultipleShootingNLP:
     """The budget's NLP of ``req`` under ``tr``: the deviation from the segment, bounded at
-    the nodes and :data:`DEVIATION_POINTS` inner points per interval (built once per robot,
+    the nodes and :data:`DEVIATION_POINTS` inner points per interval (built once per robot shape,
     transcription and variant per process, :func:`~.nlp.multiple_shooting_nlp`)."""
     return _nlp_of(tuple(float(k) for k in req.robot.gains),
                    tuple(int(m) for m in req.robot.exponents), req.phi_change is not None, tr)

@@ -160,11 +160,12 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
     target = np.concatenate([[phi_end], req.goal])
     U = np.array(rates, float)
     if exact_end is not None:
-        target = target - (np.asarray(exact_end, float) - nlp.fine_end(q0, U))
+        target = target - (np.asarray(exact_end, float)
+                           - nlp.fine_end(q0, U, req.robot.gains))
     held = None if signs is None else np.broadcast_to(np.asarray(signs, float), (N, 2))
     errors: list[float] = []
     best: tuple[float, np.ndarray] | None = None
-    end = nlp.fine_end(q0, U)
+    end = nlp.fine_end(q0, U, req.robot.gains)
     for k in range(MAX_CORRECTIONS + 1):
         r = end - target
         err = float(np.max(np.abs(r[1:])))
@@ -175,12 +176,12 @@ def correct_rates(req: PlanRequest, nlp: MultipleShootingNLP, rates: np.ndarray,
             best = (err, U)
         if err <= 1e-3 * CORRECTION_TARGET or k == MAX_CORRECTIONS:
             break
-        J = nlp.rk4_end_jacobian(q0, U)
+        J = nlp.rk4_end_jacobian(q0, U, req.robot.gains)
         if held is not None:
             J = np.where((held != 0.0) & (U * held <= 0.0), 0.0, J.reshape(-1, N, 2)
                          ).reshape(J.shape)
         U = _held_to(held, U - minimum_norm_step(J, r).reshape(N, 2))
-        end = nlp.fine_end(q0, U)
+        end = nlp.fine_end(q0, U, req.robot.gains)
     return (U if best is None else best[1]), errors
 
 

@@ -38,8 +38,10 @@ fatrop evaluates the first rung's functions as compiled C once their library is 
 
 Caching, threads
 ----------------
-The NLP and its solvers are built once per robot, transcription and region mode per process
-(:func:`multiple_shooting_nlp`); start, goal, weights and bounds are parameters. CasADi objects
+The NLP and its solvers are built once per robot shape (joint count and exponents),
+transcription and region mode per process (:func:`multiple_shooting_nlp`); start, goal,
+weights, bounds and the robot's gains are parameters, so a robot of other gains (a perturbed
+plant, a study's design, gains estimated in closed loop) is served without a build. CasADi objects
 are not thread-safe and the cached callback holds the current deadline: one thread per process.
 """
 
@@ -49,7 +51,7 @@ import functools
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import casadi as ca
 import numpy as np
@@ -165,8 +167,8 @@ class MultipleShootingNLP:
 
     Parameters
     ----------
-    gains, exponents : tuple
-        The robot (``K_2..K_n``, ``m_2..m_n``).
+    exponents : tuple
+        The robot's ``m_2..m_n`` (its gains ``K_2..K_n`` are the last parameters).
     fixed_phi : bool
         ``phi(1) - phi(0)`` is a parameter (else the caller bounds ``phi_N``).
     intervals, substeps : int
@@ -200,7 +202,7 @@ class MultipleShootingNLP:
         :data:`FINE_SUBSTEPS` times the NLP's RK4 steps (the correction's end map).
     """
 
-    def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
+    def __init__(self, exponents: tuple[int, ...], fixed_phi: bool,
                  intervals: int, substeps: int, region: str = "hard",
                  deviation: str = "line", deviation_points: int = 0,
                  terminal: str = "hard", soft_signs: bool = False,
@@ -212,8 +214,12 @@ class MultipleShootingNLP:
         if terminal not in TERMINAL_MODES:
             raise ValueError(f"terminal must be one of {TERMINAL_MODES}, not {terminal!r}")
         t0 = time.perf_counter()
-        n = self.n = len(gains) + 1
+        n = self.n = len(exponents) + 1
         N = self.N = intervals
+        # the gains K_2..K_n are parameters (the last n - 1 of p), not constants: one NLP, one
+        # compiled library and one set of solvers serve every robot of these exponents
+        Kp = ca.SX.sym("K", n - 1)
+        gains = [Kp[i] for i in range(n - 1)]
         self.region = region
         self.terminal = terminal
         penalty = region == "penalty"
@@ -233,11 +239,11 @@ class MultipleShootingNLP:
                               *([0] * (nx - nq)))
 
         x, u = ca.SX.sym("x", nx), ca.SX.sym("u", 2)
-        step = ca.Function("rk4", [x, u], [rk4_step(field, x, u, h, substeps)])
+        step = ca.Function("rk4", [x, u, Kp], [rk4_step(field, x, u, h, substeps)])
         # the states at deviation_points equally spaced inner times of an interval (the
         # interval's RK4 steps from its node, shortened): the deviation epigraph bounds them
         # too, so that a path cannot come back to the line at the nodes only (the budget's)
-        inner = [ca.Function(f"rk4_inner{j}", [x, u], [rk4_step(
+        inner = [ca.Function(f"rk4_inner{j}", [x, u, Kp], [rk4_step(
             field, x, u, h * j / (deviation_points + 1), substeps)])
             for j in range(1, deviation_points + 1)]
         # the NLP model's end state as a function of the start and all rates (single shooting)
@@ -245,23 +251,26 @@ class MultipleShootingNLP:
         q0s, Us = ca.SX.sym("q0", nq), ca.SX.sym("U", 2 * N)
         xe = ca.vertcat(q0s, *([0] * (nx - nq)))
         for k in range(N):
-            xe = step(xe, Us[2 * k:2 * k + 2])
-        self.end_jacobian = ca.Function("end_jacobian", [q0s, Us],
+            xe = step(xe, Us[2 * k:2 * k + 2], Kp)
+        self.end_jacobian = ca.Function("end_jacobian", [q0s, Us, Kp],
                                         [ca.densify(ca.jacobian(xe[:nq], Us))])
         # the same model with FINE_SUBSTEPS times the steps: the correction's end map, close
         # enough to the exact model (see FINE_SUBSTEPS) that no quadrature runs per step
         xq = ca.SX.sym("q", nq)
-        fine = ca.Function("rk4_fine", [xq, u], [rk4_step(
+        fine = ca.Function("rk4_fine", [xq, u, Kp], [rk4_step(
             lambda y, r: ca.vertcat(*vector_field(gains, exponents, y, r[0], r[1], ca.cos)),
             xq, u, h, substeps * FINE_SUBSTEPS)])
-        self.fine_path = fine.mapaccum("fine_path", N)
+        Ur = ca.SX.sym("U", 2, N)
+        Ks = ca.repmat(Kp, 1, N)
+        self.fine_path = ca.Function("fine_path", [xq, Ur, Kp],
+                                     [fine.mapaccum("fine_steps", N)(xq, Ur, Ks)])
         # the correction's maps, compiled with the NLP's functions when those are
         # (load_native); the end state alone (no path) is all the correction needs
-        Ur = ca.SX.sym("U", 2, N)
-        self._correction_maps = (ca.Function("fine_end", [xq, Ur], [fine.fold(N)(xq, Ur)]),
+        self._correction_maps = (ca.Function("fine_end", [xq, Ur, Kp],
+                                             [fine.fold(N)(xq, Ur, Ks)]),
                                  self.end_jacobian)
-        self._fine_end = BufferedCall(self._correction_maps[0], 2)
-        self._end_jacobian = BufferedCall(self.end_jacobian, 2)
+        self._fine_end = BufferedCall(self._correction_maps[0], 3)
+        self._end_jacobian = BufferedCall(self.end_jacobian, 3)
 
         # p = [phi0, a (n), b (n), w_dev, w_energy, w_da, dphi] and, with the penalty,
         #     [w_sens, rho, lo (n), hi (n)]
@@ -292,7 +301,7 @@ class MultipleShootingNLP:
 
         def inner_rows(k: int) -> list[tuple[Any, bool]]:
             # the interval's inner points (x_k, u_k: one stage), bounded by x_k's epigraph
-            return [(dist2_of(f(X[k], U[k][:2])[1:nq]) - X[k][nq], False) for f in inner]
+            return [(dist2_of(f(X[k], U[k][:2], Kp)[1:nq]) - X[k][nq], False) for f in inner]
 
         def stage_rows(k: int) -> list[tuple[Any, bool]]:
             if k == 0:
@@ -331,7 +340,7 @@ class MultipleShootingNLP:
                     f += rho * U[k][2]
                 if soft_signs:
                     f += P[P.shape[0] - 1] * U[k][2]
-                g.append(X[k + 1] - step(X[k], U[k][:2]))  # fatrop: x_{k+1} - F(x_k, u_k)
+                g.append(X[k + 1] - step(X[k], U[k][:2], Kp))  # x_{k+1} - F(x_k, u_k)
                 eq += [True] * nx
             rows = stage_rows(k)
             for expr, is_eq in rows:
@@ -343,9 +352,9 @@ class MultipleShootingNLP:
             f += ELASTIC_WEIGHT * X[N][nq + 2]
         if penalty:
             f += w_sens * sensitivity_frobenius(X[N][0] - phi0, n)
-        nlp = {"x": ca.vertcat(*w), "p": P, "f": f, "g": ca.vertcat(*g)}
+        nlp = {"x": ca.vertcat(*w), "p": ca.vertcat(P, Kp), "f": f, "g": ca.vertcat(*g)}
         self.nw = int(nlp["x"].shape[0])
-        self.np = int(P.shape[0])
+        self.np = int(P.shape[0]) + n - 1
         n_g = int(nlp["g"].shape[0])
         self.equality = np.array(eq)
         self.callback = DeadlineCallback(self.nw, n_g, self.np)
@@ -419,8 +428,8 @@ class MultipleShootingNLP:
         except Exception:  # noqa: BLE001 - an unloadable library: keep the virtual machine
             self.native = None
             return False
-        self._fine_end = BufferedCall(fine_end, 2)
-        self._end_jacobian = BufferedCall(end_jacobian, 2)
+        self._fine_end = BufferedCall(fine_end, 3)
+        self._end_jacobian = BufferedCall(end_jacobian, 3)
         self._factories["fatrop"] = build
         self._replace("fatrop", solver)
         self.compiled = True
@@ -455,14 +464,18 @@ class MultipleShootingNLP:
         spent.append(call)
         return call
 
-    def fine_end(self, q0: np.ndarray, rates: np.ndarray) -> np.ndarray:
-        """The end state of :attr:`fine_path` from ``q0`` under ``rates`` (N, 2)."""
-        return self._fine_end(q0, rates)[0]
+    def fine_end(self, q0: np.ndarray, rates: np.ndarray, gains: Sequence[float]
+                 ) -> np.ndarray:
+        """The end state of :attr:`fine_path` from ``q0`` under ``rates`` (N, 2), on the robot
+        of ``gains``."""
+        return self._fine_end(q0, rates, np.asarray(gains, float))[0]
 
-    def rk4_end_jacobian(self, q0: np.ndarray, rates: np.ndarray) -> np.ndarray:
-        """:attr:`end_jacobian` at ``rates`` (N, 2): ``(n+1, 2N)``, columns in the order of
-        ``rates.ravel()``."""
-        return self._end_jacobian(q0, rates)[0].reshape(2 * self.N, self.n + 1).T
+    def rk4_end_jacobian(self, q0: np.ndarray, rates: np.ndarray, gains: Sequence[float]
+                         ) -> np.ndarray:
+        """:attr:`end_jacobian` at ``rates`` (N, 2) on the robot of ``gains``: ``(n+1, 2N)``,
+        columns in the order of ``rates.ravel()``."""
+        return self._end_jacobian(q0, rates, np.asarray(gains, float))[0].reshape(
+            2 * self.N, self.n + 1).T
 
     @functools.cached_property
     def _unit_grid(self) -> np.ndarray:
@@ -580,7 +593,6 @@ def default_terminal(n: int) -> str:
     return "elastic" if n >= ELASTIC_FROM_JOINTS else "hard"
 
 
-@functools.lru_cache(maxsize=16)
 def multiple_shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
                           intervals: int, substeps: int,
                           region: str = "hard", deviation: str = "line",
@@ -589,13 +601,23 @@ def multiple_shooting_nlp(gains: tuple[float, ...], exponents: tuple[int, ...], 
                           soft_signs: bool = False,
                           fatrop_settings: tuple[tuple[str, float], ...] = ()
                           ) -> MultipleShootingNLP:
-    """The cached NLP of one robot, transcription, region, deviation and terminal mode (per
-    process; ``terminal`` None: :func:`default_terminal`; ``fatrop_settings``: see
+    """The cached NLP of one robot's shape (its exponents: the gains are parameters,
+    :func:`parameters`), transcription, region, deviation and terminal mode (per process;
+    ``terminal`` None: :func:`default_terminal`; ``fatrop_settings``: see
     :class:`MultipleShootingNLP`)."""
-    return MultipleShootingNLP(gains, exponents, fixed_phi, intervals, substeps, region,
-                               deviation, deviation_points,
-                               terminal or default_terminal(len(gains) + 1), soft_signs,
-                               fatrop_settings)
+    return _shaped_nlp(tuple(int(m) for m in exponents), fixed_phi, intervals, substeps, region,
+                       deviation, deviation_points,
+                       terminal or default_terminal(len(exponents) + 1), soft_signs,
+                       fatrop_settings)
+
+
+@functools.lru_cache(maxsize=16)
+def _shaped_nlp(exponents: tuple[int, ...], fixed_phi: bool, intervals: int, substeps: int,
+                region: str, deviation: str, deviation_points: int, terminal: str,
+                soft_signs: bool, fatrop_settings: tuple[tuple[str, float], ...]
+                ) -> MultipleShootingNLP:
+    return MultipleShootingNLP(exponents, fixed_phi, intervals, substeps, region, deviation,
+                               deviation_points, terminal, soft_signs, fatrop_settings)
 
 
 def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard",
@@ -678,7 +700,8 @@ def parameters(req: PlanRequest, w_dev: float, w_energy: float, w_da: float,
                signs: np.ndarray | None = None) -> np.ndarray:
     """The parameter vector of ``req``: start, goal, weights, fixed ``dphi``, for the
     penalty mode ``(w_sens, rho, lo, hi)`` (infinite bounds become :data:`OPEN_BOUND`) and,
-    with soft signs, the signs ``(N, 2)`` of the rates (0: either) and :data:`SIGN_PENALTY`."""
+    with soft signs, the signs ``(N, 2)`` of the rates (0: either) and :data:`SIGN_PENALTY`;
+    last, the robot's gains ``K_2..K_n``."""
     dphi = 0.0 if req.phi_change is None else float(req.phi_change)
     p = [np.array([req.phi_start]), np.array(req.start), np.array(req.goal),
          np.array([w_dev, w_energy, w_da, dphi])]
@@ -688,4 +711,5 @@ def parameters(req: PlanRequest, w_dev: float, w_energy: float, w_da: float,
               np.clip(hi, -OPEN_BOUND, OPEN_BOUND)]
     if signs is not None:
         p += [np.asarray(signs, float).ravel(), np.array([SIGN_PENALTY])]
+    p.append(np.asarray(req.robot.gains, float))
     return np.concatenate(p).astype(float)

@@ -42,7 +42,7 @@ measures it. ``plan.diagnostics["penalty"]`` says how large ``rho`` ended
 (``boundary_distance``, rad, smallest over nodes and joints), the solver's status and
 iterations, and every solve (``tried``).
 
-Caching and threads: the NLP and its solvers are built once per robot and transcription
+Caching and threads: the NLP and its solvers are built once per robot shape and transcription
 (:func:`~.nlp.multiple_shooting_nlp`); one thread per process (CasADi objects are not
 thread-safe).
 """

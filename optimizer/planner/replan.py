@@ -160,8 +160,8 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
         motion, :mod:`optimizer.identification`); default the plan's. The continuation is
         planned and verified on that model, and its answer's ``robot`` says so.
     fallback : bool
-        False: only the fast path (no full plan: on a model of new gains that would build
-        its NLP); :class:`InfeasibleError` where it fails.
+        False: only the fast path, never the full planner (a bounded answer time);
+        :class:`InfeasibleError` naming ``fallback`` where it fails.
 
     Returns
     -------

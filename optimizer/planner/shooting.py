@@ -63,8 +63,8 @@ virtual machine.
 
 Caching, threads, deadline
 --------------------------
-The NLP and its solvers are built once per robot (gains, exponents) and process and cached
-(:func:`~.nlp.multiple_shooting_nlp`); start, goal, weights and bounds are parameters. CasADi
+The NLP and its solvers are built once per robot shape (exponents) and process and cached
+(:func:`~.nlp.multiple_shooting_nlp`); start, goal, weights, bounds and gains are parameters. CasADi
 objects are not thread-safe: one thread per process (the service runs each solve in a worker
 process). No attempt starts after the deadline; IPOPT is stopped by the NLP layer's deadline
 callback, fatrop by its iteration cap (:data:`~.solvers.FATROP_MAX_ITER`, tens of milliseconds).
@@ -87,8 +87,8 @@ from .correction import CORRECTION_TARGET, correct_rates, finish_solution
 from .nlp import (D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, LADDER_3_JOINTS, MARGIN,
                   SIGN_SLACK_TOL, MultipleShootingNLP, Transcription, ladder,
                   multiple_shooting_nlp, nlp_for, node_bounds, objective_weights)
-from .rungs import LIGHT_SHARE, ipopt_first, solve_rungs
-from .attempts import Attempt, first_converged
+from .rungs import LIGHT_SHARE, ipopt_first, resample_nodes, solve_rungs
+from .attempts import Attempt, MissedGoal, first_converged
 from .base import Capabilities, Method
 from .context import PlanContext
 from .rules import joint_limits
@@ -200,8 +200,12 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
                 yield Attempt(name, f"phi travel {travel:+.3g} rad",
                               nlp.guess(a, b, req.phi_start, travel))
 
-    out = first_converged(nlp, tries(), p, lbw, ubw, deadline, "the shooting NLP",
-                          "shooting NLP")
+    try:
+        out = first_converged(nlp, tries(), p, lbw, ubw, deadline, "the shooting NLP",
+                              "shooting NLP")
+    except MissedGoal as exc:  # its nodes: a start for the next rung (rungs.solve_rungs)
+        raise MissedGoal(exc.message, x=exc.x, nodes=nlp.unpack(exc.x)[0],
+                         diagnostics=exc.diagnostics) from None
     slack = nlp.sign_slack(out.x)
     if slack > SIGN_SLACK_TOL:  # converged, but only by leaving the signs: out of reach
         tried = [*out.tried[:-1], {**out.tried[-1], "status": f"{out.status} (the rates "
@@ -263,14 +267,6 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     return finish_solution(req, "shooting", nlp_for(req, finer), again, finer, signs,
                            tried + list(getattr(sol, "tried", ())), timing,
                            {"refined_from_intervals": tr.intervals})
-
-
-def resample_nodes(nodes: np.ndarray, intervals: int) -> np.ndarray:
-    """Node states ``(N+1, n+1)`` on equal intervals, linearly interpolated onto
-    ``intervals`` equal intervals (``(intervals+1, n+1)``)."""
-    s = np.linspace(0.0, 1.0, nodes.shape[0])
-    t = np.linspace(0.0, 1.0, int(intervals) + 1)
-    return np.stack([np.interp(t, s, nodes[:, j]) for j in range(nodes.shape[1])], axis=1)
 
 
 def resample_signs(signs: Any, intervals: int) -> Any:

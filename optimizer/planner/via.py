@@ -140,20 +140,21 @@ def correct_rates_through_vias(req: PlanRequest, nlp: Any, rates: np.ndarray, ph
     q0 = req.q_start()
     target = np.concatenate([[phi_end], req.goal])
     if exact_end is not None:
-        target = target - (np.asarray(exact_end, float) - nlp.fine_end(q0, rates))
+        target = target - (np.asarray(exact_end, float)
+                           - nlp.fine_end(q0, rates, req.robot.gains))
     rows = [(_node_of(req, N, vp), 1 + vp.index, vp.angle) for vp in req.via_points]
     U = np.array(rates, float)
     errors: list[float] = []
     best: tuple[float, np.ndarray] | None = None
     for step in range(MAX_STEPS + 1):
-        r_end = nlp.fine_end(q0, U) - target
-        J_end = nlp.rk4_end_jacobian(q0, U)
+        r_end = nlp.fine_end(q0, U, req.robot.gains) - target
+        J_end = nlp.rk4_end_jacobian(q0, U, req.robot.gains)
         r_via, J_via = [], []
         for k, col, angle in rows:
             Uk = U.copy()
             Uk[k:] = 0.0
-            r_via.append(float(nlp.fine_end(q0, Uk)[col]) - angle)
-            Jk = nlp.rk4_end_jacobian(q0, Uk)[col].copy()
+            r_via.append(float(nlp.fine_end(q0, Uk, req.robot.gains)[col]) - angle)
+            Jk = nlp.rk4_end_jacobian(q0, Uk, req.robot.gains)[col].copy()
             Jk[2 * k:] = 0.0
             J_via.append(Jk)
         r = np.concatenate([r_end, r_via])
