@@ -41,6 +41,9 @@ ROUNDS = 3
 RTOL = 1e-11
 #: A period whose ``|I_i|`` is below this (rad) tells nothing of ``K_i``.
 MIN_MOTION = 1e-9
+#: A period whose own gains lie further than this (relative) from the model's is not taken:
+#: a friction disk is not off by half, an encoder glitch is.
+MAX_RELATIVE_ERROR = 0.5
 
 
 def period_integrals(exponents: Sequence[int], gains: np.ndarray, q_a: np.ndarray,
@@ -108,15 +111,22 @@ class GainEstimator:
                t_a: float, t_b: float, breaks: Sequence[float] | np.ndarray = ()) -> np.ndarray:
         """Take the period from the measured ``q_a`` at ``t_a`` to the measured ``q_b`` at
         ``t_b`` under the commanded ``rates(t)`` (``breaks``: see :func:`period_integrals`);
-        returns the new estimate."""
+        returns the new estimate. A joint whose period gives gains more than
+        :data:`MAX_RELATIVE_ERROR` off the model's keeps its estimate (the period is not
+        taken for it)."""
         delta = np.asarray(q_b, float)[2:] - np.asarray(q_a, float)[2:]
+        nominal = np.asarray(self.robot.gains, float)
         K = self.gains.copy()
         I = np.zeros_like(K)
+        taken = np.zeros(K.shape, bool)
         for _ in range(ROUNDS):
             _, I = period_integrals(self.robot.exponents, K, q_a, rates, t_a, t_b, breaks)
             moved = np.abs(I) > MIN_MOTION
-            K = np.where(moved, delta / np.where(moved, I, 1.0), K)
-        moved = np.abs(I) > MIN_MOTION
+            own = delta / np.where(moved, I, 1.0)
+            # (an implausible joint keeps its estimate, so that the next joint's path is right)
+            taken = moved & (np.abs(own / nominal - 1.0) <= MAX_RELATIVE_ERROR)
+            K = np.where(taken, own, self.gains)
+        moved = taken
         self._s_id += np.where(moved, I * delta, 0.0)
         self._s_ii += np.where(moved, I * I, 0.0)
         known = self._s_ii > 0.0
@@ -127,4 +137,5 @@ class GainEstimator:
         return self.gains.copy()
 
 
-__all__ = ["GainEstimator", "MIN_MOTION", "ROUNDS", "RTOL", "period_integrals"]
+__all__ = ["GainEstimator", "MAX_RELATIVE_ERROR", "MIN_MOTION", "ROUNDS", "RTOL",
+           "period_integrals"]
