@@ -21,11 +21,12 @@ import pytest
 
 from svc_support import DEG, ROOT, WORKED, free_port
 
-#: Work for the only worker, long enough to be caught in flight: a plan, then 160 open-loop
-#: replays (with 40, and the proofs' compiled quadrature, the job once ended between two
-#: polls of /readyz on a loaded machine).
-SLOWISH = {"plan": {**WORKED, "phi_change": 34 * DEG, "samples": 51},
-           "random": {"count": 160, "spread": 0.01, "seed": 5}, "time_limit": 30}
+#: Work for the only worker, long enough to be caught in flight: a plan, then 3 closed-loop
+#: runs of 10 replans each (1.8 s on an idle machine). Open-loop replays were too short to
+#: rely on: 160 of them once answered in 0.37 s, between two polls of /readyz under load.
+SLOWISH = {"plan": {"start": [10 * DEG] * 3, "goal": [30 * DEG] * 3},
+           "random": {"count": 3, "spread": 0.01, "seed": 5},
+           "closed_loop": {"gain_error": 0.05, "period": 0.1, "seed": 1}, "time_limit": 30}
 
 
 def _start(port: int, log: Any) -> subprocess.Popen[bytes]:
@@ -94,7 +95,9 @@ def test_sigterm_lets_the_request_in_flight_finish_and_exits_0(tmp_path, target)
     log_text = log_path.read_text(errors="replace")
     assert answer.get("status") == 200, (answer, log_text[-2000:])
     body = json.loads(answer["text"])  # complete JSON
-    assert body["summary"]["runs"] == 160 and len(body["runs"]) == 160
+    runs = SLOWISH["random"]["count"]
+    assert body["summary"]["runs"] == runs and len(body["runs"]) == runs
+    assert body["closed_loop"]["summary"]["runs"] == runs   # the whole job, closed loop too
     assert answer["at"] > sent_at  # it was in flight when SIGTERM came
     assert code == 0, log_text[-2000:]
     # the workers were stopped by the server; the forkserver follows its parent out

@@ -82,11 +82,24 @@ def test_a_slow_job_is_answered_timeout_within_limit_plus_grace(one_worker, time
     assert one_worker.get("/readyz").json()["restarts"] in (before, before + 1)
 
 
+def _timeout_restarts(client: Any) -> float:
+    """The server's count of workers restarted because a job overran (reason ``timeout``) or,
+    stopped, stopped answering pings first (``unresponsive``: on a loaded machine the ping
+    can see it before the job's deadline does); 0 before the first."""
+    total = 0.0
+    for line in client.get("/metrics").text.splitlines():
+        if line.startswith(('planner_worker_restarts_total{reason="timeout"}',
+                            'planner_worker_restarts_total{reason="unresponsive"}')):
+            total += float(line.split()[-1])
+    return total
+
+
 def test_a_hung_worker_is_killed_replaced_and_the_next_request_succeeds(one_worker):
     _idle(one_worker)
     pool = one_worker.app.state.pool
     (old,) = pool.pids()
     before = one_worker.get("/readyz").json()["restarts"]
+    timeouts = _timeout_restarts(one_worker)   # (a loaded machine may restart for other reasons)
     # a solve stuck where no deadline check can run: the worker is stopped once it has the
     # job (a worker stopped while idle is replaced before it takes one: test_faults.py)
     answers: list[Any] = []
@@ -113,7 +126,7 @@ def test_a_hung_worker_is_killed_replaced_and_the_next_request_succeeds(one_work
     (new,) = pool.pids()
     assert new != old
     metrics = one_worker.get("/metrics").text
-    assert f'planner_worker_restarts_total{{reason="timeout"}} {before + 1:.1f}' in metrics
+    assert _timeout_restarts(one_worker) == timeouts + 1
     assert 'planner_solve_duration_seconds_count{job="robustness",method="polynomial",' \
            'outcome="timeout"}' in metrics
 
