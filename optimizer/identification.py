@@ -126,9 +126,8 @@ class GainEstimator:
             # (an implausible joint keeps its estimate, so that the next joint's path is right)
             taken = moved & (np.abs(own / nominal - 1.0) <= MAX_RELATIVE_ERROR)
             K = np.where(taken, own, self.gains)
-        moved = taken
-        self._s_id += np.where(moved, I * delta, 0.0)
-        self._s_ii += np.where(moved, I * I, 0.0)
+        self._s_id += np.where(taken, I * delta, 0.0)
+        self._s_ii += np.where(taken, I * I, 0.0)
         known = self._s_ii > 0.0
         estimate = np.where(known, self._s_id / np.where(known, self._s_ii, 1.0), self.gains)
         if np.all(np.isfinite(estimate)) and np.all(estimate > 0.0):

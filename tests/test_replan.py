@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from optimizer.errors import InvalidRequestError, PlannerError
+from optimizer.errors import InfeasibleError, InvalidRequestError, PlannerError
 from optimizer.planner.plan import plan
 from optimizer.planner.replan import replan
 from optimizer.problem import PlanRequest
@@ -159,6 +159,10 @@ def test_a_chained_plan_is_braked_then_replanned() -> None:
     assert out["diagnostics"]["replan"]["route"] == "full_planner"
     assert np.allclose(out["path"]["u"][0], ans["path"]["u"][i], atol=1e-12)
     assert out["validation"]["terminal_error"] < 1e-6
+    # a chained plan has no fast path: without the full planner the request is refused
+    with pytest.raises(InfeasibleError) as err:
+        replan(ans, ans["path"]["t"][i], q, fallback=False)
+    assert err.value.field == "fallback"
 
 
 @pytest.mark.parametrize("kwargs, field", [

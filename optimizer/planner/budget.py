@@ -40,8 +40,9 @@ naming ``max_reversals`` and the fewest reversals found.
 
 Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-200 iterations; the second
 fatrop below 5 joints), then one sign-held NLP (30-90 iterations) and one finishing per other
-candidate, and one NLP per failed merge. The NLP and its solvers are built once per robot shape
-(exponents; the gains are parameters) and transcription per process (:func:`prepare`, :func:`~.nlp.multiple_shooting_nlp`): start, goal,
+candidate, and one NLP per failed merge. The NLP and its solvers are built once per robot
+shape (exponents; the gains are parameters) and transcription per process (:func:`prepare`,
+:func:`~.nlp.multiple_shooting_nlp`): start, goal,
 weights, bounds and signs are parameters and bounds, and every solve takes a fresh solver
 memory, so nothing of one request reaches the next (tests/test_budget_purity.py). Measured
 (``diagnostics.budget.tried`` records each NLP's and each finishing's CPU seconds;

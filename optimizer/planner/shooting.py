@@ -64,9 +64,9 @@ virtual machine.
 Caching, threads, deadline
 --------------------------
 The NLP and its solvers are built once per robot shape (exponents) and process and cached
-(:func:`~.nlp.multiple_shooting_nlp`); start, goal, weights, bounds and gains are parameters. CasADi
-objects are not thread-safe: one thread per process (the service runs each solve in a worker
-process). No attempt starts after the deadline; IPOPT is stopped by the NLP layer's deadline
+(:func:`~.nlp.multiple_shooting_nlp`); start, goal, weights, bounds and gains are parameters.
+CasADi objects are not thread-safe: one thread per process (the service runs each solve in a
+worker process). No attempt starts after the deadline; IPOPT is stopped by the NLP layer's deadline
 callback, fatrop by its iteration cap (:data:`~.solvers.FATROP_MAX_ITER`, tens of milliseconds).
 """
 
