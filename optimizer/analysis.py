@@ -6,7 +6,6 @@ the paper's Figs 11-14 and b0 map.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -24,7 +23,8 @@ from .planner.family import PolynomialFamily
 from .planner.intervals import feasible_intervals
 from .planner.context import Deadline
 from .planner.replan import PlanState, read_plan, replan
-from .planner.rules import check_endpoints, make_region
+from .planner.rules import check_endpoints, kept_limits, make_region
+from .region import Region
 from .problem import PlanRequest
 from .results import Plan
 from .verify import PlannedInputs, replay
@@ -293,7 +293,9 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
     seed : int
         Seed of the noise.
     joint_limits : (lo, hi), optional
-        For the margin (default (0, pi/2) for every joint).
+        For the margin (default: the limits the planner keeps, :func:`~.planner.rules.kept_limits`:
+        ``(0, pi/2)`` narrowed by the plan's ``joint_bounds``; the last joint free where its
+        start or goal lies outside).
     keep_reversals : bool
         Passed to the replanner: a continuation that adds a reversal is refused, and the run
         goes on with the current plan.
@@ -356,8 +358,10 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
         out_q.extend(states.tolist())
         t = t_next
     path_q = np.asarray(out_q)
-    lo, hi = joint_limits if joint_limits is not None else (
-        np.zeros(robot.n), np.full(robot.n, math.pi / 2))
+    if joint_limits is None:
+        joint_limits = kept_limits(Region(robot, joint_bounds=ps.joint_bounds), ps.joint_bounds,
+                                   np.asarray(start, float), ps.goal)
+    lo, hi = joint_limits
     th = path_q[:, 1:]
     return {
         "final": q[1:].tolist(),

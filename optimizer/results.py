@@ -100,6 +100,9 @@ class Plan:
     plan_indicators : Indicators or None
         The exact plan's indicators on its own schedule (the input segments on ``sigma``): the
         values the methods optimise and the paper reports (its ``d_a`` is of that timing).
+    joint_bounds : tuple or None
+        The request's joint bounds (rad, ``None`` entries: the default), handed out so that a
+        replan of the answer keeps them.
     """
 
     robot: Robot
@@ -119,6 +122,7 @@ class Plan:
     time_law: TimeLaw | None = None
     pareto: tuple[ParetoMember, ...] | None = None
     plan_indicators: Indicators | None = None
+    joint_bounds: tuple[tuple[float, float] | None, ...] | None = None
 
     @property
     def b0(self) -> float | None:
@@ -195,6 +199,9 @@ class Plan:
             out["pareto"] = [m.to_dict() for m in self.pareto]
         if self.plan_indicators is not None:
             out["plan_indicators"] = indicators_dict(self.plan_indicators, self.margin)
+        if self.joint_bounds is not None:
+            out["joint_bounds"] = [None if b is None else [float(b[0]), float(b[1])]
+                                   for b in self.joint_bounds]
         return json_safe(out) if plain else out
 
 

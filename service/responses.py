@@ -272,6 +272,9 @@ class PlanResponse(BaseModel):
         None, description="With pareto: true in the request: the non-dominated plans over "
                           "(reversals, deviation), fewest reversals first, each straighter "
                           "than every one before it.")
+    joint_bounds: Optional[list[Optional[list[float]]]] = Field(
+        None, description="The request's joint_bounds (rad; null entries: the default), when "
+                          "it had them: a replan of this answer keeps them.")
     timing: dict[str, Optional[float]] = Field(..., description="Seconds per stage.")
     diagnostics: dict[str, Any] = Field(..., description="Extra facts about the solve.")
 

@@ -112,3 +112,24 @@ def test_the_closed_loop_with_identification_ends_on_the_goal(four_joint_plan) -
     K = np.asarray(four_joint_plan.robot.gains) * (1.0 + ERRORS)
     assert np.max(np.abs(np.asarray(identified["gains_estimated"]) / K - 1.0)) < 1e-6
     assert math.isfinite(identified["deviation"])
+
+
+@pytest.mark.parametrize("last_goal", [2.2, 1.2])
+def test_the_closed_loop_margin_is_measured_to_the_limits_the_planner_keeps(last_goal) -> None:
+    """The last joint has no singularity: a plan whose goal has th3 past pi/2 may move it
+    there, one whose start and goal lie inside keeps it in (0, pi/2). The run's margin is
+    measured from th1 to the plan's bound (0.1, 1.2), th2 to (0, pi/2) and th3 to (0, pi/2)
+    only in the second case (computed here from the executed path)."""
+    req = PlanRequest(start=(0.3, 0.4, 0.5), goal=(0.5, 0.6, last_goal), robot=Robot.default(3),
+                      joint_bounds=[(0.1, 1.2), None, None])
+    answer = plan(req).to_dict()
+    run = closed_loop_run(answer, (0.3, 0.4, 0.5), np.zeros(2), None)
+    th = np.asarray(run["path_q"])[:, 1:]
+    expected = min(np.min(th[:, 0] - 0.1), np.min(1.2 - th[:, 0]),
+                   np.min(th[:, 1]), np.min(math.pi / 2 - th[:, 1]))
+    if last_goal < math.pi / 2:
+        expected = min(expected, np.min(th[:, 2]), np.min(math.pi / 2 - th[:, 2]))
+    else:
+        assert np.max(th[:, 2]) > math.pi / 2 + 0.3       # the last joint leaves (0, pi/2)
+    assert run["margin"] == pytest.approx(expected, abs=1e-12)
+    assert run["margin"] > 0.0

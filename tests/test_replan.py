@@ -281,3 +281,23 @@ def test_a_replan_a_hair_before_a_stop(answer: dict) -> None:
         assert np.array_equal(out["path"]["u"][0], rates_of(answer, t))
         end = run_plant(out, q, t, out["duration"], PROTOTYPE_K)
         assert np.max(np.abs(end[1:] - GOAL)) < 1e-8
+
+
+def test_a_bounded_plans_answer_replans_within_its_bounds() -> None:
+    """The answer of a plan with joint bounds hands them out, and a replan of that answer, as
+    returned, keeps them: a measured state outside them (inside (0, pi/2)) is refused naming
+    the joint, and a continuation's path stays inside them (checked on its samples here)."""
+    bounds = ((0.25, 0.95), None, None)
+    ans = plan(PlanRequest(start=START, goal=GOAL, joint_bounds=bounds)).to_dict()
+    assert ans["joint_bounds"] == [[0.25, 0.95], None, None]
+    with pytest.raises(InvalidRequestError) as err:
+        replan(ans, 0.5, [0.0, 0.2, 0.5, 0.5])
+    assert err.value.field == "state[1]"
+    t = 0.5
+    q_mid = run_plant(ans, np.array([0.0, *START]), 0.0, t, PROTOTYPE_K)
+    cont = replan(ans, t, q_mid + np.radians([0.0, 0.3, -0.3, 0.3]))
+    assert cont["joint_bounds"] == [[0.25, 0.95], None, None]
+    th1 = np.asarray(cont["path"]["q"])[:, 1]
+    assert np.all((th1 > 0.25) & (th1 < 0.95))
+    assert np.max(np.abs(run_plant(cont, q_mid + np.radians([0.0, 0.3, -0.3, 0.3]), t,
+                                   cont["duration"], PROTOTYPE_K)[1:] - GOAL)) < 1e-6

@@ -10,6 +10,7 @@ returned.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 from ..errors import InfeasibleError, NumericalError
 from ..problem import PlanRequest
@@ -56,6 +57,9 @@ def plan(req: PlanRequest) -> Plan:
     else:
         if budget:
             result = plan_with_budget(req, ctx, result, None)
+    # the answer carries the request's bounds: a replan of it (handed back as it is) keeps them
+    if req.joint_bounds is not None:
+        result = replace(result, joint_bounds=req.joint_bounds)
     result.timing["total"] = time.perf_counter() - t0
     return result
 

@@ -71,6 +71,7 @@ from ..forms import EXECUTION_TOLERANCE, REPLAY_NODES, correct, linear_form
 from ..indicators import compute_indicators
 from ..model import Robot
 from ..problem import PlanRequest
+from ..region import Region
 from ..results import Plan, json_safe
 from ..verify import integrate_cascade
 from .plan import plan as full_plan
@@ -81,7 +82,7 @@ from .continuation_map import (HALVING_STEPS, KERNEL_STEPS, WEIGHT_FLOOR, PieceM
                                correct_pieces, correct_signed, halving_correct,
                                kernel_correct, piece_end, piece_weights, weighted_step)
 from .piece_proof import integrate_pieces
-from .rules import TERMINAL_TOLERANCE, joint_limits, limits_region
+from .rules import TERMINAL_TOLERANCE, joint_limits, kept_limits, limits_region
 
 #: The continuation's last piece is split into this many parts and one more...
 TAIL_PIECES = 4
@@ -195,23 +196,18 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
     T_end = ps.end_time if duration is None else float(duration)
     if not math.isfinite(T_end) or T_end <= t:
         raise invalid(f"duration = {duration!r} s must end after time = {t:.6g} s", "duration")
-    try:
-        req = PlanRequest(start=tuple(q_m[1:]), goal=tuple(ps.goal), robot=ps.robot,
-                          phi_start=float(q_m[0]), duration=T_end - t, samples=ps.samples,
-                          joint_bounds=ps.joint_bounds, time_limit=float(time_limit))
-    except InvalidRequestError as exc:
-        # the request's start is the measured state without phi: name the state's element
-        field = exc.field or ""
-        if field.startswith("start["):
-            i = int(field[len("start["):-1])
-            raise invalid(str(exc).replace(field, f"state[{i + 1}]"), f"state[{i + 1}]") from exc
-        raise
-    lo, hi = joint_limits(req)
+    # the measured state is checked before the request is built: a state outside the plan's
+    # limits is named as the state's element, not as the request's start or bounds
+    lo, hi = kept_limits(Region(ps.robot, joint_bounds=ps.joint_bounds), ps.joint_bounds,
+                         q_m[1:], ps.goal)
     for i, (x, a, b) in enumerate(zip(q_m[1:], lo, hi)):
         if not a < x < b:
             raise invalid(f"state[{i + 1}] = th{i + 1} = {x:.6g} rad is outside ({a:.6g}, "
                        f"{b:.6g}) rad, the singularity-free region within the joint bounds: "
                        "no continuation starts there", f"state[{i + 1}]")
+    req = PlanRequest(start=tuple(q_m[1:]), goal=tuple(ps.goal), robot=ps.robot,
+                      phi_start=float(q_m[0]), duration=T_end - t, samples=ps.samples,
+                      joint_bounds=ps.joint_bounds, time_limit=float(time_limit))
     u_c = _commanded(ps, t) if rates is None else finite_array(rates, "rates", (2,))
     timing: dict[str, float] = {}
     errors: list[str] = []
@@ -650,6 +646,8 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
             "commanded_rates": [float(x) for x in u_c],
             "start_state": q_m.tolist()}},
     }
+    if ps.joint_bounds is not None:
+        out["joint_bounds"] = [None if b is None else list(b) for b in ps.joint_bounds]
     return out
 
 

@@ -58,22 +58,29 @@ def full_region(req: PlanRequest) -> Region:
 
 @_per_request
 def joint_limits(req: PlanRequest) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds (rad) every joint ``th_1..th_n`` keeps on the whole path (read-only arrays).
+    """Bounds (rad) every joint ``th_1..th_n`` keeps on the whole path (read-only arrays):
+    :func:`kept_limits` of the request's full region."""
+    lo, hi = kept_limits(full_region(req), req.joint_bounds, req.start, req.goal)
+    lo.setflags(write=False)
+    hi.setflags(write=False)
+    return lo, hi
+
+
+def kept_limits(region: Region, joint_bounds: Any, start: Any, goal: Any
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds (rad) of ``th_1..th_n`` on a path from ``start`` to ``goal`` in ``region``.
 
     ``th_1..th_{n-1}`` lie in the region where the chained form is invertible, (0, pi/2),
     narrowed by ``joint_bounds``. ``th_n`` takes no part in that region, but a joint that
     leaves (0, pi/2) is of no use to the arm either: it keeps (0, pi/2) too unless
     ``joint_bounds`` says otherwise (narrower or wider), or its start or goal lies outside.
     """
-    region = full_region(req)
     lo = np.array(region.lower, float)
     hi = np.array(region.upper, float)
-    n = req.n
-    last = None if req.joint_bounds is None else req.joint_bounds[n - 1]
-    if last is None and all(0.0 < x[n - 1] < HALF_PI for x in (req.start, req.goal)):
+    n = lo.size
+    last = None if joint_bounds is None else joint_bounds[n - 1]
+    if last is None and all(0.0 < float(x[n - 1]) < HALF_PI for x in (start, goal)):
         lo[n - 1], hi[n - 1] = 0.0, HALF_PI
-    lo.setflags(write=False)
-    hi.setflags(write=False)
     return lo, hi
 
 
