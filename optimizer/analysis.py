@@ -6,6 +6,7 @@ the paper's Figs 11-14 and b0 map.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -273,7 +274,8 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
                     gain_errors: Sequence[float] | np.ndarray, period: float | None,
                     noise: float = 0.0, seed: int = 0,
                     joint_limits: tuple[np.ndarray, np.ndarray] | None = None,
-                    keep_reversals: bool = False, identify: bool = False) -> dict[str, Any]:
+                    keep_reversals: bool = False, identify: bool = False,
+                    timings: list[float] | None = None) -> dict[str, Any]:
     """Run a plan on a plant whose gains are off, from ``start``; with ``period``, replan from
     the measured state every ``period`` s (:func:`~optimizer.planner.replan.replan`), else
     open loop.
@@ -302,6 +304,10 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
     identify : bool
         Estimate the plant's gains from the measured motion
         (:class:`~optimizer.identification.GainEstimator`, every period) and replan on them.
+    timings : list, optional
+        Each replan's CPU seconds (``time.process_time``, refused ones too) are appended here
+        (a benchmark's latency of the replans a loop makes; not part of the result, which is
+        a function of the arguments alone).
 
     Returns
     -------
@@ -343,14 +349,17 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
                         return _commanded_rates(ps_, np.array([s]))[0]
                     estimator.update(q_a, measured, commanded, t_a, t, driven.law.phases[:, 0])
                 gains = estimator.gains
+            rates_now = _commanded_rates(current, np.array([t]))[0]
+            cpu0 = time.process_time()
             try:
-                cont = replan(current, t, measured,
-                              rates=_commanded_rates(current, np.array([t]))[0], plain=False,
+                cont = replan(current, t, measured, rates=rates_now, plain=False,
                               keep_reversals=keep_reversals, gains=gains)
                 current = read_plan(cont)
                 replans += 1
             except PlannerError:
                 failures += 1
+            if timings is not None:
+                timings.append(time.process_time() - cpu0)
             last = (t, measured, current)
         grid = np.linspace(t, t_next, PATH_POINTS_PER_PERIOD + 1)[1:]
         q, states = _drive(plant, current, q, t, t_next, grid)
