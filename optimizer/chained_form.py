@@ -21,7 +21,7 @@ Going down from ``th_n = z_{n+1}``, each ``th_{k-1} = arccos(w_k^(1/m_k))`` with
 in (0, 1), i.e. ``th_1, ..., th_{n-1}`` in (0, pi/2) (``th_n`` is free): see :mod:`.region`.
 
 Two implementations: a closed form for ``n = 3`` (numpy) and, for any ``n``, expressions derived
-symbolically with CasADi (Lie derivatives along g1) and compiled once per robot.
+symbolically with CasADi (Lie derivatives along g1) once per exponents, the gains an input.
 
 Conditioning: near ``th_i = 0`` the map flattens (``cos(th)^m ~ 1 - m th^2 / 2``), so z holds
 ``th_i`` only to about ``eps / th_i`` and the inverse amplifies the rounding of z by the map's
@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -104,7 +105,10 @@ class ChainedForm:
         self.n = robot.n
         self.backend = "closed" if (backend == "closed" or (backend == "auto" and robot.n == 3)) \
             else "casadi"
-        self._sym = _symbolic(robot.gains, robot.exponents)
+        self._sym = _symbolic(tuple(robot.exponents))
+        # the gains, the last input of every symbolic function (a contiguous column)
+        self._K = np.ascontiguousarray(robot.gains, dtype=float)
+        self._K.setflags(write=False)
 
     # ------------------------------------------------------------------ forward
     def to_chained(self, q: np.ndarray) -> np.ndarray:
@@ -124,7 +128,7 @@ class ChainedForm:
         if self.backend == "closed":
             z = _closed_forward(self.robot, qq)
         else:
-            z = _eval_columns(self._sym.forward, self._sym.maps["forward"], qq)
+            z = _eval_columns(self._sym.forward, self._sym.maps["forward"], self._K, qq)
         return z.reshape(q.shape)
 
     def input_coefficients(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +138,7 @@ class ChainedForm:
         if self.backend == "closed":
             al, be = _closed_input(self.robot, qq)
         else:
-            ab = _eval_columns(self._sym.alpha_beta, self._sym.maps["alpha_beta"], qq)
+            ab = _eval_columns(self._sym.alpha_beta, self._sym.maps["alpha_beta"], self._K, qq)
             al, be = ab[:, 0], ab[:, 1]
         if q.ndim == 1:
             return al[:1].copy()[0], be[:1].copy()[0]
@@ -182,7 +186,8 @@ class ChainedForm:
         if self.backend == "closed":
             u, w = _closed_u_from_zv(self.robot, zz, vv)
         else:
-            uw = _eval_columns(self._sym.u_w_from_zv, self._sym.maps["u_w_from_zv"], zz, vv)
+            uw = _eval_columns(self._sym.u_w_from_zv, self._sym.maps["u_w_from_zv"], self._K,
+                              zz, vv)
             u, w = uw[:, :2], uw[:, 2:]
         if zz.shape[0] and not (W_TOL < w.min() and w.max() < 1.0 - W_TOL   # NaN fails too
                                 and np.isfinite(zz).all()):
@@ -228,7 +233,7 @@ class ChainedForm:
             if self.backend == "closed":
                 a, b = _closed_ab(self.robot, k, q[idx])
             else:
-                ab = _eval_columns(self._sym.ab[k], self._sym.maps[f"ab{k}"], q[idx])
+                ab = _eval_columns(self._sym.ab[k], self._sym.maps[f"ab{k}"], self._K, q[idx])
                 a, b = ab[:, 0], ab[:, 1]
             with np.errstate(divide="ignore", invalid="ignore"):
                 wk = (zz[idx, k - 1] - b) / a
@@ -304,19 +309,28 @@ class ChainedForm:
     # ------------------------------------------------------------------ symbolic
     @property
     def symbolic(self) -> "SymbolicChainedForm":
-        """The CasADi expressions and Functions (for NLPs built on top of the transform)."""
+        """The CasADi expressions and Functions (for NLPs built on top of the transform); each
+        takes the gains as its last input (:attr:`gains`)."""
         return self._sym
 
+    @property
+    def gains(self) -> np.ndarray:
+        """``K_2..K_n`` as the symbolic functions take them (read only)."""
+        return self._K
 
-def _eval_columns(f: ca.Function, maps: dict[int, ca.Function], *args: np.ndarray) -> np.ndarray:
-    """Evaluate ``f`` (column-vector inputs, one column-vector output) at many points at once.
 
-    ``args[i]`` has one row per point, shape (N, size of input i); the result has one row per
-    point. ``f.map(N)`` (kept in ``maps``: building it costs more than evaluating it) is called
-    through CasADi's copy-free buffer interface: a numpy array with one row per point is, byte
-    for byte, the column-major matrix of N columns that the mapped function expects. That
-    avoids the numpy <-> DM conversions, which cost as much as the evaluation for a few hundred
-    points (CasADi versions without ``Function.buffer`` get the ordinary call).
+def _eval_columns(f: ca.Function, maps: dict[int, ca.Function], gains: np.ndarray,
+                  *args: np.ndarray) -> np.ndarray:
+    """Evaluate ``f`` (column-vector inputs, the gains last, one column-vector output) at many
+    points at once.
+
+    ``args[i]`` has one row per point, shape (N, size of input i); ``gains`` is one column
+    for all points; the result has one row per point. ``f.map(N)`` with the gains not mapped
+    (kept in ``maps``: building it costs more than evaluating it) is called through CasADi's
+    copy-free buffer interface: a numpy array with one row per point is, byte for byte, the
+    column-major matrix of N columns that the mapped function expects. That avoids the numpy
+    <-> DM conversions, which cost as much as the evaluation for a few hundred points (CasADi
+    versions without ``Function.buffer`` get the ordinary call).
     """
     N = args[0].shape[0]
     if N == 0:
@@ -325,9 +339,9 @@ def _eval_columns(f: ca.Function, maps: dict[int, ca.Function], *args: np.ndarra
     if mapped is None:
         if len(maps) >= 64:  # the node counts repeat (multiples of the panel size): few sizes
             maps.clear()
-        mapped = maps[N] = f.map(N)
+        mapped = maps[N] = f.map(N, [False] * len(args) + [True], [False])
     if not hasattr(mapped, "buffer"):
-        out = mapped(*[a.T for a in args])
+        out = mapped(*[a.T for a in args], gains)
         return np.asarray(out, dtype=float).reshape(-1, N).T.copy()
     cols = [np.ascontiguousarray(a, dtype=float) for a in args]
     res = np.empty((N, f.size1_out(0)))
@@ -335,6 +349,7 @@ def _eval_columns(f: ca.Function, maps: dict[int, ca.Function], *args: np.ndarra
     # (CasADi's stubs list a byte size as well; the Python binding takes it from the buffer)
     for i, c in enumerate(cols):
         buf.set_arg(i, c.data)  # type: ignore[call-arg]
+    buf.set_arg(len(cols), gains.data)  # type: ignore[call-arg]
     buf.set_res(0, res.data)  # type: ignore[call-arg]
     run()
     return res
@@ -404,27 +419,35 @@ def _closed_ab(robot: Robot, k: int, q: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 # ---------------------------------------------------------------------- symbolic, any n
 class SymbolicChainedForm:
-    """CasADi derivation of the chained form by Lie derivatives along g1 (NOTES §3).
+    """CasADi derivation of the chained form by Lie derivatives along g1 (NOTES §3), once per
+    exponents: the gains ``K_2..K_n`` are an input of every function (the last), so that a
+    robot of new gains (a design in a study, a plant's estimated gains in closed loop) costs
+    no new derivation (6 ms at n = 3, 150 ms at n = 8).
 
     Attributes
     ----------
     q : casadi.SX, (n+1,)
         The symbolic state.
+    K : casadi.SX, (n-1,)
+        The symbolic gains.
     z : casadi.SX, (n+1,)
-        The chained coordinates as expressions of ``q``.
+        The chained coordinates as expressions of ``q`` and ``K``.
     forward, alpha_beta : casadi.Function
-        ``q -> z``, ``q -> (L_g1 z2, L_g2 z2)``.
-    a, b : dict of casadi.Function
-        ``a[k](q)``, ``b[k](q)`` for k = 2..n (see the module docstring).
+        ``(q, K) -> z``, ``(q, K) -> (L_g1 z2, L_g2 z2)``.
+    a, b, ab : dict of casadi.Function
+        ``a[k](q, K)``, ``b[k](q, K)`` for k = 2..n (see the module docstring); ``ab[k]``
+        both stacked.
     u_from_zv, u_w_from_zv : casadi.Function
-        ``(z, v) -> u`` at ``q = Phi^-1(z)`` (eq 5 inverted); the second also returns the
+        ``(z, v, K) -> u`` at ``q = Phi^-1(z)`` (eq 5 inverted); the second also returns the
         ``w_k`` of the inverse (validity) and is meant for many points at once (stacked
         columns).
     """
 
-    def __init__(self, gains: tuple[float, ...], exponents: tuple[int, ...]) -> None:
-        n = len(gains) + 1
+    def __init__(self, exponents: tuple[int, ...]) -> None:
+        n = len(exponents) + 1
         q = ca.SX.sym("q", n + 1)
+        K = ca.SX.sym("K", n - 1)
+        gains = [K[i] for i in range(n - 1)]
         th: list[ca.SX] = [q[0]] + [q[i] for i in range(1, n + 1)]  # th[i] = theta_i, i >= 1
 
         # the input vector fields of the model, from its one definition (optimizer.dynamics)
@@ -444,45 +467,46 @@ class SymbolicChainedForm:
         z = ca.vertcat(q[0], *[zs[k] for k in range(2, n + 2)])
         self.n = n
         self.q = q
+        self.K = K
         self.z = z
-        self.forward = ca.Function("chained_forward", [q], [z])
+        self.forward = ca.Function("chained_forward", [q, K], [z])
         z2 = zs[2]
         self.alpha_expr = ca.jtimes(z2, q, g1)
         self.beta_expr = ca.jtimes(z2, q, g2)
-        self.alpha_beta = ca.Function("lie_z2", [q], [ca.vertcat(self.alpha_expr,
-                                                                 self.beta_expr)])
-        self.a = {k: ca.Function(f"a{k}", [q], [a_expr[k]]) for k in a_expr}
-        self.b = {k: ca.Function(f"b{k}", [q], [b_expr[k]]) for k in b_expr}
+        self.alpha_beta = ca.Function("lie_z2", [q, K], [ca.vertcat(self.alpha_expr,
+                                                                    self.beta_expr)])
+        self.a = {k: ca.Function(f"a{k}", [q, K], [a_expr[k]]) for k in a_expr}
+        self.b = {k: ca.Function(f"b{k}", [q, K], [b_expr[k]]) for k in b_expr}
         # one call per level in the numeric inverse (the call overhead dominates)
-        self.ab = {k: ca.Function(f"ab{k}", [q], [ca.vertcat(a_expr[k], b_expr[k])])
+        self.ab = {k: ca.Function(f"ab{k}", [q, K], [ca.vertcat(a_expr[k], b_expr[k])])
                    for k in a_expr}
-        self.gains = gains
         self.exponents = exponents
         # u from (z, v) in one call (eq 5 inverted at q = Phi^-1(z)): the integrator's hot path
         zsym = ca.SX.sym("z", n + 1)
         vs = ca.SX.sym("v", 2)
-        th_z, w_z = self.inverse_expr(zsym)
+        th_z, w_z = self.inverse_expr(zsym, K)
         qz = ca.vertcat(zsym[0], *th_z)
         al = ca.substitute(self.alpha_expr, q, qz)
         be = ca.substitute(self.beta_expr, q, qz)
-        self.u_from_zv = ca.Function("u_from_zv", [zsym, vs],
+        self.u_from_zv = ca.Function("u_from_zv", [zsym, vs, K],
                                      [ca.vertcat(vs[0], (vs[1] - al * vs[0]) / be)])
         # The same with the w_k of the inverse appended (validity), for batched evaluation on
         # many points at once. Common subexpressions are merged: the Lie derivatives repeat
         # terms, and without merging the instruction count grows ~3x per joint (n = 8: 16752
         # instructions instead of ~2100).
         u_w = ca.vertcat(vs[0], (vs[1] - al * vs[0]) / be, *w_z)
-        self.u_w_from_zv = ca.Function("u_w_from_zv", [zsym, vs], [ca.cse(u_w)])
+        self.u_w_from_zv = ca.Function("u_w_from_zv", [zsym, vs, K], [ca.cse(u_w)])
         # f.map(N) by N of the functions ChainedForm evaluates on many points at once (through
         # the buffer interface of _eval_columns, 3-5x cheaper than a call that converts to and
-        # from DM)
+        # from DM); the gains are not mapped (one column for all points)
         self.maps: dict[str, dict[int, ca.Function]] = {
             name: {} for name in ("forward", "alpha_beta", "u_w_from_zv",
                                   *(f"ab{k}" for k in self.ab))}
 
-    def inverse_expr(self, z: ca.MX | ca.SX) -> tuple[list, list]:
+    def inverse_expr(self, z: ca.MX | ca.SX, K: Any) -> tuple[list, list]:
         """Symbolic inverse map for NLPs: ``(th, w)`` with ``th[i-1] = theta_i`` and
-        ``w[k-2] = cos(th_{k-1})^{m_k}`` (k = 2..n), computed top-down from ``z``.
+        ``w[k-2] = cos(th_{k-1})^{m_k}`` (k = 2..n), computed top-down from ``z``, for gains
+        ``K`` (symbols or numbers).
 
         The caller must keep every ``w`` inside (0, 1) (that is the region), otherwise the
         fractional powers and arccos are undefined.
@@ -493,17 +517,17 @@ class SymbolicChainedForm:
         ws: list = [None] * (n - 1)
         for k in range(n, 1, -1):
             qvec = ca.vertcat(*qsym)
-            a = self.a[k](qvec)
-            b = self.b[k](qvec)
+            a: Any = self.a[k](qvec, K)
+            b: Any = self.b[k](qvec, K)
             wk = (z[k - 1] - b) / a
             ws[k - 2] = wk
             qsym[k - 1] = ca.acos(wk ** (1.0 / self.exponents[k - 2]))
         return qsym[1:], ws
 
 
-@functools.lru_cache(maxsize=64)
-def _symbolic(gains: tuple[float, ...], exponents: tuple[int, ...]) -> SymbolicChainedForm:
-    return SymbolicChainedForm(gains, exponents)
+@functools.lru_cache(maxsize=16)
+def _symbolic(exponents: tuple[int, ...]) -> SymbolicChainedForm:
+    return SymbolicChainedForm(exponents)
 
 
 @functools.lru_cache(maxsize=64)

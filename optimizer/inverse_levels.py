@@ -28,15 +28,17 @@ _BINARY = {ca.OP_ADD: "{0} + {1}", ca.OP_SUB: "{0} - {1}", ca.OP_MUL: "{0} * {1}
            ca.OP_DIV: "{0} / {1}", ca.OP_POW: "{0} ** {1}", ca.OP_CONSTPOW: "{0} ** {1}"}
 
 
-def compile_sx(f: ca.Function) -> Callable[[Sequence[Any]], list[Any]] | None:
-    """The SX function ``f`` (one vector input, one vector output) as numpy code: a callable
-    taking the input's entries (arrays or numbers that broadcast) and returning the output's
+def compile_sx(f: ca.Function, bound: Sequence[float] = ()
+               ) -> Callable[[Sequence[Any]], list[Any]] | None:
+    """The SX function ``f`` (one vector input, one vector output; with ``bound``, a second
+    vector input held at those numbers: the gains) as numpy code: a callable taking the
+    first input's entries (arrays or numbers that broadcast) and returning the output's
     entries. ``None`` when ``f`` uses an operation not translated here.
 
     One numpy operation per SX instruction, on all points at once: for thousands of points this
     is many times faster than CasADi's column-by-column evaluation.
     """
-    if not f.is_a("SXFunction") or f.n_in() != 1 or f.n_out() != 1:
+    if not f.is_a("SXFunction") or f.n_in() != (2 if len(bound) else 1) or f.n_out() != 1:
         return None
     consts: list[float] = []
     lines = ["def _f(x):", f"    out = [0.0] * {f.nnz_out(0)}"]
@@ -47,8 +49,11 @@ def compile_sx(f: ca.Function) -> Callable[[Sequence[Any]], list[Any]] | None:
         if op == ca.OP_CONST:
             consts.append(float(f.instruction_constant(k)))
             lines.append(f"    w{o[0]} = _c[{len(consts) - 1}]")
-        elif op == ca.OP_INPUT:
+        elif op == ca.OP_INPUT and i[0] == 0:
             lines.append(f"    w{o[0]} = x[{i[1]}]")
+        elif op == ca.OP_INPUT:
+            consts.append(float(bound[i[1]]))
+            lines.append(f"    w{o[0]} = _c[{len(consts) - 1}]")
         elif op == ca.OP_OUTPUT:
             lines.append(f"    out[{o[1]}] = w{i[0]}")
         elif op in _UNARY:
@@ -69,7 +74,7 @@ class InverseLevels:
 
     Level n is ``z_n = K_n w_n``; levels n - 1 and n - 2 in closed form (see :meth:`ab`); below
     (n >= 5) the CasADi expressions of :class:`optimizer.chained_form.SymbolicChainedForm` are
-    translated once (:func:`_compile_sx`), with CasADi itself as the fallback.
+    translated once per robot (:func:`compile_sx`, the gains as numbers), with CasADi itself as the fallback.
     """
 
     def __init__(self, robot: Robot, cf: ChainedForm) -> None:
@@ -80,8 +85,8 @@ class InverseLevels:
         if n > 4:
             sym = cf.symbolic
             for k in range(2, n - 2):
-                fn = compile_sx(sym.ab[k])
-                self.fns[k] = fn if fn is not None else casadi_caller(sym.ab[k], n)
+                fn = compile_sx(sym.ab[k], self.K)
+                self.fns[k] = fn if fn is not None else casadi_caller(sym.ab[k], n, self.K)
 
     def ab(self, k: int, th: dict[int, Any], cs: dict[int, Any]) -> tuple[Any, Any]:
         """``(a_k, b_k)`` from the angles ``th[j]`` (j >= k) and their cosines ``cs[j]``."""
@@ -118,11 +123,14 @@ class InverseLevels:
         return out[0], out[1]
 
 
-def casadi_caller(f: ca.Function, n: int) -> Callable[[Sequence[Any]], list[Any]]:
+def casadi_caller(f: ca.Function, n: int, gains: Sequence[float]
+                  ) -> Callable[[Sequence[Any]], list[Any]]:
+    K = ca.DM(list(gains))
+
     def call(q: Sequence[Any]) -> list[Any]:
         arrs = np.broadcast_arrays(*[np.asarray(x, float) for x in q])
         shape = arrs[0].shape
-        res = np.asarray(f(np.vstack([a.ravel() for a in arrs])))
+        res = np.asarray(f(np.vstack([a.ravel() for a in arrs]), K))
         return [res[r].reshape(shape) for r in range(res.shape[0])]
     return call
 

@@ -146,7 +146,8 @@ class PlannedInputs:
 
     @functools.cached_property
     def _u_fn(self) -> Callable[..., object]:
-        return self.cf.symbolic.u_from_zv  # type: ignore[no-any-return]
+        fn, gains = self.cf.symbolic.u_from_zv, self.cf.gains
+        return lambda z, v: fn(z, v, gains)
 
     def q(self, t: np.ndarray) -> np.ndarray:
         inv = self.cf.from_chained(self.path.z(np.asarray(t, float) / self.T))

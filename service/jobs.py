@@ -56,7 +56,7 @@ def warm_up() -> dict[str, Any]:
     cf = chained_form(robot)
     q = np.array([0.0, 0.5, 0.5, 0.5])
     cf.from_chained(cf.to_chained(q))
-    cf.symbolic.forward(q)
+    cf.symbolic.forward(q, cf.gains)
     # the shooting NLP (0.1 s): not paid by the first 'shooting' request, and with compiled
     # functions configured their build starts now, in the background
     shooting = prepare(robot.gains, robot.exponents)

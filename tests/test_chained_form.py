@@ -120,6 +120,39 @@ def test_z_dynamics_are_the_model_pushed_through_the_map(n):
         np.testing.assert_allclose(cf.u_from_v(q, v), u, rtol=1e-10)
 
 
+
+@pytest.mark.parametrize("n", [4, 6])
+def test_robots_sharing_exponents_each_get_their_own_gains(n):
+    """The symbolic derivation is shared by robots of the same exponents (the gains are an
+    input): two robots evaluated in turn each satisfy their own model's chained dynamics
+    (central differences of the tests' model, as above) and the top level z_n = K_n
+    cos(th_{n-1})^m_n with their own K_n."""
+    base = Robot.default(n)
+    rng = np.random.default_rng(40 + n)
+    other = Robot(tuple(k * f for k, f in zip(base.gains, rng.uniform(0.6, 1.4, n - 1))),
+                  base.exponents)
+    forms = [(r, ChainedForm(r)) for r in (base, other)]
+    points = _random_q(n, rng, 10.0, 6)
+    for q in points:
+        for robot, cf in forms:
+            u = rng.normal(size=2)
+            qdot = model_rhs(q, u, robot.gains, robot.exponents)
+            h = 1e-6
+            zdot = (cf.to_chained(q + h * qdot) - cf.to_chained(q - h * qdot)) / (2 * h)
+            z = cf.to_chained(q)
+            v = cf.v_from_u(q, u)
+            np.testing.assert_allclose(zdot, np.concatenate([[v[0], v[1]], z[1:n] * v[0]]),
+                                       rtol=1e-6, atol=1e-8)
+            assert z[n - 1] == pytest.approx(
+                robot.gains[-1] * np.cos(q[n - 1]) ** robot.exponents[-1], rel=1e-13)
+            np.testing.assert_allclose(cf.from_chained(z).q[0], q, atol=1e-9)
+    # many points at once (the mapped evaluation) as one at a time
+    for robot, cf in forms:
+        Q = np.vstack(points)
+        np.testing.assert_allclose(cf.to_chained(Q), np.vstack([cf.to_chained(q) for q in Q]),
+                                   rtol=1e-14, atol=1e-15)
+
+
 def test_inverse_says_where_it_fails():
     cf = ChainedForm(Robot())
     z_ok = cf.to_chained(np.array([0.0, 0.3, 0.4, 0.5]))

@@ -192,7 +192,7 @@ def test_level_maps_match_casadi(n):
         thd = {j: th[j] for j in range(1, n + 1)}
         for k in range(n - 1, 1, -1):
             a, b = lv.ab(k, thd, cs)
-            ref = np.asarray(cf.symbolic.ab[k](th))
+            ref = np.asarray(cf.symbolic.ab[k](th, cf.gains))
             np.testing.assert_allclose(np.broadcast_to(a, (40,)), ref[0], rtol=1e-12, atol=1e-13)
             np.testing.assert_allclose(np.broadcast_to(b, (40,)), ref[1], rtol=1e-12, atol=1e-13)
 
@@ -208,6 +208,13 @@ def test_compiled_sx_matches_casadi():
     X = rng.uniform(0.1, 1.9, (3, 100))
     out = g([X[0], X[1], X[2]])
     np.testing.assert_allclose(np.vstack(out), np.asarray(f(X)), rtol=1e-14)
+    # a second input held at given numbers (the gains)
+    k = ca.SX.sym("k", 2)
+    h = ca.Function("h", [x, k], [ca.vertcat(k[0] * ca.cos(x[0]) + x[1], x[2] / k[1])])
+    gh = compile_sx(h, (0.7, 1.3))
+    assert gh is not None
+    np.testing.assert_allclose(np.vstack(gh([X[0], X[1], X[2]])),
+                               np.asarray(h(X, ca.DM([0.7, 1.3]))), rtol=1e-14)
 
 
 def test_real_roots_match_numpy():

@@ -38,11 +38,12 @@ class LevelMaps:
         self.n = n
         self.levels = list(range(2, n))  # nonlinear levels (level n is z_n = K_n w_n, affine)
         sym = cf.symbolic
+        K = ca.DM(cf.gains)      # this robot's numbers: the function is built per robot
         z = ca.SX.sym("z", n + 1)
-        th, _ = sym.inverse_expr(z)
+        th, _ = sym.inverse_expr(z, K)
         qv = ca.vertcat(z[0], *th)
-        a = ca.vertcat(*[sym.a[k](qv) for k in self.levels])
-        b = ca.vertcat(*[sym.b[k](qv) for k in self.levels])
+        a = ca.vertcat(*[sym.a[k](qv, K) for k in self.levels])
+        b = ca.vertcat(*[sym.b[k](qv, K) for k in self.levels])
         self._f = ca.Function("levels", [z], [a, b, ca.jacobian(a, z), ca.jacobian(b, z)])
 
     def __call__(self, Z: np.ndarray) -> tuple[np.ndarray, ...]:
