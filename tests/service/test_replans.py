@@ -189,3 +189,21 @@ def test_the_fast_replan_route_answers_as_the_fastapi_route(answer: dict, monkey
     assert codes[0][0] == 200
     assert codes[1] == (422, "state[1]")
     assert codes[2][0] == 422 and codes[3][0] == 400
+
+
+def test_a_bounded_plan_sent_back_keeps_its_bounds(client: TestClient) -> None:
+    """The answer of a plan with joint_bounds says them, and a replan of that answer as sent
+    back keeps them: a measured state outside them is a 422 naming the state's joint."""
+    bounds = [[0.25, 0.95], None, None]
+    r = client.post("/v1/plans", json={**PLAN, "joint_bounds": bounds})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["joint_bounds"] == bounds
+    bad = client.post("/v1/replans", json={"plan": body, "time": 0.5,
+                                           "state": [0.0, 0.2, 0.5, 0.5]})
+    assert bad.status_code == 422, bad.text
+    assert "state[1]" in bad.text and "0.25" in bad.text
+    ok = client.post("/v1/replans", json={"plan": body, "time": 0.5,
+                                          "state": _state_at(body, 0.5, 0.002)})
+    assert ok.status_code == 200, ok.text
+    assert ok.json()["joint_bounds"] == bounds
