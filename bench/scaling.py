@@ -6,7 +6,7 @@ Samples
 
 Joints (n = 3..8, ``Robot.default(n)``)
     * ``ChainedForm(Robot.default(n))`` construction, cold: the process-wide cache of the
-      symbolic derivation (``optimizer.chained_form._symbolic``) is cleared before each one, so
+      symbolic derivation (``optimizer.chained_form.symbolic_form``) is cleared before each one, so
       the CasADi Lie-derivative derivation and code generation are included;
     * the forward map ``to_chained`` and the inverse ``from_chained`` of 10^4 random points
       inside the region (``th_1..th_{n-1}`` in [5, 85] deg), and their round-trip error;
@@ -123,7 +123,7 @@ def joint_scaling(repeats: int, plan_repeats: int, budget: float,
         entry: dict[str, Any] = {"n": n}
 
         def build() -> Any:
-            cfmod._symbolic.cache_clear()  # cold: derive and compile again
+            cfmod.symbolic_form.cache_clear()  # cold: derive and compile again
             return cfmod.ChainedForm(robot)
         entry["construct"] = _timeit(build, repeats)
         cf = cfmod.chained_form(robot)

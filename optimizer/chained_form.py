@@ -105,7 +105,7 @@ class ChainedForm:
         self.n = robot.n
         self.backend = "closed" if (backend == "closed" or (backend == "auto" and robot.n == 3)) \
             else "casadi"
-        self._sym = _symbolic(tuple(robot.exponents))
+        self._sym = symbolic_form(tuple(robot.exponents))
         # the gains, the last input of every symbolic function (a contiguous column)
         self._K = np.ascontiguousarray(robot.gains, dtype=float)
         self._K.setflags(write=False)
@@ -526,7 +526,8 @@ class SymbolicChainedForm:
 
 
 @functools.lru_cache(maxsize=16)
-def _symbolic(exponents: tuple[int, ...]) -> SymbolicChainedForm:
+def symbolic_form(exponents: tuple[int, ...]) -> SymbolicChainedForm:
+    """The (cached) :class:`SymbolicChainedForm` of robots with these exponents."""
     return SymbolicChainedForm(exponents)
 
 

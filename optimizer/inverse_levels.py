@@ -16,7 +16,7 @@ from typing import Any, Callable, Sequence
 import casadi as ca
 import numpy as np
 
-from .chained_form import ChainedForm, chained_form
+from .chained_form import ChainedForm, symbolic_form, chained_form
 from .model import Robot
 
 _UNARY = {ca.OP_NEG: "-{0}", ca.OP_SQ: "{0} * {0}", ca.OP_TWICE: "{0} + {0}",
@@ -28,20 +28,19 @@ _BINARY = {ca.OP_ADD: "{0} + {1}", ca.OP_SUB: "{0} - {1}", ca.OP_MUL: "{0} * {1}
            ca.OP_DIV: "{0} / {1}", ca.OP_POW: "{0} ** {1}", ca.OP_CONSTPOW: "{0} ** {1}"}
 
 
-def compile_sx(f: ca.Function, bound: Sequence[float] = ()
-               ) -> Callable[[Sequence[Any]], list[Any]] | None:
-    """The SX function ``f`` (one vector input, one vector output; with ``bound``, a second
-    vector input held at those numbers: the gains) as numpy code: a callable taking the
-    first input's entries (arrays or numbers that broadcast) and returning the output's
-    entries. ``None`` when ``f`` uses an operation not translated here.
+def compile_sx(f: ca.Function) -> Callable[..., list[Any]] | None:
+    """The SX function ``f`` (one vector input, or two: the second the gains; one vector
+    output) as numpy code: a callable ``fn(x, g=())`` taking the first input's entries ``x``
+    (arrays or numbers that broadcast) and the second's ``g`` (numbers), and returning the
+    output's entries. ``None`` when ``f`` uses an operation not translated here.
 
     One numpy operation per SX instruction, on all points at once: for thousands of points this
     is many times faster than CasADi's column-by-column evaluation.
     """
-    if not f.is_a("SXFunction") or f.n_in() != (2 if len(bound) else 1) or f.n_out() != 1:
+    if not f.is_a("SXFunction") or f.n_in() not in (1, 2) or f.n_out() != 1:
         return None
     consts: list[float] = []
-    lines = ["def _f(x):", f"    out = [0.0] * {f.nnz_out(0)}"]
+    lines = ["def _f(x, g=()):", f"    out = [0.0] * {f.nnz_out(0)}"]
     for k in range(f.n_instructions()):
         op = f.instruction_id(k)
         i = f.instruction_input(k)
@@ -49,11 +48,8 @@ def compile_sx(f: ca.Function, bound: Sequence[float] = ()
         if op == ca.OP_CONST:
             consts.append(float(f.instruction_constant(k)))
             lines.append(f"    w{o[0]} = _c[{len(consts) - 1}]")
-        elif op == ca.OP_INPUT and i[0] == 0:
-            lines.append(f"    w{o[0]} = x[{i[1]}]")
         elif op == ca.OP_INPUT:
-            consts.append(float(bound[i[1]]))
-            lines.append(f"    w{o[0]} = _c[{len(consts) - 1}]")
+            lines.append(f"    w{o[0]} = {'x' if i[0] == 0 else 'g'}[{i[1]}]")
         elif op == ca.OP_OUTPUT:
             lines.append(f"    out[{o[1]}] = w{i[0]}")
         elif op in _UNARY:
@@ -65,8 +61,22 @@ def compile_sx(f: ca.Function, bound: Sequence[float] = ()
     lines.append("    return out")
     scope: dict[str, Any] = {"_np": np, "_c": consts}
     exec("\n".join(lines), scope)  # noqa: S102 - code generated from the instruction list above
-    fn: Callable[[Sequence[Any]], list[Any]] = scope["_f"]
+    fn: Callable[..., list[Any]] = scope["_f"]
     return fn
+
+
+@functools.lru_cache(maxsize=16)
+def _level_functions(exponents: tuple[int, ...]) -> dict[int, Callable[..., list[Any]]]:
+    """``(q, gains) -> (a_k, b_k)`` of the levels k = 2..n-3 as numpy code, once per exponents
+    (the gains an argument: 77 ms of translation at n = 8 that a robot of new gains does not
+    pay again)."""
+    n = len(exponents) + 1
+    sym = symbolic_form(exponents)
+    fns: dict[int, Callable[..., list[Any]]] = {}
+    for k in range(2, n - 2):
+        fn = compile_sx(sym.ab[k])
+        fns[k] = fn if fn is not None else casadi_caller(sym.ab[k], n)
+    return fns
 
 
 class InverseLevels:
@@ -74,19 +84,15 @@ class InverseLevels:
 
     Level n is ``z_n = K_n w_n``; levels n - 1 and n - 2 in closed form (see :meth:`ab`); below
     (n >= 5) the CasADi expressions of :class:`optimizer.chained_form.SymbolicChainedForm` are
-    translated once per robot (:func:`compile_sx`, the gains as numbers), with CasADi itself as the fallback.
+    translated once per exponents (:func:`compile_sx`, the gains an argument), with CasADi
+    itself as the fallback.
     """
 
     def __init__(self, robot: Robot, cf: ChainedForm) -> None:
         self.n = n = robot.n
         self.K = robot.gains
         self.m = robot.exponents
-        self.fns: dict[int, Callable[[Sequence[Any]], list[Any]]] = {}
-        if n > 4:
-            sym = cf.symbolic
-            for k in range(2, n - 2):
-                fn = compile_sx(sym.ab[k], self.K)
-                self.fns[k] = fn if fn is not None else casadi_caller(sym.ab[k], n, self.K)
+        self.fns = _level_functions(tuple(robot.exponents)) if n > 4 else {}
 
     def ab(self, k: int, th: dict[int, Any], cs: dict[int, Any]) -> tuple[Any, Any]:
         """``(a_k, b_k)`` from the angles ``th[j]`` (j >= k) and their cosines ``cs[j]``."""
@@ -119,18 +125,15 @@ class InverseLevels:
         for j in range(k, n + 1):
             q[j] = th[j]
         with np.errstate(all="ignore"):
-            out = self.fns[k](q)
+            out = self.fns[k](q, self.K)
         return out[0], out[1]
 
 
-def casadi_caller(f: ca.Function, n: int, gains: Sequence[float]
-                  ) -> Callable[[Sequence[Any]], list[Any]]:
-    K = ca.DM(list(gains))
-
-    def call(q: Sequence[Any]) -> list[Any]:
+def casadi_caller(f: ca.Function, n: int) -> Callable[..., list[Any]]:
+    def call(q: Sequence[Any], gains: Sequence[float]) -> list[Any]:
         arrs = np.broadcast_arrays(*[np.asarray(x, float) for x in q])
         shape = arrs[0].shape
-        res = np.asarray(f(np.vstack([a.ravel() for a in arrs]), K))
+        res = np.asarray(f(np.vstack([a.ravel() for a in arrs]), ca.DM(list(gains))))
         return [res[r].reshape(shape) for r in range(res.shape[0])]
     return call
 
