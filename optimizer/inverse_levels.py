@@ -16,7 +16,7 @@ from typing import Any, Callable, Sequence
 import casadi as ca
 import numpy as np
 
-from .chained_form import ChainedForm, symbolic_form, chained_form
+from .chained_form import symbolic_form
 from .model import Robot
 
 _UNARY = {ca.OP_NEG: "-{0}", ca.OP_SQ: "{0} * {0}", ca.OP_TWICE: "{0} + {0}",
@@ -88,7 +88,7 @@ class InverseLevels:
     itself as the fallback.
     """
 
-    def __init__(self, robot: Robot, cf: ChainedForm) -> None:
+    def __init__(self, robot: Robot) -> None:
         self.n = n = robot.n
         self.K = robot.gains
         self.m = robot.exponents
@@ -140,7 +140,7 @@ def casadi_caller(f: ca.Function, n: int) -> Callable[..., list[Any]]:
 
 @functools.lru_cache(maxsize=64)
 def inverse_levels(robot: Robot) -> InverseLevels:
-    return InverseLevels(robot, chained_form(robot))
+    return InverseLevels(robot)
 
 
 def root_m(w: Any, m: int) -> Any:

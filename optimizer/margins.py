@@ -24,7 +24,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .chained_form import W_TOL, ChainedForm, chained_form
+from .chained_form import W_TOL, ChainedForm
 from .inverse_levels import InverseLevels, inverse_levels, root_m
 from .model import Robot
 
@@ -69,8 +69,7 @@ class PointMargins:
     @property
     def _level_maps(self) -> InverseLevels:
         if self._lv is None:
-            self._lv = inverse_levels(self.robot) if self.cf is chained_form(self.robot) \
-                else InverseLevels(self.robot, self.cf)
+            self._lv = inverse_levels(self.robot)
         return self._lv
 
     def signed_margin_z(self, z: np.ndarray) -> np.ndarray:

@@ -109,16 +109,21 @@ def test_z_dynamics_are_the_model_pushed_through_the_map(n):
     cf = ChainedForm(robot)
     rng = np.random.default_rng(11 + n)
     for q in _random_q(n, rng, 10.0, 20):
-        u = rng.normal(size=2)
-        qdot = model_rhs(q, u, robot.gains, robot.exponents)
-        h = 1e-6
-        zdot = (cf.to_chained(q + h * qdot) - cf.to_chained(q - h * qdot)) / (2 * h)
-        z = cf.to_chained(q)
-        v = cf.v_from_u(q, u)
-        chained = np.concatenate([[v[0], v[1]], z[1:n] * v[0]])
-        np.testing.assert_allclose(zdot, chained, rtol=1e-6, atol=1e-8)
-        np.testing.assert_allclose(cf.u_from_v(q, v), u, rtol=1e-10)
+        _assert_chained_dynamics(robot, cf, q, rng.normal(size=2))
 
+
+def _assert_chained_dynamics(robot, cf, q, u):
+    """At ``q`` under rates ``u``: ``d/dt z`` by central differences along the tests' model
+    is the chained system of ``v = v(u)``, and ``u_from_v`` inverts ``v_from_u``."""
+    n = robot.n
+    qdot = model_rhs(q, u, robot.gains, robot.exponents)
+    h = 1e-6
+    zdot = (cf.to_chained(q + h * qdot) - cf.to_chained(q - h * qdot)) / (2 * h)
+    z = cf.to_chained(q)
+    v = cf.v_from_u(q, u)
+    chained = np.concatenate([[v[0], v[1]], z[1:n] * v[0]])
+    np.testing.assert_allclose(zdot, chained, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(cf.u_from_v(q, v), u, rtol=1e-10)
 
 
 @pytest.mark.parametrize("n", [4, 6])
@@ -135,14 +140,8 @@ def test_robots_sharing_exponents_each_get_their_own_gains(n):
     points = _random_q(n, rng, 10.0, 6)
     for q in points:
         for robot, cf in forms:
-            u = rng.normal(size=2)
-            qdot = model_rhs(q, u, robot.gains, robot.exponents)
-            h = 1e-6
-            zdot = (cf.to_chained(q + h * qdot) - cf.to_chained(q - h * qdot)) / (2 * h)
+            _assert_chained_dynamics(robot, cf, q, rng.normal(size=2))
             z = cf.to_chained(q)
-            v = cf.v_from_u(q, u)
-            np.testing.assert_allclose(zdot, np.concatenate([[v[0], v[1]], z[1:n] * v[0]]),
-                                       rtol=1e-6, atol=1e-8)
             assert z[n - 1] == pytest.approx(
                 robot.gains[-1] * np.cos(q[n - 1]) ** robot.exponents[-1], rel=1e-13)
             np.testing.assert_allclose(cf.from_chained(z).q[0], q, atol=1e-9)

@@ -184,7 +184,7 @@ def test_level_maps_match_casadi(n):
                   Robot(gains=tuple(np.linspace(0.5, 1.3, n - 1)),
                         exponents=tuple([1, 2, 3, 4, 2, 3, 1][:n - 1]))):
         cf = chained_form(robot)
-        lv = InverseLevels(robot, cf)
+        lv = InverseLevels(robot)
         rng = np.random.default_rng(n)
         th = rng.uniform(0.05, 1.5, (n + 1, 40))
         th[0] = 0.0
