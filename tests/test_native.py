@@ -247,3 +247,57 @@ def test_sources_too_large_to_compile_are_left_to_the_virtual_machine(tmp_path, 
     assert native.library_for("/*" + "x" * 2000 + "*/", wait=True) is None
     assert not list(tmp_path.iterdir())
     assert native.library_for("int f(void) { return 0; }\n", wait=True) is not None
+
+
+def _ipopt_run(m: nlp.MultipleShootingNLP, req: PlanRequest, solver: str):
+    """One run of IPOPT (``solver``) on ``m`` for ``req``, as the shooting method sets it up."""
+    from optimizer.planner.rules import joint_limits
+    from optimizer.planner.solvers import run_solver
+    tr = nlp.ladder(req.n)[0]
+    lo, hi = nlp.node_bounds(req, joint_limits(req))
+    lbw, ubw, _ = nlp.variable_bounds(req, m, tr, lo, hi, None)
+    p = nlp.parameters(req, *nlp.objective_weights(req, "shooting"))
+    x0 = m.guess(np.array(req.start), np.array(req.goal), req.phi_start, 0.6)
+    return run_solver(m, solver, x0, p, lbw, ubw, 60.0)
+
+
+def test_ipopt_evaluates_its_own_compiled_library_with_the_same_iterates(tmp_path,
+                                                                         monkeypatch):
+    """From ``IPOPT_COMPILED_FROM_JOINTS`` joints IPOPT gets a library of its functions (3
+    joints here: the cheapest compile): both IPOPT solvers load it, and they take the virtual
+    machine's iterations to the same solution."""
+    monkeypatch.setattr(nlp, "IPOPT_COMPILED_FROM_JOINTS", 3)
+    req = _request()
+    r = req.robot
+    tr = nlp.ladder(req.n)[0]
+
+    def fresh_nlp() -> nlp.MultipleShootingNLP:
+        nlp._shaped_nlp.cache_clear()
+        return nlp.multiple_shooting_nlp(r.gains, r.exponents, False, tr.intervals,
+                                         tr.substeps)
+
+    vm = fresh_nlp()
+    vm_runs = {s: _ipopt_run(vm, req, s) for s in ("ipopt", "ipopt_warm")}
+    native.configure(tmp_path)
+    m = fresh_nlp()
+    assert m.load_native(wait=True) and m.ipopt_compiled
+    assert len(list(tmp_path.glob("*.so"))) == 2      # fatrop's library and IPOPT's
+    for name in ("ipopt", "ipopt_warm"):
+        got = _ipopt_run(m, req, name)
+        solver = dict(m.solvers)[name]
+        assert solver.oracle().class_name() == "External"   # loaded from the library
+        ref = vm_runs[name]
+        assert got.success and ref.success
+        assert got.iterations == ref.iterations
+        assert np.max(np.abs(got.x - ref.x)) < 1e-9
+    # the same library serves a rebuilt solver (spent memories, solver_call)
+    assert m._factories["ipopt"]().oracle().class_name() == "External"
+
+
+def test_ipopt_is_compiled_only_where_it_answers(tmp_path):
+    """Below ``IPOPT_COMPILED_FROM_JOINTS`` joints (3 here), IPOPT runs only where fatrop
+    failed: no library of its own is compiled."""
+    assert nlp.IPOPT_COMPILED_FROM_JOINTS > 3
+    native.configure(tmp_path)
+    m = shooting.prepare(Robot().gains, Robot().exponents, wait=True)
+    assert m.compiled and not m.ipopt_compiled and m.native_ipopt is None

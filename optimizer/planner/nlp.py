@@ -129,6 +129,12 @@ DEVIATION_MODES = ("line", "segment")
 TERMINAL_MODES = ("hard", "elastic")
 #: Weight of the goal's exact penalty (rad^-1; the energy of a 1 rad move is about 1).
 ELASTIC_WEIGHT = 1e5
+#: From this many joints IPOPT evaluates the first rung's functions as compiled C too (see
+#: :meth:`MultipleShootingNLP.load_native`): from 5 joints it answers the free rungs and
+#: polishes (:mod:`.rungs`), and on 8 five-joint goals its solves took 13-27 % less time with
+#: the same iterates. Below, it runs only where fatrop failed, and a library costs a compile;
+#: the soft-sign NLPs are fatrop's alone.
+IPOPT_COMPILED_FROM_JOINTS = 5
 #: From this many joints the goal is elastic by default.
 ELASTIC_FROM_JOINTS = 6
 #: Rates held to signs (the sign-held rungs of :mod:`.rungs`) from a cold start enter as
@@ -360,7 +366,9 @@ class MultipleShootingNLP:
         self.callback = DeadlineCallback(self.nw, n_g, self.np)
         self.solvers: list[tuple[str, Any]] = []
         self.native: native.Library | None = None
+        self.native_ipopt: native.Library | None = None
         self.compiled = False
+        self.ipopt_compiled = False
         self._native_cfg: native.NativeConfig | None = None
         self._native_opts: dict[str, Any] = {}
         # only the first rung is compiled: the second's C (4-11 MB) takes 10-20 s and up to
@@ -379,12 +387,12 @@ class MultipleShootingNLP:
                 ca.nlpsol, f"{name}_fatrop", "fatrop", nlp, fatrop_opts)
             # for the same functions compiled (optimizer.native), see load_native
             self._native_opts = {k: v for k, v in fatrop_opts.items() if k != "expand"}
-        self._factories["ipopt"] = functools.partial(
-            ca.nlpsol, f"{name}_ipopt", "ipopt", nlp, ipopt_options(self.callback))
-        # IPOPT for starts at another solution's nodes (see solvers.IPOPT_WARM_OPTIONS)
-        self._factories["ipopt_warm"] = functools.partial(
-            ca.nlpsol, f"{name}_ipopt_warm", "ipopt", nlp,
-            ipopt_options(self.callback, **IPOPT_WARM_OPTIONS))
+        # IPOPT, and IPOPT for starts at another solution's nodes (solvers.IPOPT_WARM_OPTIONS)
+        self._ipopt_opts = {"ipopt": ipopt_options(self.callback),
+                            "ipopt_warm": ipopt_options(self.callback, **IPOPT_WARM_OPTIONS)}
+        for key, opts in self._ipopt_opts.items():
+            self._factories[key] = functools.partial(ca.nlpsol, f"{name}_{key}", "ipopt", nlp,
+                                                     opts)
         # (the polish solver is built at its first use: most NLPs never polish, and an IPOPT
         # build took 0.84 s of the 8-joint second rung's 2.9 s)
         self.solvers = [(key, None if key == "ipopt_warm" else build())
@@ -399,21 +407,33 @@ class MultipleShootingNLP:
     def load_native(self, every: float = 1.0, wait: bool = False) -> bool:
         """Use the compiled fatrop functions once their library is built (checked at most
         every ``every`` s; ``wait``: build it now when missing); True when they are in use.
+        From :data:`IPOPT_COMPILED_FROM_JOINTS` joints IPOPT's functions (another set: its
+        gradient returns the objective too) get a library of their own the same way
+        (:attr:`ipopt_compiled`).
 
-        The library is asked for (:func:`optimizer.native.library_for`: found in the cache,
-        or its build started) at the first call after :func:`optimizer.native.configure`, so
-        that an NLP built before (the service's forkserver builds it at start-up) gets it too.
+        The libraries are asked for (:func:`optimizer.native.library_for`: found in the cache,
+        or their build started) at the first call after :func:`optimizer.native.configure`, so
+        that an NLP built before (the service's forkserver builds it at start-up) gets them
+        too.
         """
-        if self.compiled:
-            return True
         cfg = native.config()
         if cfg is not self._native_cfg:
-            self._native_cfg, self.native = cfg, None
-            fatrop = dict(self.solvers).get("fatrop")
-            if cfg is not None and fatrop is not None and self.native_ok:
-                self.native = native.library_for(
-                    native.nlp_source(fatrop, self._correction_maps), wait=wait)
+            self._native_cfg, self.native, self.native_ipopt = cfg, None, None
+            if cfg is not None and self.native_ok:
+                solvers = dict(self.solvers)
+                fatrop, ipopt = solvers.get("fatrop"), solvers.get("ipopt")
+                if fatrop is not None and not self.compiled:
+                    self.native = native.library_for(
+                        native.nlp_source(fatrop, self._correction_maps), wait=wait)
+                if (ipopt is not None and not self.ipopt_compiled and not self.soft_signs
+                        and self.n >= IPOPT_COMPILED_FROM_JOINTS):
+                    self.native_ipopt = native.library_for(native.nlp_source(ipopt),
+                                                           wait=wait)
             every = 0.0
+        if self.native_ipopt is not None and not self.ipopt_compiled:
+            self._load_ipopt(every)
+        if self.compiled:
+            return True
         if self.native is None:
             return False
         path = self.native.ready(every)
@@ -434,6 +454,29 @@ class MultipleShootingNLP:
         self._replace("fatrop", solver)
         self.compiled = True
         return True
+
+    def _load_ipopt(self, every: float) -> None:
+        """IPOPT's solvers (``ipopt``, ``ipopt_warm``) on their compiled library once it is
+        built: the same iterates (bit for bit on the benchmark's five-joint goals), the
+        functions' share of the time compiled, and a build of a solver in about 2 ms instead of
+        the symbolic one's 90 ms (see :meth:`solver_call`)."""
+        assert self.native_ipopt is not None
+        path = self.native_ipopt.ready(every)
+        if path is None:
+            return
+        factories = {key: functools.partial(ca.nlpsol, f"{self._name}_{key}", "ipopt",
+                                            str(path), opts)
+                     for key, opts in self._ipopt_opts.items()}
+        try:
+            built = {key: build() for key, build in factories.items()
+                     if dict(self.solvers).get(key) is not None}
+        except Exception:  # noqa: BLE001 - an unloadable library: keep the virtual machine
+            self.native_ipopt = None
+            return
+        self._factories.update(factories)
+        for key, solver in built.items():
+            self._replace(key, solver)
+        self.ipopt_compiled = True
 
     def _replace(self, name: str, solver: Any) -> None:
         self.solvers = [(key, solver if key == name else s) for key, s in self.solvers]
