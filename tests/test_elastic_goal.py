@@ -26,9 +26,9 @@ from test_shooting import scipy_path
 SEED = 4242
 
 
-def test_the_terminal_mode_is_elastic_from_six_joints():
-    assert nlp_layer.default_terminal(5) == "hard"
-    for n in (6, 7, 8):
+def test_the_terminal_mode_is_elastic_from_five_joints():
+    assert nlp_layer.default_terminal(4) == "hard"
+    for n in (5, 6, 7, 8):
         assert nlp_layer.default_terminal(n) == "elastic"
 
 

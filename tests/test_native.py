@@ -264,7 +264,7 @@ def _ipopt_run(m: nlp.MultipleShootingNLP, req: PlanRequest, solver: str):
 def test_ipopt_evaluates_its_own_compiled_library_with_the_same_iterates(tmp_path,
                                                                          monkeypatch):
     """From ``IPOPT_COMPILED_FROM_JOINTS`` joints IPOPT gets a library of its functions (3
-    joints here: the cheapest compile): both IPOPT solvers load it, and they take the virtual
+    joints here: the cheapest compile): the IPOPT solver loads it, and it takes the virtual
     machine's iterations to the same solution."""
     monkeypatch.setattr(nlp, "IPOPT_COMPILED_FROM_JOINTS", 3)
     req = _request()
@@ -277,12 +277,12 @@ def test_ipopt_evaluates_its_own_compiled_library_with_the_same_iterates(tmp_pat
                                          tr.substeps)
 
     vm = fresh_nlp()
-    vm_runs = {s: _ipopt_run(vm, req, s) for s in ("ipopt", "ipopt_warm")}
+    vm_runs = {s: _ipopt_run(vm, req, s) for s in ("ipopt",)}
     native.configure(tmp_path)
     m = fresh_nlp()
     assert m.load_native(wait=True) and m.ipopt_compiled
     assert len(list(tmp_path.glob("*.so"))) == 2      # fatrop's library and IPOPT's
-    for name in ("ipopt", "ipopt_warm"):
+    for name in ("ipopt",):
         got = _ipopt_run(m, req, name)
         solver = dict(m.solvers)[name]
         assert solver.oracle().class_name() == "External"   # loaded from the library

@@ -61,7 +61,7 @@ from ..dynamics import rk4_step, vector_field
 from ..errors import InvalidRequestError
 from ..problem import PlanRequest
 from . import via
-from .solvers import (IPOPT_WARM_OPTIONS, SPENT_MEMORY_BYTES, BufferedCall, DeadlineCallback,
+from .solvers import (SPENT_MEMORY_BYTES, BufferedCall, DeadlineCallback,
                       fatrop_options, ipopt_options, memory_bytes)
 
 
@@ -125,18 +125,23 @@ DEVIATION_MODES = ("line", "segment")
 #: wherever the iterate's end map loses rank in a bracket direction (IPOPT: "Error in step
 #: computation", fatrop: "constraint Jacobian not full rank"): on 5 generated 7-joint goals
 #: IPOPT converged from 5 of 10 guesses in 23-500 iterations; elastic, from 10 of 10 in
-#: 15-24, and on 6-joint and 8-joint goals from 24 of 24 in 18-35.
+#: 15-24, and on 6-joint and 8-joint goals from 24 of 24 in 18-35. At 5 joints fatrop reached
+#: its iteration cap on most free and sign-held rungs with the goal hard, so IPOPT answered
+#: them (60-160 ms a plan); elastic, fatrop answered 8 of the benchmark's first 12 goals
+#: without IPOPT, half the median time (52 against 93 ms, the same goals in turn), the same
+#: reversals on 11 (deviation within 0.6 deg, better on 4; the twelfth: see
+#: :data:`~.rungs.HELD_ENOUGH`).
 TERMINAL_MODES = ("hard", "elastic")
 #: Weight of the goal's exact penalty (rad^-1; the energy of a 1 rad move is about 1).
 ELASTIC_WEIGHT = 1e5
 #: From this many joints IPOPT evaluates the first rung's functions as compiled C too (see
-#: :meth:`MultipleShootingNLP.load_native`): from 5 joints it answers the free rungs and
-#: polishes (:mod:`.rungs`), and on 8 five-joint goals its solves took 13-27 % less time with
-#: the same iterates. Below, it runs only where fatrop failed, and a library costs a compile;
-#: the soft-sign NLPs are fatrop's alone.
+#: :meth:`MultipleShootingNLP.load_native`): from 5 joints it answers where fatrop did not on
+#: 4 of 12 five-joint goals (and the polishes of :mod:`.rungs`), and on 8 such goals its
+#: solves took 13-27 % less time with the same iterates. Below, it runs more rarely, and a
+#: library costs a compile; the soft-sign NLPs are fatrop's alone.
 IPOPT_COMPILED_FROM_JOINTS = 5
 #: From this many joints the goal is elastic by default.
-ELASTIC_FROM_JOINTS = 6
+ELASTIC_FROM_JOINTS = 5
 #: Rates held to signs (the sign-held rungs of :mod:`.rungs`) from a cold start enter as
 #: penalised rows, not bounds: ``sign_j U_j + t >= 0``, ``t >= 0`` (one slack per interval),
 #: ``SIGN_PENALTY t`` in the objective (an exact penalty: where the signs can be kept the solution is the one
@@ -198,8 +203,7 @@ class MultipleShootingNLP:
     Attributes
     ----------
     solvers : list of (name, nlpsol or None)
-        fatrop (when CasADi has it), IPOPT, and IPOPT for starts at a solution's nodes
-        (``ipopt_warm``: :data:`~.solvers.IPOPT_WARM_OPTIONS`; None until its first use).
+        fatrop (when CasADi has it) and IPOPT.
     end_jacobian : casadi.Function
         ``(q0, U) -> d q_N / d U`` of the NLP's RK4 model (single shooting; the Newton
         correction of :func:`correct_rates`).
@@ -387,16 +391,11 @@ class MultipleShootingNLP:
                 ca.nlpsol, f"{name}_fatrop", "fatrop", nlp, fatrop_opts)
             # for the same functions compiled (optimizer.native), see load_native
             self._native_opts = {k: v for k, v in fatrop_opts.items() if k != "expand"}
-        # IPOPT, and IPOPT for starts at another solution's nodes (solvers.IPOPT_WARM_OPTIONS)
-        self._ipopt_opts = {"ipopt": ipopt_options(self.callback),
-                            "ipopt_warm": ipopt_options(self.callback, **IPOPT_WARM_OPTIONS)}
+        self._ipopt_opts = {"ipopt": ipopt_options(self.callback)}
         for key, opts in self._ipopt_opts.items():
             self._factories[key] = functools.partial(ca.nlpsol, f"{name}_{key}", "ipopt", nlp,
                                                      opts)
-        # (the polish solver is built at its first use: most NLPs never polish, and an IPOPT
-        # build took 0.84 s of the 8-joint second rung's 2.9 s)
-        self.solvers = [(key, None if key == "ipopt_warm" else build())
-                        for key, build in self._factories.items()]
+        self.solvers = [(key, build()) for key, build in self._factories.items()]
         self._spent: dict[str, list[BufferedCall]] = {key: [] for key in self._factories}
         self._name = name
         self.lbg = np.where(self.equality, 0.0, -np.inf)
@@ -456,8 +455,7 @@ class MultipleShootingNLP:
         return True
 
     def _load_ipopt(self, every: float) -> None:
-        """IPOPT's solvers (``ipopt``, ``ipopt_warm``) on their compiled library once it is
-        built: the same iterates (bit for bit on the benchmark's five-joint goals), the
+        """IPOPT's solver on its compiled library once it is built: the same iterates (bit for bit on the benchmark's five-joint goals), the
         functions' share of the time compiled, and a build of a solver in about 2 ms instead of
         the symbolic one's 90 ms (see :meth:`solver_call`)."""
         assert self.native_ipopt is not None

@@ -23,9 +23,8 @@ Search
   region: the cheapest feasible start there is), then ``shooting``'s straight-line guesses
   (joint-space straight line, inside the region's box; ``phi`` travelling +0.6 rad, then
   -0.6 rad: which way ``phi`` should go first is not known in advance). fatrop from each,
-  then IPOPT from each when fatrop does not converge (:data:`SOLVERS`; IPOPT alone from
-  :data:`~.rungs.IPOPT_FIRST_JOINTS` joints on; rates of fixed signs: fatrop from the start
-  that travels their way).
+  then IPOPT from each when fatrop does not converge (:data:`SOLVERS`; rates of fixed signs:
+  fatrop from the start that travels their way).
 * ``rho`` starts at :data:`RHO_START` and is multiplied by :data:`RHO_GROWTH` at most
   :data:`RHO_INCREASES` times, each time warm-started from the last solution, only while that
   solution violates the region by more than :data:`VIOLATION_TOL` at some node. The first
@@ -67,7 +66,7 @@ from ..verify import integrate_cascade
 from . import nlp as nlp_layer
 from .correction import finish_solution
 from .nlp import MultipleShootingNLP, Transcription, nlp_for, node_bounds
-from .rungs import LIGHT_SHARE, ipopt_first, solve_rungs
+from .rungs import LIGHT_SHARE, solve_rungs
 from .solvers import run_solver
 from .base import Capabilities, Method
 from .context import PlanContext
@@ -233,15 +232,10 @@ def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription | None = No
         keep = [st for st in straight if (sign > 0) == ("+" in st[0])] or straight[:1]
         starts = [st for st in starts if st[0] == "warm_start"] + keep
     if start_nodes is not None:
-        if rate_signs is not None and ipopt_first(req.n):
-            # (as shooting's polish: IPOPT with the barrier update for such starts)
-            solvers = ["ipopt_warm"] if "ipopt_warm" in dict(nlp.solvers) else solvers
         a, b = np.array(req.start), np.array(req.goal)
         starts = [("previous_solution", "the previous solution's nodes (its rates' signs "
                    "held: see nlp.solve_rungs)",
                    np.clip(nlp.guess_from_nodes(start_nodes, a, b), lbw, ubw))]
-    elif ipopt_first(req.n):
-        solvers = [s for s in solvers if s == "ipopt"] or solvers
     tried: list[dict[str, Any]] = []
     for solver in solvers:
         for name, reason, x0 in starts:

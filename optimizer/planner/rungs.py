@@ -15,7 +15,7 @@ from ..errors import InfeasibleError
 from ..indicators import ACTUATOR_DEAD_BAND, count_reversals, segment_distance
 from ..problem import PlanRequest
 from .attempts import MissedGoal
-from .nlp import Transcription, default_terminal, ladder, node_bounds
+from .nlp import Transcription, ladder, node_bounds
 from .rules import (direction_conflict, joint_limits, monotone_reach_ok, monotone_signs,
                     th1_monotone_reach_ok)
 
@@ -38,10 +38,11 @@ SolutionT = TypeVar("SolutionT", bound=NodeSolution)
 WIGGLE_SHARE = 0.05
 
 
-#: From this many joints on, free rungs go to IPOPT without fatrop: on the 15 five-joint goals
-#: of the benchmark fatrop reached its cap on 11 of 12 free rungs (0.3 ms per iteration: about
-#: 20 ms lost each), where IPOPT converged from the same guess on all 15 in 22-69 iterations.
-IPOPT_FIRST_JOINTS = 5
+#: The two improvements of :func:`solve_rungs` (``th_1`` held instead, wiggles removed) run
+#: below this many joints: they are fatrop's, and on the benchmark's 5-joint goals (the goal
+#: then a hard constraint) fatrop failed on 6 of 7 of them, about 20 ms each; from 5 joints
+#: the light solve and its polish take their place (:data:`LIGHT_FROM_JOINTS`).
+IMPROVE_BELOW_JOINTS = 5
 
 
 #: From this many joints the free rung of the default objective is solved twice: first nearly
@@ -54,14 +55,11 @@ IPOPT_FIRST_JOINTS = 5
 LIGHT_FROM_JOINTS = 5
 #: The share of the deviation weights in the light solve.
 LIGHT_SHARE = 1.0 / 3000.0
-
-
-def ipopt_first(n: int) -> bool:
-    """Free rungs of an ``n``-joint robot skip fatrop: from :data:`IPOPT_FIRST_JOINTS` joints
-    while the goal is a hard constraint. With the elastic goal (from
-    :data:`~.nlp.ELASTIC_FROM_JOINTS` joints) fatrop converges again: on 18 generated goals of
-    6 to 8 joints it answered 15 free rungs, in 25-111 iterations, where IPOPT took 24-336."""
-    return n >= IPOPT_FIRST_JOINTS and default_terminal(n) == "hard"
+#: A light answer with ``phi``'s sign held (``th_1`` free) and more reversals than this is
+#: compared with the free rung's: a free plan may reverse ``phi`` once where ``th_1`` reversed
+#: three times (a five-joint goal: 3 reversals and 10.5 deg held, 1 and 4.8 deg free). With
+#: one reversal it is among the fewest, as both signs held did not converge before it.
+HELD_ENOUGH = 1
 
 
 def rungs(req: PlanRequest) -> list[tuple[Transcription, tuple[float, float] | None]]:
@@ -159,7 +157,7 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
     converge where one failed).
 
     Under the default objective (fewest reversals, then deviation) and below
-    :data:`IPOPT_FIRST_JOINTS` joints, two more NLPs may follow, each kept only when better by
+    :data:`IMPROVE_BELOW_JOINTS` joints, two more NLPs may follow, each kept only when better by
     (reversals, deviation) at the nodes:
 
     * a solution in which ``th_1`` reverses (``phi``'s sign fixed, or both free) is compared
@@ -181,7 +179,7 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
     """
     failures: list[str] = []
     tried: list[dict[str, Any]] = []
-    improve = req.objective == "reversals_then_deviation" and req.n < IPOPT_FIRST_JOINTS
+    improve = req.objective == "reversals_then_deviation" and req.n < IMPROVE_BELOW_JOINTS
     th1_sign = float(np.sign(req.goal[0] - req.start[0]))
     th1_held = (0.0, th1_sign)
     # where phi must reverse (the joints move both ways: no path has fewer than one reversal),
@@ -195,6 +193,17 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
     # it): the next rung starts there first (a 6-joint goal's 50-interval rung: 44 fatrop
     # iterations from there, against 251 of IPOPT's 300 from the straight line)
     near: np.ndarray | None = None
+    # a light answer of phi's sign held whose th_1 reverses more than once: the free rung
+    # after it may reverse less (phi once, th_1 not at all), so it runs too
+    phi_held: tuple[SolutionT, Transcription, Any, list[dict[str, Any]]] | None = None
+
+    def better_of_held(found: tuple[SolutionT, Transcription, Any, list[dict[str, Any]]]
+                       ) -> tuple[SolutionT, Transcription, Any, list[dict[str, Any]]]:
+        if phi_held is None or (_reversals_and_deviation(req, found[0].nodes)
+                                < _reversals_and_deviation(req, phi_held[0].nodes)):
+            return found
+        return phi_held
+
     for tr, signs in rungs(req):
         if light and (signs is None or not all(signs)):
             sol = None
@@ -215,17 +224,25 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
                         near = exc.nodes
                     continue
             runs = run_signs(sol.rates)
+            found: tuple[SolutionT, Transcription, Any, list[dict[str, Any]]]
             try:
                 polished = solve(tr, runs, sol.nodes)
             except InfeasibleError as exc:
                 tried.extend(exc.diagnostics.get("tried", []))
-                return sol, tr, signs, tried
-            if _reversals_and_deviation(req, polished.nodes) <= _reversals_and_deviation(
-                    req, sol.nodes):
-                tried.extend(getattr(sol, "tried", ()))
-                return polished, tr, runs, tried
-            tried.extend(getattr(polished, "tried", ()))
-            return sol, tr, signs, tried
+                found = (sol, tr, signs, tried)
+            else:
+                if _reversals_and_deviation(req, polished.nodes) <= _reversals_and_deviation(
+                        req, sol.nodes):
+                    tried.extend(getattr(sol, "tried", ()))
+                    found = (polished, tr, runs, tried)
+                else:
+                    tried.extend(getattr(polished, "tried", ()))
+                    found = (sol, tr, signs, tried)
+            if (phi_held is None and signs is not None
+                    and _reversals_and_deviation(req, found[0].nodes)[0] > HELD_ENOUGH):
+                phi_held = found
+                continue
+            return better_of_held(found)
         ahead: Any = None
         if ahead_first and signs is None:
             try:
@@ -246,7 +263,7 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
                 sol, signs, ahead = ahead, th1_held, None
         if not improve:
             # (the improvements below are fatrop's, which from 5 joints failed on 6 of the
-            # benchmark's 7 tries, about 20 ms each: see IPOPT_FIRST_JOINTS)
+            # benchmark's 7 tries, about 20 ms each: see IMPROVE_BELOW_JOINTS)
             return sol, tr, signs, tried
         best: tuple[Any, Any] = (sol, signs)
         key: tuple[int, float] | None = None   # the best's, computed once there is a rival
@@ -282,6 +299,8 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
         if pattern is not None:
             consider(pattern, best[0].nodes)
         return best[0], tr, best[1], tried
+    if phi_held is not None:
+        return phi_held
     raise InfeasibleError("; ".join(failures),
                           diagnostics={"blocking": "nlp_failed", "tried": tried})
 

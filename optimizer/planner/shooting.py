@@ -53,8 +53,7 @@ Solvers
 -------
 fatrop (an interior-point solver for this stage structure, bundled with CasADi) first: about
 half IPOPT's time per iteration here. From ``phi`` travelling +0.6 rad, then -0.6 rad
-(:data:`ATTEMPTS`); IPOPT from the same guess when fatrop does not converge (from
-:data:`~.rungs.IPOPT_FIRST_JOINTS` joints on, IPOPT alone on the free rungs). Both solve the
+(:data:`ATTEMPTS`); IPOPT from the same guess when fatrop does not converge. Both solve the
 same NLP (a test checks that they find the same solution). With compiled functions configured
 (:mod:`optimizer.native`: the service does it), fatrop evaluates the first rung's functions as
 compiled C once their library is built (:meth:`~.nlp.MultipleShootingNLP.load_native`): the
@@ -87,7 +86,7 @@ from .correction import CORRECTION_TARGET, correct_rates, finish_solution
 from .nlp import (D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, LADDER_3_JOINTS, MARGIN,
                   SIGN_SLACK_TOL, MultipleShootingNLP, Transcription, ladder,
                   multiple_shooting_nlp, nlp_for, node_bounds, objective_weights)
-from .rungs import LIGHT_SHARE, ipopt_first, resample_nodes, solve_rungs
+from .rungs import LIGHT_SHARE, resample_nodes, solve_rungs
 from .attempts import Attempt, MissedGoal, first_converged
 from .base import Capabilities, Method
 from .context import PlanContext
@@ -166,8 +165,6 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
     lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi,
                                                            None if soft else monotone)
     attempts = ATTEMPTS
-    if ipopt_first(req.n):
-        attempts = tuple(at for at in ATTEMPTS if at[0] == "ipopt")
     if monotone is not None:
         # rates of fixed signs (see rules.monotone_signs): one guess travelling that way (phi
         # free: the way th2, the first joint phi drives, moves) and fatrop alone: rates of
@@ -177,11 +174,6 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
         first = float(np.asarray(monotone, float).reshape(-1, 2)[0, 0])
         sign = first or float(np.sign(req.goal[1] - req.start[1])) or 1.0
         attempts = (("fatrop", sign),)
-        if start_nodes is not None and ipopt_first(req.n):
-            # a polish from a solution's nodes (rungs.LIGHT_FROM_JOINTS) where fatrop fails
-            # on most NLPs (the goal's rows hard): IPOPT from those nodes, with the barrier
-            # update for such starts (solvers.IPOPT_WARM_OPTIONS)
-            attempts = (("ipopt_warm", sign),)
     w_dev, w_energy, w_da = objective_weights(req, "shooting")
     if light:  # nearly the minimum-energy plan (see rungs.LIGHT_FROM_JOINTS)
         w_dev, w_da = w_dev * LIGHT_SHARE, w_da * LIGHT_SHARE

@@ -85,20 +85,6 @@ IPOPT_OPTIONS: dict[str, Any] = {"print_level": 0, "sb": "yes", "tol": 1e-8,
                                  "max_wall_time": float(MAX_TIME_LIMIT)}
 
 
-#: IPOPT options of a solve that starts from another solution's nodes (a polish): the
-#: adaptive barrier update. From such a start the default monotone update spends most
-#: iterations lowering the barrier from 0.1 again; on the 19 polish NLPs of 12 five-joint
-#: goals it took 724 iterations (19-268), the adaptive update 274 (9-25), 3.6 times less
-#: time; the default plans of 25 five-joint goals were the same on 23 (one polish found
-#: another local optimum with 2 reversals fewer, one with 2 more). From the straight-line guesses it was slower (772 against 750
-#: iterations, one NLP lost): those keep the default.
-#: A polish that has not converged in ``max_iter`` iterations is given up (the solution it
-#: started from stays): of the 25 polishes of 30 generated five-joint goals 23 converged in
-#: 9-44 iterations, one in 98, and one ran IPOPT's 300 iterations to fail (0.9 s of CPU; on a
-#: loaded machine its request's 10 s ran out).
-IPOPT_WARM_OPTIONS: dict[str, Any] = {"mu_strategy": "adaptive", "max_iter": 60}
-
-
 #: Return statuses that are converged solutions (IPOPT's names; fatrop reports ``success``).
 SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 

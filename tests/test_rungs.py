@@ -1,0 +1,110 @@
+"""The ladder's choice among its rungs (:func:`optimizer.planner.rungs.solve_rungs`), with
+the NLP solves replaced by answers of known reversals and deviation: which rungs run, and which
+answer is kept, by the default rule (fewest reversals of ``phi`` and ``th_1``, then the
+smallest deviation from the segment start -> goal), counted here on the answers' nodes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from optimizer.errors import InfeasibleError
+from optimizer.indicators import count_reversals
+from optimizer.model import Robot
+from optimizer.planner import rungs as rungs_mod
+from optimizer.planner.nlp import ladder
+from optimizer.problem import PlanRequest
+
+N = 20
+START = (0.3, 0.4, 0.5, 0.6, 0.7)
+GOAL = (0.5, 0.6, 0.7, 0.8, 0.9)
+
+
+@dataclass
+class Answer:
+    nodes: np.ndarray
+    rates: np.ndarray
+    tried: tuple = ()
+
+
+def answer(phi_turns: int, th1_turns: int, bulge: float = 0.0) -> Answer:
+    """Nodes from START to GOAL whose phi and th_1 turn back that many times (by 0.1 rad and
+    more, far above the dead band), the other joints bulging ``bulge`` rad off the segment."""
+    s = np.linspace(0.0, 1.0, N + 1)
+
+    def zigzag(turns: int, a: float, b: float) -> np.ndarray:
+        # a -> beyond b -> before a -> ... -> b: turns + 1 monotone runs, 0.1 rad past the ends
+        ends = [b + 0.1 if i % 2 == 0 else a - 0.1 for i in range(turns)]
+        way = np.array([a, *ends, b])
+        return np.interp(s, np.linspace(0.0, 1.0, way.size), way)
+
+    nodes = np.empty((N + 1, 6))
+    nodes[:, 0] = zigzag(phi_turns, 0.0, 1.0)
+    nodes[:, 1] = zigzag(th1_turns, START[0], GOAL[0])
+    for j in range(1, 5):
+        nodes[:, j + 1] = START[j] + (GOAL[j] - START[j]) * s + bulge * np.sin(np.pi * s)
+    rates = np.diff(nodes[:, :2], axis=0) * N
+    return Answer(nodes, rates)
+
+
+@pytest.fixture
+def request_5() -> PlanRequest:
+    return PlanRequest(start=START, goal=GOAL, robot=Robot.default(5))
+
+
+def run(monkeypatch, req: PlanRequest, held_answer: Answer, free_answer: Answer | None):
+    """solve_rungs over two rungs, phi's sign held then free; the rungs each solve ran."""
+    tr = ladder(5)[0]
+    monkeypatch.setattr(rungs_mod, "rungs", lambda r: [(tr, (1.0, 0.0)), (tr, None)])
+    calls: list[str] = []
+
+    def solve(tr_, signs, start_nodes=None, light=False):
+        kind = "free" if signs is None else "phi held"
+        if start_nodes is not None:      # the polish of a light answer: the same answer
+            calls.append(kind + " polish" if light is False and calls[-1] == "free"
+                         else "polish")
+            return Answer(np.array(start_nodes), held_answer.rates)
+        calls.append(kind)
+        if signs is None:
+            if free_answer is None:
+                raise InfeasibleError("no free answer", diagnostics={"tried": []})
+            return free_answer
+        return held_answer
+
+    sol, _, signs, _ = rungs_mod.solve_rungs(req, solve, light_first=True)
+    return sol, signs, [c for c in calls if "polish" not in c]
+
+
+def reversals(a: Answer) -> int:
+    return count_reversals(a.nodes[:, 0]) + count_reversals(a.nodes[:, 1])
+
+
+def test_answers_of_the_fake_have_the_reversals_asked_for():
+    assert reversals(answer(0, 3)) == 3 and reversals(answer(1, 0)) == 1
+    assert reversals(answer(0, 1)) == 1
+
+
+def test_a_held_answer_with_several_reversals_is_compared_with_the_free_rung(
+        monkeypatch, request_5):
+    sol, signs, calls = run(monkeypatch, request_5, answer(0, 3), answer(1, 0))
+    assert calls == ["phi held", "free"]
+    assert reversals(sol) == 1 and signs is not None and np.ndim(signs) == 2  # the free one
+
+
+def test_a_held_answer_with_one_reversal_is_kept_without_the_free_rung(
+        monkeypatch, request_5):
+    sol, signs, calls = run(monkeypatch, request_5, answer(0, 1), answer(1, 0, bulge=-0.01))
+    assert calls == ["phi held"]
+    assert reversals(sol) == 1
+
+
+def test_the_held_answer_stays_when_the_free_rung_fails_or_is_no_better(
+        monkeypatch, request_5):
+    sol, _, calls = run(monkeypatch, request_5, answer(0, 2), None)
+    assert calls == ["phi held", "free"] and reversals(sol) == 2
+    # as many reversals and farther from the segment: the held answer is kept
+    sol, _, calls = run(monkeypatch, request_5, answer(0, 2), answer(2, 0, bulge=0.5))
+    assert calls == ["phi held", "free"]
+    assert count_reversals(sol.nodes[:, 1]) == 2
