@@ -143,6 +143,12 @@ FATROP_BELOW_JOINTS = 5
 #: converged on 25, 1452 iterations in all; mu_init 1 on 23, 1761 (IPOPT: 25, 1074, its time
 #: 1.4 times fatrop's); the largest count 148, hence the cap.
 FATROP_SETTINGS: tuple[tuple[str, float], ...] = (("mu_init", 0.1), ("max_iter", 150))
+#: The budget's NLPs take the goal elastic from this many joints (the default's from
+#: :data:`~.nlp.ELASTIC_FROM_JOINTS`): with the goal elastic, the straightest NLP of a
+#: 5-joint goal converged 6.6e-7 and 6.7e-7 rad off the goal from both guesses (IPOPT, 152 and
+#: 192 iterations, 1.6 s), so the front kept only the default plan, where with the goal hard
+#: it ended on the goal.
+ELASTIC_FROM_JOINTS = 6
 #: The objective's weights (deviation 3e4, energy 1) times this for fatrop, which does not
 #: scale the problem itself (IPOPT scales the objective so that its largest gradient is 100).
 #: Unscaled, fatrop converged on 13-14 of those 25 NLPs, at 1/30 on 23, at 1/300 on 25; at
@@ -270,9 +276,10 @@ def _nlp(req: PlanRequest, tr: Transcription) -> nlp_layer.MultipleShootingNLP:
 
 def _nlp_of(gains: tuple[float, ...], exponents: tuple[int, ...], fixed_phi: bool,
             tr: Transcription) -> nlp_layer.MultipleShootingNLP:
+    terminal = "elastic" if len(exponents) + 1 >= ELASTIC_FROM_JOINTS else "hard"
     return nlp_layer.multiple_shooting_nlp(
         gains, exponents, fixed_phi, tr.intervals, tr.substeps, "hard", "segment",
-        DEVIATION_POINTS, None, False, FATROP_SETTINGS)
+        DEVIATION_POINTS, terminal, False, FATROP_SETTINGS)
 
 
 def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *,
