@@ -135,8 +135,8 @@ TERMINAL_MODES = ("hard", "elastic")
 #: Weight of the goal's exact penalty (rad^-1; the energy of a 1 rad move is about 1).
 ELASTIC_WEIGHT = 1e5
 #: From this many joints IPOPT evaluates the first rung's functions as compiled C too (see
-#: :meth:`MultipleShootingNLP.load_native`): from 5 joints it answers where fatrop did not on
-#: 4 of 12 five-joint goals (and the polishes of :mod:`.rungs`), and on 8 such goals its
+#: :meth:`MultipleShootingNLP.load_native`): from 5 joints it answered where fatrop did not on
+#: 4 of 12 five-joint goals (the goal elastic), and on 8 such goals its
 #: solves took 13-27 % less time with the same iterates. Below, it runs more rarely, and a
 #: library costs a compile; the soft-sign NLPs are fatrop's alone.
 IPOPT_COMPILED_FROM_JOINTS = 5
