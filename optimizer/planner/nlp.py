@@ -137,7 +137,7 @@ ELASTIC_WEIGHT = 1e5
 #: From this many joints IPOPT evaluates the first rung's functions as compiled C too (see
 #: :meth:`MultipleShootingNLP.load_native`): from 5 joints it answered where fatrop did not on
 #: 4 of 12 five-joint goals (the goal elastic), and on 8 such goals its
-#: solves took 13-27 % less time with the same iterates. Below, it runs more rarely, and a
+#: solves took 12-27 % less time with the same iterates. Below, it runs more rarely, and a
 #: library costs a compile; the soft-sign NLPs are fatrop's alone.
 IPOPT_COMPILED_FROM_JOINTS = 5
 #: From this many joints the goal is elastic by default.
