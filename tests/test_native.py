@@ -249,8 +249,8 @@ def test_sources_too_large_to_compile_are_left_to_the_virtual_machine(tmp_path, 
     assert native.library_for("int f(void) { return 0; }\n", wait=True) is not None
 
 
-def _ipopt_run(m: nlp.MultipleShootingNLP, req: PlanRequest, solver: str):
-    """One run of IPOPT (``solver``) on ``m`` for ``req``, as the shooting method sets it up."""
+def _ipopt_run(m: nlp.MultipleShootingNLP, req: PlanRequest):
+    """One run of IPOPT on ``m`` for ``req``, as the shooting method sets it up."""
     from optimizer.planner.rules import joint_limits
     from optimizer.planner.solvers import run_solver
     tr = nlp.ladder(req.n)[0]
@@ -258,7 +258,7 @@ def _ipopt_run(m: nlp.MultipleShootingNLP, req: PlanRequest, solver: str):
     lbw, ubw, _ = nlp.variable_bounds(req, m, tr, lo, hi, None)
     p = nlp.parameters(req, *nlp.objective_weights(req, "shooting"))
     x0 = m.guess(np.array(req.start), np.array(req.goal), req.phi_start, 0.6)
-    return run_solver(m, solver, x0, p, lbw, ubw, 60.0)
+    return run_solver(m, "ipopt", x0, p, lbw, ubw, 60.0)
 
 
 def test_ipopt_evaluates_its_own_compiled_library_with_the_same_iterates(tmp_path,
@@ -277,19 +277,16 @@ def test_ipopt_evaluates_its_own_compiled_library_with_the_same_iterates(tmp_pat
                                          tr.substeps)
 
     vm = fresh_nlp()
-    vm_runs = {s: _ipopt_run(vm, req, s) for s in ("ipopt",)}
+    ref = _ipopt_run(vm, req)
     native.configure(tmp_path)
     m = fresh_nlp()
     assert m.load_native(wait=True) and m.ipopt_compiled
     assert len(list(tmp_path.glob("*.so"))) == 2      # fatrop's library and IPOPT's
-    for name in ("ipopt",):
-        got = _ipopt_run(m, req, name)
-        solver = dict(m.solvers)[name]
-        assert solver.oracle().class_name() == "External"   # loaded from the library
-        ref = vm_runs[name]
-        assert got.success and ref.success
-        assert got.iterations == ref.iterations
-        assert np.max(np.abs(got.x - ref.x)) < 1e-9
+    got = _ipopt_run(m, req)
+    assert dict(m.solvers)["ipopt"].oracle().class_name() == "External"  # from the library
+    assert got.success and ref.success
+    assert got.iterations == ref.iterations
+    assert np.max(np.abs(got.x - ref.x)) < 1e-9
     # the same library serves a rebuilt solver (spent memories, solver_call)
     assert m._factories["ipopt"]().oracle().class_name() == "External"
 

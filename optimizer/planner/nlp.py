@@ -202,7 +202,7 @@ class MultipleShootingNLP:
 
     Attributes
     ----------
-    solvers : list of (name, nlpsol or None)
+    solvers : list of (name, nlpsol)
         fatrop (when CasADi has it) and IPOPT.
     end_jacobian : casadi.Function
         ``(q0, U) -> d q_N / d U`` of the NLP's RK4 model (single shooting; the Newton
@@ -391,10 +391,9 @@ class MultipleShootingNLP:
                 ca.nlpsol, f"{name}_fatrop", "fatrop", nlp, fatrop_opts)
             # for the same functions compiled (optimizer.native), see load_native
             self._native_opts = {k: v for k, v in fatrop_opts.items() if k != "expand"}
-        self._ipopt_opts = {"ipopt": ipopt_options(self.callback)}
-        for key, opts in self._ipopt_opts.items():
-            self._factories[key] = functools.partial(ca.nlpsol, f"{name}_{key}", "ipopt", nlp,
-                                                     opts)
+        self._ipopt_opts = ipopt_options(self.callback)
+        self._factories["ipopt"] = functools.partial(ca.nlpsol, f"{name}_ipopt", "ipopt", nlp,
+                                                     self._ipopt_opts)
         self.solvers = [(key, build()) for key, build in self._factories.items()]
         self._spent: dict[str, list[BufferedCall]] = {key: [] for key in self._factories}
         self._name = name
@@ -455,25 +454,23 @@ class MultipleShootingNLP:
         return True
 
     def _load_ipopt(self, every: float) -> None:
-        """IPOPT's solver on its compiled library once it is built: the same iterates (bit for bit on the benchmark's five-joint goals), the
-        functions' share of the time compiled, and a build of a solver in about 2 ms instead of
-        the symbolic one's 90 ms (see :meth:`solver_call`)."""
+        """IPOPT's solver on its compiled library once it is built: the same iterates (bit
+        for bit on the benchmark's five-joint goals), the functions' share of the time
+        compiled, and a build of a solver in about 2 ms instead of the symbolic one's 90 ms
+        (see :meth:`solver_call`)."""
         assert self.native_ipopt is not None
         path = self.native_ipopt.ready(every)
         if path is None:
             return
-        factories = {key: functools.partial(ca.nlpsol, f"{self._name}_{key}", "ipopt",
-                                            str(path), opts)
-                     for key, opts in self._ipopt_opts.items()}
+        build = functools.partial(ca.nlpsol, f"{self._name}_ipopt", "ipopt", str(path),
+                                  self._ipopt_opts)
         try:
-            built = {key: build() for key, build in factories.items()
-                     if dict(self.solvers).get(key) is not None}
+            solver = build()
         except Exception:  # noqa: BLE001 - an unloadable library: keep the virtual machine
             self.native_ipopt = None
             return
-        self._factories.update(factories)
-        for key, solver in built.items():
-            self._replace(key, solver)
+        self._factories["ipopt"] = build
+        self._replace("ipopt", solver)
         self.ipopt_compiled = True
 
     def _replace(self, name: str, solver: Any) -> None:
@@ -493,9 +490,6 @@ class MultipleShootingNLP:
         :data:`SPENT_MEMORY_BYTES`; then the solver is built anew (the old one frees them).
         """
         solver = dict(self.solvers)[name]
-        if solver is None:  # built at its first use
-            solver = self._factories[name]()
-            self._replace(name, solver)
         spent = self._spent[name]
         if spent and len(spent) * memory_bytes(solver) > SPENT_MEMORY_BYTES:
             solver = self._factories[name]()

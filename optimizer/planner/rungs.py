@@ -196,13 +196,7 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
     # a light answer of phi's sign held whose th_1 reverses more than once: the free rung
     # after it may reverse less (phi once, th_1 not at all), so it runs too
     phi_held: tuple[SolutionT, Transcription, Any, list[dict[str, Any]]] | None = None
-
-    def better_of_held(found: tuple[SolutionT, Transcription, Any, list[dict[str, Any]]]
-                       ) -> tuple[SolutionT, Transcription, Any, list[dict[str, Any]]]:
-        if phi_held is None or (_reversals_and_deviation(req, found[0].nodes)
-                                < _reversals_and_deviation(req, phi_held[0].nodes)):
-            return found
-        return phi_held
+    phi_held_key: tuple[int, float] | None = None
 
     for tr, signs in rungs(req):
         if light and (signs is None or not all(signs)):
@@ -238,11 +232,13 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
                 else:
                     tried.extend(getattr(polished, "tried", ()))
                     found = (sol, tr, signs, tried)
-            if (phi_held is None and signs is not None
-                    and _reversals_and_deviation(req, found[0].nodes)[0] > HELD_ENOUGH):
-                phi_held = found
+            found_key = _reversals_and_deviation(req, found[0].nodes)
+            if phi_held is None and signs is not None and found_key[0] > HELD_ENOUGH:
+                phi_held, phi_held_key = found, found_key
                 continue
-            return better_of_held(found)
+            if phi_held is not None and phi_held_key is not None and phi_held_key <= found_key:
+                return phi_held
+            return found
         ahead: Any = None
         if ahead_first and signs is None:
             try:
