@@ -674,8 +674,12 @@ def test_a_client_that_leaves_takes_its_queued_job_with_it(two_workers):
         while (waiting := client.get("/readyz").json()["waiting"]) < 6:
             assert time.monotonic() < deadline, waiting
             time.sleep(0.02)
-        for t in leavers:
-            t.join()
+        # (polling while they wait: an idle keep-alive connection is closed by the server
+        # after keep_alive_timeout, 5 s, about as long as the leavers wait, and a request sent
+        # as it closes is reset)
+        while any(t.is_alive() for t in leavers):
+            client.get("/readyz")
+            time.sleep(0.5)
         deadline = time.monotonic() + LAG  # the server notices each leaver as its loop runs
         while (ready := client.get("/readyz").json())["waiting"] and time.monotonic() < deadline:
             time.sleep(0.05)
