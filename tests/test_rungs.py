@@ -107,3 +107,26 @@ def test_the_held_answer_stays_when_the_free_rung_fails_or_is_no_better(
     sol, _, calls = run(monkeypatch, request_5, answer(0, 2), answer(2, 0, bulge=0.5))
     assert calls == ["phi held", "free"]
     assert count_reversals(sol.nodes[:, 1]) == 2
+
+
+def test_th1_held_that_failed_before_the_free_rung_is_not_solved_again(monkeypatch):
+    """Where phi must reverse, th_1 held runs before the free rung; when it fails, the free
+    answer (th_1 reversing) is not compared with the same NLP solved a second time."""
+    req = PlanRequest(start=START[:4], goal=GOAL[:4], robot=Robot.default(4))
+    tr = ladder(4)[0]
+    monkeypatch.setattr(rungs_mod, "rungs", lambda r: [(tr, None)])
+    monkeypatch.setattr(rungs_mod, "direction_conflict", lambda r: "th2 against th3")
+    monkeypatch.setattr(rungs_mod, "th1_reach_ok", lambda r: True)
+    free = answer(1, 1)
+    free.nodes = free.nodes[:, :5]
+    calls: list[str] = []
+
+    def solve(tr_, signs, start_nodes=None, light=False):
+        calls.append("free" if signs is None else f"held {np.asarray(signs).tolist()}")
+        if signs is None:
+            return free
+        raise InfeasibleError("out of reach", diagnostics={"tried": []})
+
+    sol, _, signs, _ = rungs_mod.solve_rungs(req, solve)
+    assert calls == ["held [0.0, 1.0]", "free"]
+    assert sol is free and signs is None

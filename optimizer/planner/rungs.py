@@ -240,11 +240,14 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
                 return phi_held
             return found
         ahead: Any = None
+        # th1 held on this rung already ran and failed: the same NLP is not solved again
+        th1_held_failed = False
         if ahead_first and signs is None:
             try:
                 ahead = solve(tr, th1_held)
             except InfeasibleError as exc:
                 tried.extend(exc.diagnostics.get("tried", []))
+                th1_held_failed = True
         if ahead is not None and _reversals_and_deviation(req, ahead.nodes)[0] <= 1:
             sol, signs, ahead = ahead, th1_held, None
         else:
@@ -286,7 +289,7 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
 
         if ahead is not None:  # solved first, without the fewest reversals: compared
             compare(ahead, th1_held)
-        elif (th1_sign != 0.0 and (signs is None or signs[1] == 0.0)
+        elif (th1_sign != 0.0 and (signs is None or signs[1] == 0.0) and not th1_held_failed
                 and count_reversals(sol.nodes[:, 1]) > 0 and th1_reach_ok(req)):
             consider(th1_held)
         # rates held to one sign per actuator (the first rung) have no runs to merge
