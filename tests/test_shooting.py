@@ -283,6 +283,52 @@ def test_soft_signs_find_the_solution_of_the_signs_as_bounds(monkeypatch):
     assert np.max(np.abs(soft.rates - hard.rates)) < 1e-4
 
 
+#: A 5-joint goal (held-out, not a benchmark goal) whose rung with both actuators' signs held
+#: stalls at fatrop's iteration cap under the strict tolerance alone: primal feasible to 1e-11,
+#: its objective settled, the dual infeasibility creeping down from 1e-3.
+HELD_5 = ((1.2274164296223085, 1.2421657930052286, 0.6943889226415766, 0.910845017125626,
+           1.501939300264675),
+          (0.41576373908305464, 1.067330009508163, 0.6298083455719308, 0.6354638107470443,
+           1.370518298811284))
+
+
+def test_fatrop_stops_at_an_acceptable_point_that_is_ipopts_solution():
+    """fatrop's acceptable point (solvers.FATROP_ACCEPTABLE_TOL) is a converged solution: on
+    the sign-held NLP above it is the solution IPOPT converges to from the same guess."""
+    from optimizer.planner import nlp
+    from optimizer.planner.rules import joint_limits, monotone_signs
+    from optimizer.planner.solvers import run_solver
+
+    req = PlanRequest(start=HELD_5[0], goal=HELD_5[1], robot=Robot.default(5))
+    signs = monotone_signs(req)
+    assert signs is not None and all(signs)
+    sol = solve_shooting(req, Deadline(60.0), None, signs)
+    assert sol.status == "fatrop: acceptable"
+    tr = ladder(5)[0]
+    m = nlp.nlp_for(req, tr)
+    lo, hi = nlp.node_bounds(req, joint_limits(req))
+    lbw, ubw, _ = nlp.variable_bounds(req, m, tr, lo, hi, signs)
+    p = nlp.parameters(req, *nlp.objective_weights(req, "shooting"))
+    x0 = m.guess(np.array(req.start), np.array(req.goal), req.phi_start, 0.6 * signs[0])
+    ref = run_solver(m, "ipopt", x0, p, lbw, ubw, 60.0)
+    assert ref.success and ref.x is not None
+    nodes, rates = m.unpack(ref.x)
+    assert np.max(np.abs(nodes - sol.nodes)) < 2e-3
+    assert np.max(np.abs(rates - sol.rates)) < 1e-2
+
+
+def test_solver_status_reads_fatrops_acceptable_point():
+    from optimizer.planner.solvers import FATROP_ACCEPTABLE_FLAG, solver_status
+
+    acceptable = {"return_status": 1, "success": False,
+                  "fatrop": {"return_flag": FATROP_ACCEPTABLE_FLAG}}
+    assert solver_status("fatrop", acceptable) == ("acceptable", True)
+    capped = {"return_status": 1, "success": False, "fatrop": {"return_flag": 1}}
+    assert solver_status("fatrop", capped) == ("1", False)
+    assert solver_status("ipopt", {"return_status": "Solve_Succeeded", "success": True}) == (
+        "Solve_Succeeded", True)
+
+
 def test_soft_signs_certify_signs_out_of_reach(monkeypatch):
     """Where no path with rates of fixed signs exists (IPOPT's certificate on the NLP with the
     signs as bounds), the soft NLP converges with a slack and the rung is refused as
