@@ -317,6 +317,26 @@ def test_fatrop_stops_at_an_acceptable_point_that_is_ipopts_solution():
     assert np.max(np.abs(rates - sol.rates)) < 1e-2
 
 
+#: A held-out 4-joint goal whose free rung, with the goal as equality rows, stalled at fatrop's
+#: iteration cap (steps of 1e-4..1e-7 of Newton's) so that IPOPT answered after it.
+FREE_4 = ((0.1633144589858921, 0.7490455388624255, 0.7116404613107901, 1.3114058188103506),
+          (0.03217129752277256, 0.6321591950031086, 0.6419756110109304, 1.2669289319494255))
+
+
+def test_the_free_rung_of_four_joints_takes_the_goal_elastic():
+    """nlp.FREE_ELASTIC_FROM_JOINTS: on 4 joints the free rung's goal is an exact penalty
+    (fatrop solves the goal above, on the goal), the sign-held rungs' stays equality rows."""
+    from optimizer.planner import nlp
+
+    req = PlanRequest(start=FREE_4[0], goal=FREE_4[1], robot=Robot.default(4))
+    tr = ladder(4)[0]
+    assert nlp.nlp_for(req, tr, free=True).terminal == "elastic"
+    assert nlp.nlp_for(req, tr).terminal == "hard"
+    sol = solve_shooting(req, Deadline(60.0))
+    assert sol.status.startswith("fatrop"), sol.tried
+    assert np.max(np.abs(sol.nodes[-1, 1:] - np.array(FREE_4[1]))) < 1e-6
+
+
 def test_solver_status_reads_fatrops_acceptable_point():
     from optimizer.planner.solvers import FATROP_ACCEPTABLE_FLAG, solver_status
 

@@ -128,15 +128,25 @@ class ShootingSolution:
 
 def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: bool = False,
             wait: bool = False) -> MultipleShootingNLP:
-    """Build (and cache) the first rung's NLPs of a robot (free, and with soft signs) ahead of
-    its first request; with compiled functions configured (:mod:`optimizer.native`) this also
-    starts their build (``wait``: builds them before it returns). Returns the free one."""
-    tr = ladder(len(gains) + 1)[0]
-    softs = (False, True) if len(gains) + 1 in SOFT_SIGNS_JOINTS else (False,)
-    nlps = [multiple_shooting_nlp(tuple(float(k) for k in gains),
-                                  tuple(int(m) for m in exponents), fixed_phi, tr.intervals,
-                                  tr.substeps, soft_signs=soft) for soft in softs]
-    for nlp in nlps:  # (the sign-held rungs' NLP too: nlp.SIGN_PENALTY)
+    """Build (and cache) the first rung's NLPs of a robot (free; with its rates' signs as
+    bounds; with soft signs) ahead of its first request; with compiled functions configured
+    (:mod:`optimizer.native`) this also starts their build (``wait``: builds them before it
+    returns). Returns the free one."""
+    n = len(gains) + 1
+    tr = ladder(n)[0]
+    # (the free rung's goal may be elastic where the sign-held rungs' is hard:
+    # nlp.FREE_ELASTIC_FROM_JOINTS; the same NLP where both modes agree)
+    kinds = [(nlp_layer.default_terminal(n, True), False), (nlp_layer.default_terminal(n), False)]
+    if n in SOFT_SIGNS_JOINTS:
+        kinds.append((nlp_layer.default_terminal(n), True))
+    nlps: list[MultipleShootingNLP] = []
+    for terminal, soft in kinds:
+        nlp = multiple_shooting_nlp(tuple(float(k) for k in gains),
+                                    tuple(int(m) for m in exponents), fixed_phi, tr.intervals,
+                                    tr.substeps, terminal=terminal, soft_signs=soft)
+        if nlp not in nlps:
+            nlps.append(nlp)
+    for nlp in nlps:
         nlp.load_native(every=0.0, wait=wait)
     return nlps[0]
 
@@ -159,7 +169,7 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
     # rates held to signs from a cold start: the signs as penalised rows (nlp.SIGN_PENALTY)
     soft = (SOFT_SIGNS and req.n in SOFT_SIGNS_JOINTS and monotone is not None
             and start_nodes is None)
-    nlp = nlp_for(req, tr, soft_signs=soft)
+    nlp = nlp_for(req, tr, soft_signs=soft, free=monotone is None)
     a, b = np.array(req.start), np.array(req.goal)
     lo, hi = node_bounds(req, joint_limits(req))
     lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi,
@@ -231,8 +241,8 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
     try:
-        return finish_solution(req, "shooting", nlp_for(req, tr), sol, tr, mono, tried,
-                               timing, {})
+        return finish_solution(req, "shooting", nlp_for(req, tr, free=mono is None), sol, tr,
+                               mono, tried, timing, {})
     except NumericalError:
         steps = ladder(req.n)
         if tr not in steps[:-1]:
@@ -256,8 +266,8 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
         again = solve_shooting(req, deadline, finer, None, nodes)
     timing["nlp"] += time.perf_counter() - t1
     deadline.check("the shooting NLP")
-    return finish_solution(req, "shooting", nlp_for(req, finer), again, finer, signs,
-                           tried + list(getattr(sol, "tried", ())), timing,
+    return finish_solution(req, "shooting", nlp_for(req, finer, free=signs is None), again,
+                           finer, signs, tried + list(getattr(sol, "tried", ())), timing,
                            {"refined_from_intervals": tr.intervals})
 
 
