@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -118,3 +124,64 @@ def test_a_robot_of_other_gains_uses_the_same_nlp_and_reaches_its_goal() -> None
 
     assert np.max(np.abs(run(K)[1:] - np.asarray(goal))) < 1e-6
     assert np.max(np.abs(run(base.gains)[1:] - np.asarray(goal))) > 1e-3
+
+
+
+def _resident_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def measure_spent_memories() -> dict[str, float]:
+    """In a fresh process (a used heap has room for new memories without growing): the
+    estimate of one fatrop memory, the resident growth per fresh memory, the budget, and the
+    growth over enough solves to pass the budget twice."""
+    from optimizer.planner import solvers
+    from optimizer.planner.rules import joint_limits
+    from optimizer.problem import PlanRequest
+
+    req = PlanRequest(start=(0.17, 0.17, 0.17), goal=(0.52, 0.52, 0.52))
+    tr = nlp_layer.ladder(3)[0]
+    nlp = nlp_layer.nlp_for(req, tr)
+    lo, hi = nlp_layer.node_bounds(req, joint_limits(req))
+    lbx, ubx, _ = nlp_layer.variable_bounds(req, nlp, tr, lo, hi)
+    p = nlp_layer.parameters(req, *nlp_layer.objective_weights(req, "shooting"))
+    x0 = nlp.guess(np.array(req.start), np.array(req.goal), 0.0, 0.6)
+
+    def solve() -> None:
+        call = nlp.solver_call("fatrop")
+        call(x0, p, lbx, ubx, nlp.lbg, nlp.ubg)
+        assert call.stats()["success"]
+
+    estimate = solvers.memory_bytes(dict(nlp.solvers)["fatrop"])
+    budget = nlp_layer.SPENT_MEMORY_BYTES
+    solve()
+    before = _resident_bytes()
+    count = min(30, int(budget / estimate) - 2)     # no rebuild yet
+    for _ in range(count):
+        solve()
+    per_memory = (_resident_bytes() - before) / count
+    before = _resident_bytes()
+    for _ in range(int(2.5 * budget / estimate) + 10):
+        solve()
+    return {"estimate": estimate, "per_memory": per_memory, "budget": budget,
+            "growth": _resident_bytes() - before}
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/statm"),
+                    reason="resident memory is read from Linux's /proc")
+def test_spent_solver_memories_are_estimated_from_above_and_stay_within_the_budget() -> None:
+    """Every solve takes a fresh memory (purity), and fatrop builds about 1 MB of objects in
+    it: :func:`memory_bytes` must not underestimate that (it once counted the work vectors
+    alone, 51 KB, and a worker grew by about 1 GB per solver before one was built anew), and
+    the spent memories must stay within :data:`SPENT_MEMORY_BYTES`."""
+    root = Path(__file__).resolve().parents[1]
+    code = ("import json, test_nlp_buffered as t\n"
+            "print(json.dumps(t.measure_spent_memories()))\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=root,
+                         env={"PYTHONPATH": f"{root}:{root / 'tests'}", "PATH": "/usr/bin:/bin",
+                              "OPENBLAS_NUM_THREADS": "1"},
+                         capture_output=True, text=True, timeout=600, check=True)
+    m = json.loads(out.stdout.strip().splitlines()[-1])
+    assert 0.2 * m["estimate"] < m["per_memory"] <= m["estimate"]
+    assert m["growth"] <= 1.2 * m["budget"]

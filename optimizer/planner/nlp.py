@@ -490,13 +490,17 @@ class MultipleShootingNLP:
         """Solver ``name`` (see :attr:`solvers`) as a :class:`BufferedCall` of ``(x0, p, lbx,
         ubx, lbg, ubg) -> x`` on a memory that no solve has used: call it once.
 
-        A CasADi solver keeps work vectors per memory, and fatrop reads some of them before
-        it writes them: a solve on a used memory starts from what the previous solve left
-        (the README's example needed 12 iterations on a fresh memory and 29, then failing,
-        after one hard request). Each solve therefore takes a fresh memory (0.03-0.1 ms), so
-        that its answer is a function of its arguments alone. A memory given back would be
-        handed out again, so the spent ones are kept until they hold about
-        :data:`SPENT_MEMORY_BYTES`; then the solver is built anew (the old one frees them).
+        fatrop builds its solver objects at a memory's first solve and keeps them with the
+        memory, and a later solve on it starts from part of what the previous one left (the
+        README's example needed 12 iterations on a fresh memory and 29, then failing, after
+        one hard request; in random order, 50 of 237 solves of 3- to 5-joint plans came out
+        different, 9 even where only converged solves had used the memory before). Each solve
+        therefore takes a fresh memory, so that its answer is a function of its arguments
+        alone: building those objects costs about 0.2-0.5 ms a solve on 3 joints (a third of
+        a solve). A memory given back would be handed out again, so the spent ones are kept
+        until they hold about :data:`SPENT_MEMORY_BYTES` (:func:`~.solvers.memory_bytes`: 1-3
+        MB each); then the solver is built anew (the old one frees them, and the next
+        memories reuse that heap).
         """
         solver = dict(self.solvers)[name]
         spent = self._spent[name]
