@@ -207,3 +207,34 @@ def test_a_bounded_plan_sent_back_keeps_its_bounds(client: TestClient) -> None:
                                           "state": _state_at(body, 0.5, 0.002)})
     assert ok.status_code == 200, ok.text
     assert ok.json()["joint_bounds"] == bounds
+
+
+def test_the_worker_gets_only_the_fields_a_replan_reads_and_answers_as_the_library(
+        client: TestClient, answer: dict) -> None:
+    """An answer sent back is mostly its path's samples, which a replan does not read: the
+    request's plan keeps the fields :func:`optimizer.planner.plan_state.read_plan` reads (and
+    of the path its times and rates), and the continuation is the library's from the whole
+    answer."""
+    from optimizer.planner.replan import replan
+    from service.routers.replans import _payload
+    from service.schemas import ReplanRequest
+
+    t = answer["path"]["t"][10]
+    request = {"plan": answer, "time": t, "state": _state_at(answer, t, 1e-3)}
+    payload = _payload(ReplanRequest.model_validate(request))
+    plan = payload["plan"]
+    assert set(plan["path"]) == {"t", "u"}
+    assert {"q", "z", "v"} & set(plan["path"]) == set()
+    assert "indicators" not in plan and "diagnostics" not in plan
+    assert {"robot", "coefficients", "time_law", "validation", "duration"} <= set(plan)
+    r = client.post("/v1/replans", json=request)
+    assert r.status_code == 200, r.text
+    lib = replan(answer, t, request["state"])
+    body = r.json()
+    for key in ("path", "coefficients", "time_law", "validation"):
+        assert json_equal(body[key], lib[key]), key
+
+
+def json_equal(a: object, b: object) -> bool:
+    import json
+    return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
