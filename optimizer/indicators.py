@@ -105,7 +105,7 @@ def _distances(thT: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[float, fl
         return r, r
     proj = d @ rel
     line2 = sq - proj * proj / nrm
-    s = np.clip(proj / nrm, 0.0, 1.0)
+    s = np.minimum(np.maximum(proj / nrm, 0.0), 1.0)   # (np.clip: 2-3 us more a call)
     seg2 = sq - s * (2.0 * proj - s * nrm)
     return (math.sqrt(max(float(np.max(line2)), 0.0)),
             math.sqrt(max(float(np.max(seg2)), 0.0)))
@@ -230,6 +230,14 @@ def sensitivity_frobenius(s: np.ndarray | float, n: int) -> np.ndarray:
     return np.sqrt(tot)
 
 
+def _frobenius(s: float, n: int) -> float:
+    """:func:`sensitivity_frobenius` of one value, in floats (the same operations)."""
+    tot = 1.0
+    for k in range(n):
+        tot = tot + (n - k) * s ** (2 * k) / math.factorial(k) ** 2
+    return math.sqrt(tot)
+
+
 def compute_indicators(t: np.ndarray, q: np.ndarray, u: np.ndarray | None) -> Indicators:
     """All indicators from samples of a path.
 
@@ -254,8 +262,12 @@ def compute_indicators(t: np.ndarray, q: np.ndarray, u: np.ndarray | None) -> In
     # ||J_R||_F grows with s^2 (every term of its square is a positive multiple of a power
     # of s^2): its largest value over the samples is at the largest |s|
     s = q[:, 0] - q[0, 0]
-    sens = sensitivity_frobenius(np.array([s[-1], np.max(np.abs(s))]), n)
-    energy = math.nan if u is None else float(np.trapezoid(np.sum(u * u, axis=1), t))
+    sens = [_frobenius(float(x), n) for x in (s[-1], np.max(np.abs(s)))]
+    if u is None:
+        energy = math.nan
+    else:   # np.trapezoid's operations, without its dispatch (a third of this function)
+        e = np.einsum("ij,ij->i", u, u)
+        energy = float((np.diff(t) * (e[1:] + e[:-1]) / 2.0).sum())
     turns_th1, turns_phi = _turning_values(thT[0]), _turning_values(q[:, 0])
     return Indicators(
         d_a=float(per[0]),

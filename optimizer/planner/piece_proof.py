@@ -117,7 +117,7 @@ def integrate_pieces(gains: tuple[float, ...], exponents: tuple[int, ...], q0: n
         return None
     Xb = np.vstack([np.asarray(q0, float)[None, :], Xf])          # (M + 1, nq)
     S = s_eval.size
-    k = np.clip(np.searchsorted(breaks, s_eval, side="right") - 1, 0, M - 1)
+    k = np.minimum(np.maximum(np.searchsorted(breaks, s_eval, side="right") - 1, 0), M - 1)
     N = next((x for x in SAMPLE_SIZES if x >= S), S)
     Q = np.zeros((N, nq))
     Q[:S] = Xb[k]
