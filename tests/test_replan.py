@@ -301,3 +301,29 @@ def test_a_bounded_plans_answer_replans_within_its_bounds() -> None:
     assert np.all((th1 > 0.25) & (th1 < 0.95))
     assert np.max(np.abs(run_plant(cont, q_mid + np.radians([0.0, 0.3, -0.3, 0.3]), t,
                                    cont["duration"], PROTOTYPE_K)[1:] - GOAL)) < 1e-6
+
+
+def test_a_continuation_that_leaves_the_region_is_named_as_such(answer: dict,
+                                                                monkeypatch) -> None:
+    """A verified continuation whose joint reaches the region's edge is refused as leaving
+    its limits, naming the joint (it was once reported as a failed re-integration, with the
+    quadrature's message)."""
+    from optimizer.planner import replan as rp
+
+    real = rp._replay
+
+    def reaching_the_edge(*args, **kwargs):
+        proof = real(*args, **kwargs)
+        q = proof.q.copy()
+        q[1, 2] = 0.5 * math.pi     # th2 at pi/2 at the first break
+        return type(proof)(q, proof.final, proof.error_estimate, True)
+
+    monkeypatch.setattr(rp, "_replay", reaching_the_edge)
+    t = 0.3 * answer["duration"]
+    state = np.array(answer["path"]["q"][int(np.searchsorted(answer["path"]["t"], t))])
+    t = float(answer["path"]["t"][int(np.searchsorted(answer["path"]["t"], t))])
+    with pytest.raises(InfeasibleError) as err:
+        replan(answer, t, state, fallback=False)
+    failed = " ".join(err.value.diagnostics["fast_path_failed"])
+    assert "th2 outside its limits" in failed
+    assert "re-integration failed" not in failed

@@ -551,16 +551,18 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         if miss2 < miss:
             rep, miss, rates = rep2, miss2, again
     timing["verification"] = time.perf_counter() - t0
-    if not rep.success or rep.singular:
+    if not rep.success:
         raise NumericalError(f"the continuation's re-integration failed: {rep.message}")
     lo, hi = joint_limits(req)
     qb = rep.q[:sb.size, 1:]
     margins = np.minimum(qb - lo, hi - qb)
     margin = float(np.min(margins))
-    if not margin > 0.0:
+    # (a joint that reaches 0 or pi/2 is outside its limits too: the region is within them)
+    if not margin > 0.0 or rep.singular:
         j = int(np.unravel_index(int(np.argmin(margins)), margins.shape)[1])
-        raise InfeasibleError(f"the continuation takes th{j + 1} outside its limits",
-                              diagnostics={"margin": margin})
+        raise InfeasibleError(f"the continuation takes th{j + 1} outside its limits "
+                              f"({lo[j]:.6g}, {hi[j]:.6g}) rad (margin {margin:.3g} rad)",
+                              diagnostics={"margin": margin, "singular": bool(rep.singular)})
     if not miss <= TERMINAL_TOLERANCE:
         raise NumericalError(f"the continuation misses the goal by {miss:.3g} rad",
                              diagnostics={"terminal_error": miss})
