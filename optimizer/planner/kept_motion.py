@@ -42,8 +42,7 @@ def run_on(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
     """What runs on from ``t`` to the next stop (see :class:`Kept`). A plan without a time law
     jumps at every break: there its next break is the stop."""
     assert ps.rates is not None
-    sig, ds, _ = ps.law.evaluate(np.array([t]))
-    s_t, v = float(sig[0]), float(ds[0])
+    s_t, v, _ = ps.law.at(t)
     tol = 1e-9 * max(1.0, ps.plan_duration)
     k = min(max(int(np.searchsorted(ps.breaks, s_t + tol, side="right")) - 1, 0),
             ps.rates.shape[0] - 1)
@@ -62,7 +61,7 @@ def run_on(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
     else:
         at_rest = P[(P[:, 0] > t) & (np.abs(P[:, 3]) <= REST), 0]
         t_stop = float(at_rest[0]) if at_rest.size else ps.law.end
-        s_stop = float(ps.law.evaluate(np.array([t_stop]))[0][0]) if at_rest.size \
+        s_stop = ps.law.at(t_stop)[0] if at_rest.size \
             else float(ps.law.sigma_ends()[-1])
     j = int(np.argmin(np.abs(ps.breaks - s_stop)))
     if abs(ps.breaks[j] - s_stop) > 1e-7 * max(1.0, ps.plan_duration):
@@ -110,8 +109,7 @@ def brake_now(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
     when no piece is left after the next stop (the plan's last segment), and when the rates
     cannot keep their signs with the motion under way run to its piece's end."""
     assert ps.rates is not None
-    sig, ds, _ = ps.law.evaluate(np.array([t]))
-    s_t, v = float(sig[0]), float(ds[0])
+    s_t, v, _ = ps.law.at(t)
     if v <= REST:
         return run_on(ps, t, u_c)
     k = min(max(int(np.searchsorted(ps.breaks, s_t, side="right")) - 1, 0),

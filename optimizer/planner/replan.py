@@ -114,10 +114,10 @@ class Continuation:
 def _commanded(ps: PlanState, t: float) -> np.ndarray:
     """The rates the plan commands at ``t``."""
     if ps.rates is not None:
-        sig, ds, _ = ps.law.evaluate(np.array([t]))
-        k = min(max(int(np.searchsorted(ps.breaks, sig[0], side="right")) - 1, 0),
+        sig, ds, _ = ps.law.at(t)
+        k = min(max(int(np.searchsorted(ps.breaks, sig, side="right")) - 1, 0),
                 ps.rates.shape[0] - 1)
-        return ps.rates[k] * float(ds[0])
+        return ps.rates[k] * ds
     assert ps.path_t is not None and ps.path_u is not None
     # a chained plan: its handed-out linear form (the later copy of a doubled sample)
     pt, pu = ps.path_t, ps.path_u
@@ -224,7 +224,7 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
     result: dict[str, Any] | None = None
     if cont is not None:
         try:
-            result = _finish(ps, req, t, q_m, u_c, cont, timing)
+            result = _finish(ps, req, t, q_m, u_c, cont, timing, (lo, hi))
         except PlannerError as exc:
             errors.append(f"{exc.code}: {exc.message}")
     if result is None:
@@ -234,7 +234,7 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
                                   diagnostics={"fast_path_failed": errors})
         cont = _fallback(ps, req, t, q_m, u_c, T_end)
         if keep_reversals and ps.rates is not None:
-            sig = float(ps.law.evaluate(np.array([t]))[0][0])
+            sig = ps.law.at(t)[0]
             k = int(np.clip(np.searchsorted(ps.breaks, sig, side="right") - 1, 0,
                             ps.rates.shape[0] - 1))
             had, has = sign_changes(ps.rates[k:]), sign_changes(cont.rates)
@@ -245,7 +245,7 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
                     "on the current plan)", field="keep_reversals",
                     diagnostics={"reversals": has, "plan_reversals": had,
                                  "fast_path_failed": errors})
-        result = _finish(ps, req, t, q_m, u_c, cont, timing)
+        result = _finish(ps, req, t, q_m, u_c, cont, timing, (lo, hi))
     result["timing"]["total"] = time.perf_counter() - t_start
     if errors:
         result["diagnostics"]["replan"]["fast_path_failed"] = errors
@@ -512,8 +512,10 @@ def _replay(robot: Robot, q_m: np.ndarray, cont: Continuation, rates: np.ndarray
 
 
 def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
-            cont: Continuation, timing: dict[str, float]) -> dict[str, Any]:
-    """Verify a continuation on the original model and answer it in a plan's shape.
+            cont: Continuation, timing: dict[str, float],
+            limits: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
+    """Verify a continuation on the original model and answer it in a plan's shape
+    (``limits``: the joints' bounds on the way, :func:`~.rules.joint_limits` of ``req``).
 
     Raises
     ------
@@ -539,7 +541,9 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     ds[np.abs(ds) <= 1e-12 * max(1.0, float(np.max(np.abs(ds))))] = 0.0
     sl = np.minimum(np.maximum(sig - cont.breaks[0], 0.0), float(sb[-1]))
     ph = law.phases
-    jump_t = ph[(ph[:, 3] > REST) & np.isin(ph[:, 2], cont.breaks[1:-1]) & (ph[:, 0] > t), 0]
+    # (a comparison of every pair: np.isin costs about 15 us on these few values)
+    at_break = (ph[:, 2, None] == cont.breaks[None, 1:-1]).any(axis=1)
+    jump_t = ph[(ph[:, 3] > REST) & at_break & (ph[:, 0] > t), 0]
     rates = cont.rates
     rep = _replay(robot, q_m, cont, rates, sl)
     miss = float(np.max(np.abs(rep.final[1:] - goal))) if rep.success else math.inf
@@ -553,7 +557,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     timing["verification"] = time.perf_counter() - t0
     if not rep.success:
         raise NumericalError(f"the continuation's re-integration failed: {rep.message}")
-    lo, hi = joint_limits(req)
+    lo, hi = limits
     qb = rep.q[:sb.size, 1:]
     margins = np.minimum(qb - lo, hi - qb)
     margin = float(np.min(margins))
