@@ -300,3 +300,46 @@ def test_little_motion_is_left_near_the_end(answer: dict) -> None:
     plan_late = run_plant(answer, q0, 0.0, T - 0.05, PROTOTYPE_K)
     plan_end = run_plant(answer, plan_late, T - 0.05, T, PROTOTYPE_K)
     assert np.max(np.abs(plan_end - plan_late)[1:] / np.abs(plan_end - q0)[1:]) > 0.02
+
+
+def test_the_damped_steps_are_the_python_loop_where_the_kernel_is_singular(pieces) -> None:
+    """Where the full-step kernel's systems are singular (one piece moves, three joints), the
+    damped sign-keeping steps (each trial one compiled call) do what :func:`correct_signed`
+    does: the same miss and rates, the resting rates still at rest, the goal reached on
+    scipy's integration of the tests' model."""
+    from optimizer.planner.continuation_map import damped_correct
+
+    q0, _ = pieces
+    W = np.zeros((4, 2))
+    W[2] = [0.05, 0.02]
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 4)
+    end = scipy_end(q0, W)
+    goal = end[1:] + np.array([3e-8, -2e-8, 1e-8])
+    err_k, _ = kernel_correct(emap, q0, goal, W)
+    assert not err_k <= 1e-9                          # the full steps could not
+    err_loop, W_loop, steps_loop = correct_signed(emap, q0, goal, W)
+    err, W1, steps = damped_correct(emap, q0, goal, W)
+    assert np.all(W1[[0, 1, 3]] == 0.0) and np.all(W1[2] * W[2] >= 0.0)
+    assert err <= max(2.0 * err_loop, 1e-12) and steps >= 1
+    assert np.allclose(W1, W_loop, rtol=1e-6, atol=1e-12)
+    # a nearby goal that many pieces reach, signs kept: the goal on scipy's model
+    q0b, Wb = pieces
+    emapb = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    goalb = scipy_end(q0b, Wb)[1:] + np.array([-1e-3, 1e-3, 1e-3])
+    err, W2, _ = damped_correct(emapb, q0b, goalb, Wb)
+    assert err < 1e-10 and np.all(W2 * np.sign(Wb) >= 0.0)
+    assert np.max(np.abs(scipy_end(q0b, W2)[1:] - goalb)) < 1e-8
+
+
+def test_the_damped_steps_say_when_the_signs_cannot_reach(pieces) -> None:
+    """th2 back with every rate forward: no sign-keeping rates reach it; the damped steps
+    stop off the goal (no claim), and no rate crossed 0."""
+    from optimizer.planner.continuation_map import damped_correct
+
+    q0, _ = pieces
+    W = np.tile([0.05, 0.02], (7, 1))
+    emap = PieceMap(tuple(Robot.default(3).gains), tuple(Robot.default(3).exponents), 7)
+    goal = scipy_end(q0, W)[1:] - np.array([0.0, 0.05, 0.0])
+    err, W1, _ = damped_correct(emap, q0, goal, W)
+    assert not err <= 1e-6
+    assert np.all(W1 * np.sign(W) >= 0.0)

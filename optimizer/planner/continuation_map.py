@@ -316,6 +316,131 @@ def _halving_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
     return CompiledCall(fn, 5, (0, 1))
 
 
+#: The damping of the compiled "undamped" step (relative to the mean diagonal): a system that
+#: is singular (a joint no free rate moves) then gets its least-squares step, as numpy's
+#: lstsq gives the Python loop; CasADi's compiled solve fails the whole call on it (with
+#: 1e-12 and 1e-10 it did, on one piece moving three joints). 1e-8 moves a regular step by a
+#: relative 1e-8 or so, and the steps still converge fast to the target.
+SINGULAR_DAMPING = 1e-8
+
+
+def damped_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> BoundCall:
+    """One step of :func:`correct_signed` in one call, ``(q0, W, goal, D2, signs, damping,
+    halvings) -> (th - goal, W_new, th_new - goal, accepted)``: the miss at ``W`` and the
+    sign-keeping step (:func:`signed_step`, :data:`MAX_ACTIVE` rounds of its active set)
+    damped by ``damping`` (Levenberg-Marquardt, relative to the mean diagonal), the first of
+    its first ``halvings`` fractions (:data:`HALVINGS`) that shrinks the miss; ``accepted``
+    0 when none does (then ``W_new`` is ``W``). :func:`damped_correct` drives it (the
+    dampings in turn, early stops): what the Python loop did with a map call per trial and a
+    numpy active set per damping."""
+    return BoundCall(_damped_kernel(tuple(exponents), P), gains)
+
+
+def _signed_direction(Jt: ca.MX, r: ca.MX, w: ca.MX, D2: ca.MX, signs: ca.MX,
+                      damping: ca.MX, rounds: int) -> ca.MX:
+    """:func:`signed_step` as an expression: the weighted least-norm step ``dx`` (``w - dx``
+    the new rates) damped by ``damping``, ``rounds`` rounds of its active set (a rate the
+    step would take across 0 is held there)."""
+    m = Jt.shape[0]
+    ones = ca.DM.ones(m, 1)
+    fixed = D2 == 0
+    dx = w
+    for _ in range(rounds):
+        d = D2 * (1 - fixed)
+        JD = Jt * ca.mtimes(ones, d.T)
+        A = ca.mtimes(JD, Jt.T)
+        A = A + damping * (ca.trace(A) / m) * ca.MX.eye(m)
+        rhs = r - ca.mtimes(Jt, fixed * w)
+        step = ca.mtimes(JD.T, ca.solve(A, rhs))
+        dx = step * (1 - fixed) + w * fixed
+        fixed = fixed + (1 - fixed) * ((w - dx) * signs < 0)
+    crossed = (w - dx) * signs < 0
+    return dx * (1 - crossed) + w * crossed
+
+
+@functools.lru_cache(maxsize=64)
+def _damped_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
+    n = len(exponents) + 1
+    F = _piece_step(exponents)
+    forward = piece_function(exponents, SUBSTEPS).mapaccum("forward", P)
+    K = ca.MX.sym("K", n - 1)
+    q0 = ca.MX.sym("q0", n + 1)
+    W = ca.MX.sym("W", 2, P)
+    goal = ca.MX.sym("goal", n)
+    D2 = ca.MX.sym("D2", 2 * P)
+    signs = ca.MX.sym("signs", 2 * P)
+    damping = ca.MX.sym("damping")
+    halvings = ca.MX.sym("halvings")
+    w = ca.vec(W)
+    x, J = _end_and_jacobian(F, q0, w, K, P)
+    Jt = J[1:, :]
+    r = x[1:] - goal
+    size = ca.sumsqr(r)
+    dx = _signed_direction(Jt, r, w, D2, signs, ca.fmax(damping, SINGULAR_DAMPING), MAX_ACTIVE)
+    chosen_w, chosen_r, accepted = w, r, ca.MX(0.0)
+    for j in reversed(range(len(HALVINGS[:5]))):
+        V = w - HALVINGS[j] * dx
+        rV = forward(q0, ca.reshape(V, 2, P), ca.repmat(K, 1, P))[1:, P - 1] - goal
+        better = ca.logic_and(ca.sumsqr(rV) < size, j < halvings)
+        chosen_w = ca.if_else(better, V, chosen_w)
+        chosen_r = ca.if_else(better, rV, chosen_r)
+        accepted = ca.if_else(better, 1.0, accepted)
+    fn = ca.Function(f"continuation_damped_{P}", [q0, W, goal, D2, signs, damping, halvings, K],
+                     [r, ca.reshape(chosen_w, 2, P), chosen_r, accepted])
+    return CompiledCall(fn, 8, (0, 1, 2, 3))
+
+
+def damped_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
+                   target: float = TARGET, max_steps: int = SIGNED_STEPS
+                   ) -> tuple[float, np.ndarray, int]:
+    """:func:`correct_signed` with each trial one compiled call (:func:`damped_kernel`): the
+    same steps, dampings, halvings and stops. Returns the map's miss (rad, max norm), the
+    rates ``(M, 2)`` and the steps taken."""
+    W = np.array(W0, float)
+    scale = float(np.max(np.abs(W), initial=0.0))
+    signs = np.where(np.abs(W) > 1e-9 * scale, np.sign(W), 0.0)
+    W[signs == 0.0] = 0.0
+    P, M = emap.P, emap.M
+    full = np.zeros((P, 2))
+    full[P - M:] = W
+    s_full = np.zeros((P, 2))
+    s_full[P - M:] = signs
+    D2_full = np.zeros(2 * P)
+    D2_full[2 * (P - M):] = piece_weights(W0, signs == 0.0)
+    fn = damped_kernel(emap.gains, emap.exponents, P)
+    q0 = np.asarray(q0, float)
+    goal = np.asarray(goal, float)
+    err, size = math.inf, math.inf
+    steps = stalls = 0
+    mu = 0.0
+    while steps <= max_steps:
+        accepted = False
+        for damping in ((mu,) if mu else ()) + DAMPINGS:
+            r, V, rV, ok = fn(q0, full, goal, D2_full, s_full, np.array([damping]),
+                              np.array([5.0 if damping == 0.0 else 2.0]))
+            err, size = float(np.max(np.abs(r))), float(r @ r)
+            if not math.isfinite(size) or err <= target or steps == max_steps:
+                break
+            if ok[0] == 1.0:
+                accepted = True
+                break
+        if not accepted:
+            break
+        mu = 0.5 * damping if damping > 1e-6 else 0.0
+        s2 = float(rV @ rV)
+        stalls = stalls + 1 if s2 > STALL * size else 0
+        full = V.reshape(P, 2)
+        steps += 1
+        if stalls >= 3:
+            err = float(np.max(np.abs(rV)))
+            break
+    W_new = full[P - M:].copy()
+    W_new[signs == 0.0] = 0.0
+    if not (math.isfinite(err) and np.all(np.isfinite(W_new))) or np.any(W_new * signs < 0.0):
+        return math.inf, W, steps
+    return err, W_new, steps
+
+
 def halving_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
                     floor: float | None = WEIGHT_FLOOR) -> tuple[float, np.ndarray]:
     """The any-sign correction in one compiled call (:func:`halving_kernel`) from ``W0``
@@ -385,6 +510,7 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], build: bool = 
     kernels: list[CompiledCall] = []
     for P in SIZES:
         kernels += [_signed_kernel(exponents, P), _halving_kernel(exponents, P),
+                    _damped_kernel(exponents, P),
                     _jacobian_map(exponents, P)]
     if build:
         for kernel in kernels:
@@ -577,6 +703,6 @@ def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
     return err, W, steps
 
 
-__all__ = ["jacobian_map", "piece_function", "HALVING_STEPS", "HALVING_TRIES", "halving_correct", "halving_kernel", "CompiledCall", "KERNEL_STEPS", "KERNEL_ROUNDS", "kernel_correct", "signed_kernel", "DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
+__all__ = ["jacobian_map", "piece_function", "HALVING_STEPS", "HALVING_TRIES", "halving_correct", "halving_kernel", "damped_correct", "damped_kernel", "CompiledCall", "KERNEL_STEPS", "KERNEL_ROUNDS", "kernel_correct", "signed_kernel", "DAMPINGS", "HALVINGS", "correct_signed", "signed_step", "MAX_STEPS", "PieceMap", "SIZES", "SUBSTEPS", "TARGET", "WEIGHT_FLOOR",
            "correct_pieces", "piece_end", "BoundCall", "prepare", "piece_weights", "size_for",
            "weighted_step"]

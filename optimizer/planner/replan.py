@@ -33,8 +33,9 @@ geometry and the timing are corrected separately.
    least-norm Gauss-Newton steps onto the goal (``th_1..th_n``; ``phi`` is free). First
    every rate keeps its sign (each step restricted to the rates' signs, an active set): no
    reversal of ``phi`` or ``th1`` is added; five full steps in one compiled call
-   (:func:`~.continuation_map.signed_kernel`), least-squares, halved and damped steps in
-   Python where its systems were singular. Unless ``keep_reversals``, any sign when that fails (halved steps, one compiled
+   (:func:`~.continuation_map.signed_kernel`); least-squares, halved and damped steps
+   where its systems were singular (each trial one compiled call,
+   :func:`~.continuation_map.damped_correct`). Unless ``keep_reversals``, any sign when that fails (halved steps, one compiled
    call, :func:`~.continuation_map.halving_kernel`). The
    remaining law is kept when nothing was split or stopped early; otherwise every piece runs
    rest to rest in equal times (:func:`~.plan_state.law_after_stop`).
@@ -79,7 +80,7 @@ from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array,
                          invalid, law_after_stop, read_plan)
 from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
 from .continuation_map import (HALVING_STEPS, KERNEL_STEPS, WEIGHT_FLOOR, PieceMap,
-                               correct_pieces, correct_signed, halving_correct,
+                               correct_pieces, damped_correct, halving_correct,
                                kernel_correct, piece_end, piece_weights, weighted_step)
 from .piece_proof import integrate_pieces
 from .rules import TERMINAL_TOLERANCE, joint_limits, kept_limits, limits_region
@@ -92,7 +93,8 @@ TAIL_RATIO = 0.35
 #: verification's defect step removes the map's own error (~1e-9 rad).
 KERNEL_ACCEPT = 1e-9
 #: Where the kernel misses by more than that but at most this (rad), or gives no finite
-#: answer, the sign-keeping Python loop tries (see :func:`_correct`).
+#: answer, the damped sign-keeping steps try (:func:`~.continuation_map.damped_correct`, see
+#: :func:`_correct`).
 LOOP_AFTER_KERNEL = 1e-5
 # ------------------------------------------------------------------ the replanner
 @dataclass(frozen=True)
@@ -380,17 +382,17 @@ def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
     if signed_first:
         # one compiled call of full steps; where a system was singular (fewer rates left
         # free than joints to move: no finite answer, or a hair off the goal), the long way,
-        # which solves those by least squares and halves and damps its steps. In closed loop
-        # (n = 3, five goals) it kept the signs on 7 of 118 corrections where the kernel
-        # had not, each of them singular (without it two goals reversed four times more);
-        # where the kernel ends far off the goal (1e-4 to 1e3 rad) the loop reached it on 1
-        # of 74 corrections at n = 4 and none of 81 random states, at some 3 ms each: not
-        # run there
+        # which solves those by least squares and halves and damps its steps (each trial one
+        # compiled call). In closed loop (n = 3, five goals) it kept the signs on 7 of 118
+        # corrections where the kernel had not, each of them singular (without it two goals
+        # reversed four times more); where the kernel ends far off the goal (1e-4 to 1e3
+        # rad) it reached it on 1 of 74 corrections at n = 4 and none of 81 random states:
+        # not run there
         err, W = kernel_correct(emap, q0, goal, W0)
         if err <= KERNEL_ACCEPT:
             return err, W, KERNEL_STEPS, piece_weights(W0, W == 0.0), True
         if not math.isfinite(err) or err <= LOOP_AFTER_KERNEL:
-            err, W, steps = correct_signed(emap, q0, goal, W0)
+            err, W, steps = damped_correct(emap, q0, goal, W0)
             if err <= 1e-6:
                 return err, W, steps, piece_weights(W0, W == 0.0), True
     if not keep_reversals:
