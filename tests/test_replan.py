@@ -327,3 +327,38 @@ def test_a_continuation_that_leaves_the_region_is_named_as_such(answer: dict,
     failed = " ".join(err.value.diagnostics["fast_path_failed"])
     assert "th2 outside its limits" in failed
     assert "re-integration failed" not in failed
+
+
+def test_the_fallback_keeps_to_the_time_limit(answer: dict, monkeypatch) -> None:
+    """The full planner's two methods share the replan's time limit: the second gets what the
+    first left (on 6-joint states each ran to its own 10 s limit: 20 s for a 10 s replan),
+    and none left is a timeout naming ``time_limit``."""
+    import time
+
+    from optimizer.errors import NumericalError, SolverTimeoutError
+    from optimizer.planner import replan as rp
+
+    def no_fast_path(*args, **kwargs):
+        raise NumericalError("the fast path is not asked here")
+
+    given: list[tuple[str, float]] = []
+
+    def slow_planner(sub):
+        given.append((sub.method, sub.time_limit))
+        time.sleep(0.3 if sub.method == "shooting" else 0.0)
+        raise SolverTimeoutError("found nothing", field="time_limit")
+
+    monkeypatch.setattr(rp, "_fast", no_fast_path)
+    monkeypatch.setattr(rp, "full_plan", slow_planner)
+    i = len(answer["path"]["t"]) // 3
+    t, state = float(answer["path"]["t"][i]), np.array(answer["path"]["q"][i])
+    with pytest.raises(SolverTimeoutError):
+        replan(answer, t, state, time_limit=2.0)
+    (m1, limit1), (m2, limit2) = given
+    assert (m1, m2) == ("shooting", "penalty")
+    assert limit1 <= 2.0 and limit2 <= limit1 - 0.3
+    # nothing left after the first: a timeout naming the field, the second not run
+    given.clear()
+    with pytest.raises(SolverTimeoutError) as err:
+        replan(answer, t, state, time_limit=0.25)
+    assert err.value.field == "time_limit" and [m for m, _ in given] == ["shooting"]

@@ -67,7 +67,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..chained_form import chained_form
-from ..errors import InvalidRequestError, InfeasibleError, NumericalError, PlannerError
+from ..errors import (InvalidRequestError, InfeasibleError, NumericalError, PlannerError,
+                      SolverTimeoutError)
 from ..forms import EXECUTION_TOLERANCE, REPLAY_NODES, correct, linear_form
 from ..indicators import compute_indicators
 from ..model import Robot
@@ -234,7 +235,7 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
             raise InfeasibleError("the fast path found no continuation, and the full planner "
                                   "was not asked for (fallback=false)", field="fallback",
                                   diagnostics={"fast_path_failed": errors})
-        cont = _fallback(ps, req, t, q_m, u_c, T_end)
+        cont = _fallback(ps, req, t, q_m, u_c, T_end, t_start + float(time_limit))
         if keep_reversals and ps.rates is not None:
             sig = ps.law.at(t)[0]
             k = int(np.clip(np.searchsorted(ps.breaks, sig, side="right") - 1, 0,
@@ -454,8 +455,16 @@ def _assemble(kept: Kept, free: np.ndarray, new_rates: np.ndarray, later: np.nda
 
 
 def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
-              T_end: float) -> Continuation:
-    """Step 4 of the module: the kept motion (or a braking), then the full planner."""
+              T_end: float, deadline: float) -> Continuation:
+    """Step 4 of the module: the kept motion (or a braking), then the full planner, both of
+    its methods within what is left of the replan's time limit (``deadline``, on
+    :func:`time.perf_counter`'s clock).
+
+    Raises
+    ------
+    SolverTimeoutError
+        The time limit ran out (``field='time_limit'``).
+    """
     if ps.rates is not None:
         kept = run_on(ps, t, u_c)
         if kept.k >= ps.rates.shape[0]:
@@ -476,11 +485,12 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
         raise InfeasibleError("the motion under way leaves the region before its next stop: "
                               "no continuation starts there", field="state")
     sub = replace(req, start=tuple(q_stop[1:]), phi_start=float(q_stop[0]), duration=None,
-                  method="shooting", samples=11)
+                  method="shooting", samples=11, time_limit=_time_left(req, deadline))
     try:
         p = full_plan(sub)
     except PlannerError:
-        p = full_plan(replace(sub, method="penalty"))
+        # (each planner honours its own limit: the second gets what the first left)
+        p = full_plan(replace(sub, method="penalty", time_limit=_time_left(req, deadline)))
     sched = p.inputs
     breaks = kept.s_stop + np.asarray(sched.breaks, float)   # its plan time after the stop
     rates = np.asarray(sched.rates, float)                    # type: ignore[union-attr]
@@ -490,6 +500,16 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
     later = law_after_stop(t_stop, T_end, breaks, equal=tailed)
     return _assemble(kept, breaks, rates, later, kept.s_stop + float(sched.breaks[-1]),
                      "full_planner", 0)
+
+
+def _time_left(req: PlanRequest, deadline: float) -> float:
+    """Seconds left before ``deadline`` for the full planner (raises
+    :class:`SolverTimeoutError` when none is)."""
+    left = deadline - time.perf_counter()
+    if not left > 0.0:
+        raise SolverTimeoutError(f"no continuation was found within the time limit of "
+                                 f"{req.time_limit:g} s (raise time_limit)", field="time_limit")
+    return left
 
 
 def _piece(breaks: np.ndarray, s: np.ndarray) -> np.ndarray:
