@@ -238,25 +238,9 @@ def _signed_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
     D2 = ca.MX.sym("D2", 2 * P)
     signs = ca.MX.sym("signs", 2 * P)
     w = ca.vec(W)
-    held = D2 == 0
-    ones = ca.DM.ones(n, 1)
-
     for _ in range(KERNEL_STEPS):
         x, J = _end_and_jacobian(F, q0, w, K, P)
-        r = x[1:] - goal
-        Jt = J[1:, :]
-        fixed = held
-        dx = w
-        for _ in range(KERNEL_ROUNDS):
-            d = D2 * (1 - fixed)
-            JD = Jt * ca.mtimes(ones, d.T)
-            rhs = r - ca.mtimes(Jt, fixed * w)
-            step = ca.mtimes(JD.T, ca.solve(ca.mtimes(JD, Jt.T), rhs))
-            dx = step * (1 - fixed) + w * fixed
-            bad = (1 - fixed) * ((w - dx) * signs < 0)
-            fixed = fixed + bad
-        crossed = (w - dx) * signs < 0
-        w = w - (dx * (1 - crossed) + w * crossed)
+        w = w - _signed_direction(J[1:, :], x[1:] - goal, w, D2, signs, None, KERNEL_ROUNDS)
     x = q0
     for k in range(P):
         x = F(x, w[2 * k:2 * k + 2], K)[0]
@@ -337,10 +321,10 @@ def damped_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) 
 
 
 def _signed_direction(Jt: ca.MX, r: ca.MX, w: ca.MX, D2: ca.MX, signs: ca.MX,
-                      damping: ca.MX, rounds: int) -> ca.MX:
+                      damping: ca.MX | None, rounds: int) -> ca.MX:
     """:func:`signed_step` as an expression: the weighted least-norm step ``dx`` (``w - dx``
-    the new rates) damped by ``damping``, ``rounds`` rounds of its active set (a rate the
-    step would take across 0 is held there)."""
+    the new rates) damped by ``damping`` (None: undamped), ``rounds`` rounds of its active
+    set (a rate the step would take across 0 is held there)."""
     m = Jt.shape[0]
     ones = ca.DM.ones(m, 1)
     fixed = D2 == 0
@@ -349,7 +333,8 @@ def _signed_direction(Jt: ca.MX, r: ca.MX, w: ca.MX, D2: ca.MX, signs: ca.MX,
         d = D2 * (1 - fixed)
         JD = Jt * ca.mtimes(ones, d.T)
         A = ca.mtimes(JD, Jt.T)
-        A = A + damping * (ca.trace(A) / m) * ca.MX.eye(m)
+        if damping is not None:
+            A = A + damping * (ca.trace(A) / m) * ca.MX.eye(m)
         rhs = r - ca.mtimes(Jt, fixed * w)
         step = ca.mtimes(JD.T, ca.solve(A, rhs))
         dx = step * (1 - fixed) + w * fixed
@@ -390,23 +375,52 @@ def _damped_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
     return CompiledCall(fn, 8, (0, 1, 2, 3))
 
 
+def _padded(emap: "PieceMap", W0: np.ndarray, signed: bool, floor: float | None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The kernels' inputs of the rates ``W0`` ``(M, 2)``, padded in front to the map's size
+    ``P``: the rates ``W`` (``signed``: those at rest exactly 0), their signs (0 at rest),
+    and the padded rates, signs (``signed``; else 0: any sign) and squared weights
+    (:func:`piece_weights`: ``signed``, 0 where at rest; else of ``floor``)."""
+    W = np.array(W0, float)
+    scale = float(np.max(np.abs(W), initial=0.0))
+    signs = np.where(np.abs(W) > 1e-9 * scale, np.sign(W), 0.0)
+    if signed:
+        W[signs == 0.0] = 0.0
+    P, M = emap.P, emap.M
+    full = np.zeros((P, 2))
+    full[P - M:] = W
+    s_full = np.zeros((P, 2))
+    if signed:
+        s_full[P - M:] = signs
+    D2_full = np.zeros(2 * P)
+    D2_full[2 * (P - M):] = (piece_weights(W0, signs == 0.0) if signed
+                             else piece_weights(W0, None, floor))
+    return W, signs, full, s_full, D2_full
+
+
+def _unpadded(emap: "PieceMap", W_end: np.ndarray, err: float, W: np.ndarray,
+              signs: np.ndarray, signed: bool) -> tuple[float, np.ndarray]:
+    """A kernel's answer ``(miss, rates (M, 2))`` from its padded rates ``W_end``: the miss
+    ``inf`` and the rates ``W`` back when it is not finite or (``signed``) a sign crossed;
+    ``signed``, the rates at rest held at exactly 0 (the kernels' arithmetic leaves denormals
+    there)."""
+    W_new = np.asarray(W_end, float).reshape(emap.P, 2)[emap.P - emap.M:].copy()
+    if signed:
+        W_new[signs == 0.0] = 0.0
+    if not (math.isfinite(err) and np.all(np.isfinite(W_new))) or \
+            (signed and np.any(W_new * signs < 0.0)):
+        return math.inf, W
+    return err, W_new
+
+
 def damped_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
                    target: float = TARGET, max_steps: int = SIGNED_STEPS
                    ) -> tuple[float, np.ndarray, int]:
     """:func:`correct_signed` with each trial one compiled call (:func:`damped_kernel`): the
     same steps, dampings, halvings and stops. Returns the map's miss (rad, max norm), the
     rates ``(M, 2)`` and the steps taken."""
-    W = np.array(W0, float)
-    scale = float(np.max(np.abs(W), initial=0.0))
-    signs = np.where(np.abs(W) > 1e-9 * scale, np.sign(W), 0.0)
-    W[signs == 0.0] = 0.0
-    P, M = emap.P, emap.M
-    full = np.zeros((P, 2))
-    full[P - M:] = W
-    s_full = np.zeros((P, 2))
-    s_full[P - M:] = signs
-    D2_full = np.zeros(2 * P)
-    D2_full[2 * (P - M):] = piece_weights(W0, signs == 0.0)
+    W, signs, full, s_full, D2_full = _padded(emap, W0, True, None)
+    P = emap.P
     fn = damped_kernel(emap.gains, emap.exponents, P)
     q0 = np.asarray(q0, float)
     goal = np.asarray(goal, float)
@@ -434,11 +448,7 @@ def damped_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.nd
         if stalls >= 3:
             err = float(np.max(np.abs(rV)))
             break
-    W_new = full[P - M:].copy()
-    W_new[signs == 0.0] = 0.0
-    if not (math.isfinite(err) and np.all(np.isfinite(W_new))) or np.any(W_new * signs < 0.0):
-        return math.inf, W, steps
-    return err, W_new, steps
+    return (*_unpadded(emap, full, err, W, signs, True), steps)
 
 
 def halving_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
@@ -446,18 +456,10 @@ def halving_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.n
     """The any-sign correction in one compiled call (:func:`halving_kernel`) from ``W0``
     ``(M, 2)``, weights of ``floor``: the map's miss (rad, max norm; inf when not finite)
     and the rates ``(M, 2)``."""
-    P, M = emap.P, emap.M
-    full = np.zeros((P, 2))
-    full[P - M:] = W0
-    D2_full = np.zeros(2 * P)
-    D2_full[2 * (P - M):] = piece_weights(W0, None, floor)
-    fn = halving_kernel(emap.gains, emap.exponents, P)
+    W, signs, full, _, D2_full = _padded(emap, W0, False, floor)
+    fn = halving_kernel(emap.gains, emap.exponents, emap.P)
     W_end, r = fn(np.asarray(q0, float), full, np.asarray(goal, float), D2_full)
-    W_new = W_end.reshape(P, 2)[P - M:]
-    err = float(np.max(np.abs(r)))
-    if not (math.isfinite(err) and np.all(np.isfinite(W_new))):
-        return math.inf, np.array(W0, float)
-    return err, W_new
+    return _unpadded(emap, W_end, float(np.max(np.abs(r))), W, signs, False)
 
 
 def kernel_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
@@ -467,32 +469,10 @@ def kernel_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.nd
     ``signed``, no rate changes sign (a rate at rest stays at rest); else any sign, weights
     of ``floor`` (:func:`piece_weights`). Returns the map's miss (rad, max norm; inf when a
     step was singular or, ``signed``, a sign crossed) and the rates ``(M, 2)``."""
-    W = np.array(W0, float)
-    scale = float(np.max(np.abs(W), initial=0.0))
-    signs = np.where(np.abs(W) > 1e-9 * scale, np.sign(W), 0.0)
-    if signed:
-        W[signs == 0.0] = 0.0
-        D2 = piece_weights(W0, signs == 0.0)
-    else:
-        D2 = piece_weights(W0, None, floor)
-    P, M = emap.P, emap.M
-    full = np.zeros((P, 2))
-    full[P - M:] = W
-    s_full = np.zeros((P, 2))
-    if signed:
-        s_full[P - M:] = signs
-    D2_full = np.zeros(2 * P)
-    D2_full[2 * (P - M):] = D2
-    fn = signed_kernel(emap.gains, emap.exponents, P)
+    W, signs, full, s_full, D2_full = _padded(emap, W0, signed, floor)
+    fn = signed_kernel(emap.gains, emap.exponents, emap.P)
     W_end, r = fn(np.asarray(q0, float), full, np.asarray(goal, float), D2_full, s_full)
-    W_new = W_end.reshape(P, 2)[P - M:]
-    if signed:      # held at rest exactly (the kernel's arithmetic leaves denormals there)
-        W_new[signs == 0.0] = 0.0
-    err = float(np.max(np.abs(r)))
-    if not (math.isfinite(err) and np.all(np.isfinite(W_new))) or \
-            (signed and np.any(W_new * signs < 0.0)):
-        return math.inf, W
-    return err, W_new
+    return _unpadded(emap, W_end, float(np.max(np.abs(r))), W, signs, signed)
 
 
 def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], build: bool = False

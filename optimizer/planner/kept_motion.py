@@ -44,8 +44,7 @@ def run_on(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
     assert ps.rates is not None
     s_t, v, _ = ps.law.at(t)
     tol = 1e-9 * max(1.0, ps.plan_duration)
-    k = min(max(int(np.searchsorted(ps.breaks, s_t + tol, side="right")) - 1, 0),
-            ps.rates.shape[0] - 1)
+    k = ps.piece_at(s_t + tol)
     if v <= REST:
         if float(np.max(np.abs(u_c))) > 1e-9:
             raise NumericalError("the plan is at rest at this time but rates were given",
@@ -112,8 +111,7 @@ def brake_now(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
     s_t, v, _ = ps.law.at(t)
     if v <= REST:
         return run_on(ps, t, u_c)
-    k = min(max(int(np.searchsorted(ps.breaks, s_t, side="right")) - 1, 0),
-            ps.rates.shape[0] - 1)
+    k = ps.piece_at(s_t)
     room = float(ps.breaks[k + 1]) - s_t
     D = min(BRAKE_TIME, 0.25 * (T_end - t), room / v)   # travels v D / 2 <= room / 2
     if D <= 0.0:

@@ -231,6 +231,13 @@ class PlanState:
     def start_time(self) -> float:
         return self.law.start
 
+    def piece_at(self, s: float) -> int:
+        """The index of the rate piece that holds the path parameter ``s`` (its last piece
+        at and beyond the end; needs ``rates``)."""
+        assert self.rates is not None
+        return min(max(int(np.searchsorted(self.breaks, s, side="right")) - 1, 0),
+                   self.rates.shape[0] - 1)
+
     @property
     def end_time(self) -> float:
         return self.law.end

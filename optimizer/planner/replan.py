@@ -118,9 +118,7 @@ def _commanded(ps: PlanState, t: float) -> np.ndarray:
     """The rates the plan commands at ``t``."""
     if ps.rates is not None:
         sig, ds, _ = ps.law.at(t)
-        k = min(max(int(np.searchsorted(ps.breaks, sig, side="right")) - 1, 0),
-                ps.rates.shape[0] - 1)
-        return ps.rates[k] * ds
+        return ps.rates[ps.piece_at(sig)] * ds
     assert ps.path_t is not None and ps.path_u is not None
     # a chained plan: its handed-out linear form (the later copy of a doubled sample)
     pt, pu = ps.path_t, ps.path_u
@@ -237,9 +235,7 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
                                   diagnostics={"fast_path_failed": errors})
         cont = _fallback(ps, req, t, q_m, u_c, T_end, t_start + float(time_limit))
         if keep_reversals and ps.rates is not None:
-            sig = ps.law.at(t)[0]
-            k = int(np.clip(np.searchsorted(ps.breaks, sig, side="right") - 1, 0,
-                            ps.rates.shape[0] - 1))
+            k = ps.piece_at(ps.law.at(t)[0])
             had, has = sign_changes(ps.rates[k:]), sign_changes(cont.rates)
             if has > had:
                 raise InfeasibleError(
