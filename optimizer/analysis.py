@@ -406,11 +406,13 @@ ESTIMATE_FIELD = "gains_estimated"
 def closed_loop_robustness(plan: Plan, starts: np.ndarray, gain_error: float, period: float,
                            noise: float = 0.0, seed: int = 0, *, paths: bool = False,
                            deadline: Deadline | None = None,
-                           identify: bool = False) -> dict[str, Any]:
+                           identify: bool = False,
+                           keep_reversals: bool = False) -> dict[str, Any]:
     """Each start on its own plant (gains ``K_i (1 + e_i)``, ``e_i`` uniform in
     ``+-gain_error``, seeded), open loop and closed loop (:func:`closed_loop_run` with
     ``period`` and measurement ``noise``; ``identify``: estimating the plant's gains as it
-    goes), side by side.
+    goes; ``keep_reversals``: a continuation that would reverse an actuator more often than
+    the plan's rest is refused, and the run goes on with the current plan), side by side.
 
     Returns
     -------
@@ -441,7 +443,7 @@ def closed_loop_robustness(plan: Plan, starts: np.ndarray, gain_error: float, pe
         e = rng.uniform(-gain_error, gain_error, plan.robot.n - 1)
         op = closed_loop_run(answer, s, e, None)
         cl = closed_loop_run(answer, s, e, period, noise=noise, seed=seed + 1 + i,
-                             identify=identify)
+                             identify=identify, keep_reversals=keep_reversals)
         closed = {k: cl[k] for k in keep + ((ESTIMATE_FIELD,) if identify else ())}
         runs.append({"start": np.asarray(s, float).tolist(), "gain_errors": e.tolist(),
                      "open": {k: op[k] for k in keep}, "closed": closed})
@@ -452,7 +454,7 @@ def closed_loop_robustness(plan: Plan, starts: np.ndarray, gain_error: float, pe
     eo, ec = column("open", "terminal_error"), column("closed", "terminal_error")
     summary = {
         "runs": len(runs), "gain_error": gain_error, "period": period, "noise": noise,
-        "identify": identify,
+        "identify": identify, "keep_reversals": keep_reversals,
         "plan_reversals": nominal,
         "open": {"terminal_error_median": float(np.median(eo)),
                  "terminal_error_max": float(np.max(eo)),

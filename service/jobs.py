@@ -145,7 +145,8 @@ def job_robustness(payload: Payload) -> dict[str, Any]:
             nominal, np.asarray(starts, float), float(loop["gain_error"]),
             float(loop["period"]), float(loop["noise"]), int(loop["seed"]),
             paths=bool(payload.get("include_paths")), deadline=deadline,
-            identify=bool(loop.get("identify", False)))
+            identify=bool(loop.get("identify", False)),
+            keep_reversals=bool(loop.get("keep_reversals", False)))
     return out
 
 

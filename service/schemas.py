@@ -148,6 +148,11 @@ class ClosedLoop(RequestModel):
         False, description="true: every period the closed loop estimates the plant's gains "
                            "from the measured motion and replans on them; false: replans on "
                            "the plan's model.")
+    keep_reversals: bool = Field(
+        False, description="true: a continuation that would reverse phi or th1 more often than "
+                           "the plan's rest is refused and the run goes on with the current "
+                           "plan (the reversals of the plan kept, the error it cannot remove "
+                           "without them left); false: every replan goes for the goal.")
 
 
 # ---------------------------------------------------------------------- limit-dependent requests

@@ -133,3 +133,43 @@ def test_the_closed_loop_margin_is_measured_to_the_limits_the_planner_keeps(last
         assert np.max(th[:, 2]) > math.pi / 2 + 0.3       # the last joint leaves (0, pi/2)
     assert run["margin"] == pytest.approx(expected, abs=1e-12)
     assert run["margin"] > 0.0
+
+
+def _reversals(x: np.ndarray, dead_band: float = 1e-4) -> int:
+    """Direction changes of a sampled signal by more than ``dead_band`` (written here, apart
+    from the library's counter)."""
+    count, direction, ext = 0, 0, float(x[0])
+    for v in map(float, x[1:]):
+        if direction == 0:
+            if abs(v - x[0]) > dead_band:
+                direction, ext = (1 if v > x[0] else -1), v
+        elif direction * (v - ext) > 0.0:
+            ext = v
+        elif abs(v - ext) > dead_band:
+            count, direction, ext = count + 1, -direction, v
+    return count
+
+
+def test_the_closed_loop_can_keep_the_plans_reversals() -> None:
+    """A 3-joint plan in which neither actuator reverses, a start 0.5 deg off and gains 5 %
+    off. The loop that estimates the gains reaches the goal by reversing an actuator; told to
+    keep the reversals, it refuses those continuations: the executed path (counted here from
+    the plant's states, integrated by scipy in the loop) has none, and the miss it cannot
+    remove without one stays."""
+    start, goal = (0.149502, 0.688328, 1.308793), (0.893995, 0.565376, 1.188335)
+    p = plan(PlanRequest(start=start, goal=goal, robot=Robot.default(3)))
+    assert p.indicators.reversals_phi + p.indicators.reversals_th1 == 0
+    answer = p.to_dict()
+    q0 = np.asarray(start) + np.radians([0.5, -0.4, 0.3])
+    errors = np.array([0.05, -0.04])
+    open_loop = closed_loop_run(answer, q0, errors, None)
+    free = closed_loop_run(answer, q0, errors, 0.05, identify=True)
+    kept = closed_loop_run(answer, q0, errors, 0.05, identify=True, keep_reversals=True)
+    for run in (free, kept):
+        q = np.asarray(run["path_q"])
+        run["counted"] = _reversals(q[:, 0]) + _reversals(q[:, 1])
+        assert run["margin"] > 0.0
+    assert open_loop["terminal_error"] > 5e-3
+    assert free["terminal_error"] < 1e-9 and free["counted"] >= 1
+    assert kept["counted"] == 0 and kept["replan_failures"] > 0
+    assert kept["terminal_error"] > 1e-3

@@ -124,6 +124,22 @@ def test_identified_gains_over_http(client: TestClient, answer: dict) -> None:
         assert b["closed"]["gains_estimated"] == pytest.approx(plant, rel=1e-6)
 
 
+def test_the_closed_loop_mode_can_keep_the_plans_reversals(client: TestClient) -> None:
+    """``closed_loop.keep_reversals`` reaches the library: the summary says so and no closed
+    run reverses an actuator more often than the plan."""
+    body = {"plan": PLAN, "random": {"count": 2, "spread": math.radians(0.5), "seed": 4},
+            "closed_loop": {"gain_error": 0.05, "period": 0.05, "seed": 2, "identify": True,
+                            "keep_reversals": True}}
+    r = client.post("/v1/robustness", json=body)
+    assert r.status_code == 200, r.text
+    loop = r.json()["closed_loop"]
+    assert loop["summary"]["keep_reversals"] is True
+    for run in loop["runs"]:
+        assert run["closed"]["reversals"] <= loop["summary"]["plan_reversals"]
+    bad = client.post("/v1/robustness", json={**body, "closed_loop": {"keep_reversals": "maybe"}})
+    assert bad.status_code == 422 and "keep_reversals" in bad.text
+
+
 def test_robustness_closed_loop_needs_actuator_rates(client: TestClient) -> None:
     body = {"plan": {**PLAN, "method": "polynomial"}, "random": {"count": 1, "spread": 0.01},
             "closed_loop": {"period": 0.1}}
