@@ -225,6 +225,70 @@ def test_the_monotone_reach_bound_never_rules_out_a_reached_goal(n) -> None:
     assert checked >= 40
 
 
+@pytest.mark.parametrize("n", [4, 6, 8])
+def test_the_joint_triples_bound_never_rules_out_a_reached_goal(n) -> None:
+    """The same on robots of random gains (0.6 to 1.5 times the prototype's) and exponents
+    (1 to 3), with phi and th1 both monotone, where the bound of the joint triples (each
+    joint's slope against the next bounded by the joint before) is the sharpest: a goal that
+    the original model reaches (scipy) is never ruled out."""
+    from optimizer.planner.rules import _triples_reach_ok, monotone_reach_ok
+
+    rng = np.random.default_rng(100 + n)
+    checked = 0
+    for _ in range(120):
+        base = Robot.default(n)
+        robot = Robot(tuple(float(k * rng.uniform(0.6, 1.5)) for k in base.gains),
+                      tuple(int(rng.integers(1, 4)) for _ in base.exponents))
+        th0 = rng.uniform(R(10), R(70), size=n)
+        s1, s2 = rng.choice([-1.0, 1.0]), rng.choice([-1.0, 1.0])
+        c = rng.uniform(0.05, 0.6, size=(2, 3))
+
+        def u(t: float) -> np.ndarray:
+            return np.array([s1 * (c[0, 0] + c[0, 1] * t + c[0, 2] * math.sin(7 * t) ** 2),
+                             s2 * (c[1, 0] * math.cos(5 * t) ** 2 + c[1, 1] * t)])
+
+        sol = solve_ivp(lambda t, q: model_rhs(q, u(t), robot.gains, robot.exponents),
+                        (0.0, 1.0), np.concatenate([[0.0], th0]), method="DOP853",
+                        rtol=1e-11, atol=1e-12, dense_output=True)
+        th = sol.sol(np.linspace(0.0, 1.0, 2001))[1:].T
+        if not (th.min() > 0.0 and th[:, :-1].max() < HALF_PI):
+            continue
+        req = PlanRequest(start=tuple(th0), goal=tuple(th[-1]), robot=robot)
+        assert _triples_reach_ok(req, True) and _triples_reach_ok(req, False)
+        assert monotone_reach_ok(req, True) and monotone_reach_ok(req, False)
+        checked += 1
+    assert checked >= 30
+
+
+def test_the_triples_bound_rules_out_what_the_pairs_bound_lets_through() -> None:
+    """The goals benchmark's r4_000: with phi and th1 monotone, th4 must move 0.04807 rad. The
+    pairs' bound (th2 at either end of its range) allows 0.0433 to 0.0679 rad; with th2's
+    slope against th3 bounded by th1's range, th2 must move from its start to its goal, and
+    the largest and smallest th4 moves (the integral over the fastest-first and slowest-first
+    paths of th2, computed here by trapezoids) are 0.04817 and 0.05232 rad."""
+    from optimizer.planner.rules import _triples_reach_ok, monotone_reach_ok
+
+    robot = Robot.default(4)
+    start = (0.9497173957584982, 0.6266979271495567, 0.9290383645129106, 0.39227372940811106)
+    goal = (0.6611774427465014, 0.8674409349542245, 1.2872491501004106, 0.440340660707762)
+    K, m = robot.gains, robot.exponents
+    th2 = sorted((start[1], goal[1]))
+    s_lo = K[0] * math.cos(max(start[0], goal[0])) ** m[0] / (K[1] * math.cos(th2[0]) ** m[1])
+    s_hi = K[0] * math.cos(min(start[0], goal[0])) ** m[0] / (K[1] * math.cos(th2[1]) ** m[1])
+    x = np.linspace(start[2], goal[2], 200001)
+    u = x - start[2]
+    L, D = u[-1], goal[1] - start[1]
+    moves = []
+    for g in (start[1] + np.minimum(s_hi * u, D - s_lo * (L - u)),
+              start[1] + np.maximum(s_lo * u, D - s_hi * (L - u))):
+        moves.append(K[2] / K[1] * np.trapezoid(np.cos(x) ** m[2] / np.cos(g) ** m[1], x))
+    need = goal[3] - start[3]
+    assert min(moves) > need + 5e-5
+    req = PlanRequest(start=start, goal=goal, robot=robot)
+    assert not _triples_reach_ok(req, True)
+    assert not monotone_reach_ok(req, True)
+
+
 def test_the_bound_rules_out_a_monotone_th1_on_the_worked_example() -> None:
     """[10, 10, 10] -> [30, 30, 30] deg: with th1 and th2 monotone from 10 to 30 deg, th3 can
     move at most (K3 / K2) int_10^30 cos^3 / cos^2(30 deg) ~ 17 deg, not 20: th1 must overshoot
