@@ -141,13 +141,19 @@ def job_robustness(payload: Payload) -> dict[str, Any]:
     out["method"] = nominal.method
     loop = payload.get("closed_loop")
     if loop is not None:
-        out["closed_loop"] = analysis.closed_loop_robustness(
-            nominal, np.asarray(starts, float), float(loop["gain_error"]),
-            float(loop["period"]), float(loop["noise"]), int(loop["seed"]),
-            paths=bool(payload.get("include_paths")), deadline=deadline,
-            identify=bool(loop.get("identify", False)),
-            keep_reversals=bool(loop.get("keep_reversals", False)))
+        out["closed_loop"] = _closed_loop(nominal, starts, loop,
+                                          bool(payload.get("include_paths")), deadline)
     return out
+
+
+def _closed_loop(nominal: Any, starts: Any, loop: Payload, paths: bool,
+                 deadline: Any = None) -> dict[str, Any]:
+    """The closed-loop mode of a robustness request (its answer and its figure alike)."""
+    return analysis.closed_loop_robustness(
+        nominal, np.asarray(starts, float), float(loop["gain_error"]), float(loop["period"]),
+        float(loop["noise"]), int(loop["seed"]), paths=paths, deadline=deadline,
+        identify=bool(loop.get("identify", False)),
+        keep_reversals=bool(loop.get("keep_reversals", False)))
 
 
 def job_replan(payload: Payload) -> dict[str, Any]:
@@ -233,9 +239,7 @@ def job_figure(payload: Payload) -> bytes:
         runs = analysis.robustness(nominal, starts, inner["replay"], req.goal)
         loop = inner.get("closed_loop")
         if loop is not None:
-            runs["closed_loop"] = analysis.closed_loop_robustness(
-                nominal, np.asarray(starts, float), float(loop["gain_error"]),
-                float(loop["period"]), float(loop["noise"]), int(loop["seed"]), paths=True)
+            runs["closed_loop"] = _closed_loop(nominal, starts, loop, True)
         data = {"plan": with_column_names(nominal.to_dict()), "robustness": json_safe(runs)}
     else:
         raise ValueError(f"unknown figure kind {kind!r}")

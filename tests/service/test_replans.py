@@ -254,3 +254,28 @@ def test_the_worker_gets_only_the_fields_a_replan_reads_and_answers_as_the_libra
 def json_equal(a: object, b: object) -> bool:
     import json
     return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+def test_the_robustness_figure_runs_the_loop_the_request_asks_for(monkeypatch) -> None:
+    """The figure's closed loop is the answer's: ``identify`` and ``keep_reversals`` reach
+    the library from the figure job as from the JSON job (the runs recorded by a stand-in)."""
+    from service import jobs
+
+    seen: list[dict] = []
+    real = jobs.analysis.closed_loop_robustness
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(jobs.analysis, "closed_loop_robustness", spy)
+    loop = {"gain_error": 0.05, "period": 0.1, "noise": 0.0, "seed": 1, "identify": True,
+            "keep_reversals": True}
+    request = {"plan": {**PLAN}, "replay": "u", "starts": [[s + 0.005 for s in PLAN["start"]]],
+               "closed_loop": loop}
+    image = jobs.job_figure({"figure": "robustness", "format": "png", "request": request})
+    assert image[:4] == b"\x89PNG"
+    answer = jobs.job_robustness(request)
+    assert answer["closed_loop"]["summary"]["keep_reversals"] is True
+    assert len(seen) == 2
+    assert all(k["identify"] is True and k["keep_reversals"] is True for k in seen)
