@@ -125,8 +125,22 @@ def job_robustness(payload: Payload) -> dict[str, Any]:
     Payload: ``plan`` (plan-request dict), ``starts`` (rows) or ``random`` (``count``,
     ``spread``, ``seed``), ``replay`` (``u`` or ``v``), ``include_paths``.
     """
+    nominal, out = _robustness_runs(payload, bool(payload.get("include_paths")))
+    if not payload.get("include_paths"):
+        for run in out["runs"]:
+            run.pop("path_q", None)
+    out["phi_change"] = nominal.phi_change
+    out["method"] = nominal.method
+    return out
+
+
+def _robustness_runs(payload: Payload, paths: bool) -> tuple[Any, dict[str, Any]]:
+    """The plan of a robustness request and its runs: open loop from every start, and with
+    ``closed_loop`` each start on a plant with gains off, open and closed loop (``paths``:
+    the closed runs' paths too). Its answer and its figure alike; the plan and the runs share
+    the request's time limit."""
     req = PlanRequest.from_dict(payload["plan"])
-    deadline = Deadline(req.time_limit)  # the plan and its replays share the request's limit
+    deadline = Deadline(req.time_limit)
     nominal = plan(req)
     starts = payload.get("starts")
     if starts is None:
@@ -134,26 +148,14 @@ def job_robustness(payload: Payload) -> dict[str, Any]:
         starts = analysis.perturbed_starts(req.start, int(rnd["count"]), float(rnd["spread"]),
                                            int(rnd["seed"]))
     out = analysis.robustness(nominal, starts, payload["replay"], req.goal, deadline=deadline)
-    if not payload.get("include_paths"):
-        for run in out["runs"]:
-            run.pop("path_q", None)
-    out["phi_change"] = nominal.phi_change
-    out["method"] = nominal.method
     loop = payload.get("closed_loop")
     if loop is not None:
-        out["closed_loop"] = _closed_loop(nominal, starts, loop,
-                                          bool(payload.get("include_paths")), deadline)
-    return out
-
-
-def _closed_loop(nominal: Any, starts: Any, loop: Payload, paths: bool,
-                 deadline: Any = None) -> dict[str, Any]:
-    """The closed-loop mode of a robustness request (its answer and its figure alike)."""
-    return analysis.closed_loop_robustness(
-        nominal, np.asarray(starts, float), float(loop["gain_error"]), float(loop["period"]),
-        float(loop["noise"]), int(loop["seed"]), paths=paths, deadline=deadline,
-        identify=bool(loop.get("identify", False)),
-        keep_reversals=bool(loop.get("keep_reversals", False)))
+        out["closed_loop"] = analysis.closed_loop_robustness(
+            nominal, np.asarray(starts, float), float(loop["gain_error"]),
+            float(loop["period"]), float(loop["noise"]), int(loop["seed"]), paths=paths,
+            deadline=deadline, identify=bool(loop.get("identify", False)),
+            keep_reversals=bool(loop.get("keep_reversals", False)))
+    return nominal, out
 
 
 def job_replan(payload: Payload) -> dict[str, Any]:
@@ -229,17 +231,7 @@ def job_figure(payload: Payload) -> bytes:
     elif kind == "sweep":
         data = json_safe(job_sweep(inner))
     elif kind == "robustness":
-        req = PlanRequest.from_dict(inner["plan"])
-        nominal = plan(req)
-        starts = inner.get("starts")
-        if starts is None:
-            rnd = inner["random"]
-            starts = analysis.perturbed_starts(req.start, int(rnd["count"]),
-                                               float(rnd["spread"]), int(rnd["seed"]))
-        runs = analysis.robustness(nominal, starts, inner["replay"], req.goal)
-        loop = inner.get("closed_loop")
-        if loop is not None:
-            runs["closed_loop"] = _closed_loop(nominal, starts, loop, True)
+        nominal, runs = _robustness_runs(inner, True)
         data = {"plan": with_column_names(nominal.to_dict()), "robustness": json_safe(runs)}
     else:
         raise ValueError(f"unknown figure kind {kind!r}")
