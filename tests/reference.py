@@ -29,3 +29,18 @@ def integrate_model(u_of_t, q0, T, K, m, t_eval=None):
                     method="DOP853", rtol=1e-10, atol=1e-12, t_eval=t_eval)
     assert sol.success, sol.message
     return sol
+
+
+def turns(x: np.ndarray, band: float = 1e-4) -> int:
+    """Direction changes of a sampled signal: one each time it comes back from its running
+    extreme by more than ``band`` (written here, not the library's)."""
+    count, direction, ext = 0, 0, float(x[0])
+    for v in map(float, x[1:]):
+        if direction == 0:
+            if abs(v - x[0]) > band:
+                direction, ext = (1 if v > x[0] else -1), v
+        elif direction * (v - ext) > 0:
+            ext = v
+        elif direction * (ext - v) > band:
+            count, direction, ext = count + 1, -direction, v
+    return count

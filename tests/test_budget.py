@@ -20,7 +20,7 @@ from optimizer.planner import budget
 from optimizer.planner.context import Deadline
 from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
-from reference import PROTOTYPE_K, PROTOTYPE_M, model_rhs
+from reference import PROTOTYPE_K, PROTOTYPE_M, model_rhs, turns
 
 DEG = math.pi / 180.0
 #: th2 rises and th3 falls: phi must reverse (every th_i, i >= 2, moves with phi while phi
@@ -28,23 +28,9 @@ DEG = math.pi / 180.0
 OPPOSED = ((10 * DEG, 20 * DEG, 30 * DEG), (40 * DEG, 25 * DEG, 15 * DEG))
 #: Every joint moves... where the budgets 0, 1 and 2 give different paths.
 SAME = ((50 * DEG, 20 * DEG, 30 * DEG), (30 * DEG, 40 * DEG, 50 * DEG))
-DEAD_BAND = 1e-4
 TERMINAL = 1e-6
 
 
-def turns(x: np.ndarray, band: float = DEAD_BAND) -> int:
-    """Direction changes of a sampled signal: one each time it comes back from its running
-    extreme by more than ``band`` (written here, not the library's)."""
-    count, direction, ext = 0, 0, float(x[0])
-    for v in map(float, x[1:]):
-        if direction == 0:
-            if abs(v - x[0]) > band:
-                direction, ext = (1 if v > x[0] else -1), v
-        elif direction * (v - ext) > 0:
-            ext = v
-        elif direction * (ext - v) > band:
-            count, direction, ext = count + 1, -direction, v
-    return count
 
 
 def replay(answer: dict, K=PROTOTYPE_K, m=PROTOTYPE_M) -> np.ndarray:

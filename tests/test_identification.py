@@ -19,7 +19,7 @@ from optimizer.planner.plan import plan
 from optimizer.planner.replan import replan
 from optimizer.problem import PlanRequest
 
-from reference import model_rhs
+from reference import model_rhs, turns
 
 START, GOAL = (0.3, 0.4, 0.5, 0.6), (0.6, 0.7, 0.75, 0.9)
 ERRORS = np.array([0.04, -0.03, 0.05])           # the plant's K_i (1 + e_i)
@@ -135,19 +135,6 @@ def test_the_closed_loop_margin_is_measured_to_the_limits_the_planner_keeps(last
     assert run["margin"] > 0.0
 
 
-def _reversals(x: np.ndarray, dead_band: float = 1e-4) -> int:
-    """Direction changes of a sampled signal by more than ``dead_band`` (written here, apart
-    from the library's counter)."""
-    count, direction, ext = 0, 0, float(x[0])
-    for v in map(float, x[1:]):
-        if direction == 0:
-            if abs(v - x[0]) > dead_band:
-                direction, ext = (1 if v > x[0] else -1), v
-        elif direction * (v - ext) > 0.0:
-            ext = v
-        elif abs(v - ext) > dead_band:
-            count, direction, ext = count + 1, -direction, v
-    return count
 
 
 def test_the_closed_loop_can_keep_the_plans_reversals() -> None:
@@ -167,7 +154,7 @@ def test_the_closed_loop_can_keep_the_plans_reversals() -> None:
     kept = closed_loop_run(answer, q0, errors, 0.05, identify=True, keep_reversals=True)
     for run in (free, kept):
         q = np.asarray(run["path_q"])
-        run["counted"] = _reversals(q[:, 0]) + _reversals(q[:, 1])
+        run["counted"] = turns(q[:, 0]) + turns(q[:, 1])
         assert run["margin"] > 0.0
     assert open_loop["terminal_error"] > 5e-3
     assert free["terminal_error"] < 1e-9 and free["counted"] >= 1
