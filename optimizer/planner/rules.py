@@ -182,38 +182,69 @@ def monotone_reach_ok(req: PlanRequest, th1_monotone: bool) -> bool:
 TRIPLE_SLACK = 1e-6
 
 
-def _path_integral(ax: float, dx: float, ag: float, dg: float, u: np.ndarray, p: np.ndarray,
-                   mx: int, mg: int) -> float:
-    """``int cos(x)^mx / cos(g)^mg du`` over ``u`` in [0, |dx|], with ``x = ax + sign(dx) u``
-    and ``g = ag + sign(dg) p(u)``, ``p`` linear between the breakpoints ``(u, p)``: each
-    linear piece by Gauss-Legendre (the integrand is smooth there)."""
-    x, w = _GL
-    total = 0.0
-    sx, sg = math.copysign(1.0, dx), math.copysign(1.0, dg)
-    for (u0, u1), (p0, p1) in zip(zip(u[:-1], u[1:]), zip(p[:-1], p[1:])):
-        if u1 <= u0:
-            continue
-        half = 0.5 * (u1 - u0)
-        uu = 0.5 * (u0 + u1) + half * x
-        pp = p0 + (p1 - p0) * (uu - u0) / (u1 - u0)
-        f = np.cos(ax + sx * uu) ** mx / np.cos(ag + sg * pp) ** mg
-        total += half * float(np.sum(w * f))
+def cos_power_antiderivative(x: np.ndarray, m: int) -> np.ndarray:
+    """``C_m(x) = int_0^x cos(s)^m ds`` in closed form (``C_0 = x``, ``C_1 = sin x``,
+    ``C_m = cos^{m-1} sin / m + (m - 1) / m C_{m-2}``)."""
+    x = np.asarray(x, float)
+    c, s_ = np.cos(x), np.sin(x)
+    k, total = (0, x) if m % 2 == 0 else (1, s_)
+    while k + 2 <= m:
+        k += 2
+        total = c ** (k - 1) * s_ / k + (k - 1) / k * total
     return total
+
+
+def _cos_power_inverse(gamma: np.ndarray, m: int, lo: float, hi: float) -> np.ndarray:
+    """``x`` in ``[lo, hi]`` (within ``[0, pi/2)``) with ``C_m(x) = gamma``
+    (:func:`cos_power_antiderivative`, increasing there): interpolated in a table of ``C_m``,
+    then Newton's steps (the table's guess is within its spacing squared, so they converge at
+    once even where ``C_m`` flattens towards ``pi/2``)."""
+    grid = np.linspace(lo, hi, 2049)
+    x = np.interp(gamma, cos_power_antiderivative(grid, m), grid)
+    for _ in range(4):
+        x = np.clip(x - (cos_power_antiderivative(x, m) - gamma)
+                    / np.maximum(np.cos(x) ** m, 1e-300), lo, hi)
+    return x
+
+
+def _piece_integral(ax: float, sx: float, u0: float, u1: float, c0: float, sg: float,
+                    moved0: float, slope: float, mx: int, mg: int, g_lo: float, g_hi: float
+                    ) -> float:
+    """``int_{u0}^{u1} cos(x)^mx / cos(g)^mg du`` with ``x = ax + sx u`` and ``g`` where
+    ``gamma = C_mg(g) = c0 + sg (moved0 + slope (u - u0))`` (:func:`_triples_reach_ok`).
+    Over ``g`` (``du = cos(g)^mg dg / slope``: the steep ``1 / cos(g)^mg`` near ``pi/2``
+    cancels), or over ``u`` with ``g`` fixed where ``gamma`` hardly moves."""
+    x_gl, w_gl = _GL
+    g0 = float(_cos_power_inverse(np.array([c0 + sg * moved0]), mg, g_lo, g_hi)[0])
+    if slope * (u1 - u0) <= 1e-12:
+        half = 0.5 * (u1 - u0)
+        uu = 0.5 * (u0 + u1) + half * x_gl
+        return half * float(np.sum(w_gl * np.cos(ax + sx * uu) ** mx)) / math.cos(g0) ** mg
+    g1 = float(_cos_power_inverse(np.array([c0 + sg * (moved0 + slope * (u1 - u0))]), mg,
+                                  g_lo, g_hi)[0])
+    half = 0.5 * (g1 - g0)
+    gg = 0.5 * (g0 + g1) + half * x_gl
+    c_g0 = float(cos_power_antiderivative(np.array([g0]), mg)[0])
+    uu = u0 + np.abs(cos_power_antiderivative(gg, mg) - c_g0) / slope
+    return abs(half) * float(np.sum(w_gl * np.cos(ax + sx * uu) ** mx)) / slope
 
 
 def _triples_reach_ok(req: PlanRequest, th1_monotone: bool) -> bool:
     """The joint triples' part of :func:`monotone_reach_ok`: with ``phi`` monotone, joints
-    ``g = th_j``, ``x = th_{j+1}``, ``y = th_{j+2}`` (``j >= 2``) all move monotonically, so
-    ``g`` is a monotone function of ``x`` from its start to its goal, of slope
-    ``dg/dx = K_j cos(th_{j-1})^{m_j} / (K_{j+1} cos(g)^{m_{j+1}})`` within ``[s_lo, s_hi]``
-    (``th_{j-1}`` within its range as in :func:`monotone_reach_ok`, ``g`` within its own),
-    and ``y`` changes by ``K_{j+2}/K_{j+1} int cos(x)^{m_{j+2}} / cos(g)^{m_{j+1}} dx``. The
-    integrand grows with ``g``, so over every such ``g`` the integral is largest (smallest)
-    when ``g`` moves at ``s_hi`` first and ``s_lo`` after (or the reverse), and a change of
-    ``y`` outside the two extremes is out of reach. Sharper than the pairs' bound, which lets
-    ``g`` take its extreme value at once: on the goals benchmark's ``r4_000`` ``th_4`` must
-    move 0.04807 rad, the pairs allow 0.04329 to 0.06788, the triples 0.04817 to 0.05232 (its
-    NLP of rates of fixed signs ran to fatrop's iteration cap, 12 ms, to find that out)."""
+    ``g = th_j``, ``x = th_{j+1}``, ``y = th_{j+2}`` (``j >= 2``) all move monotonically, and
+    along the path ``cos(g)^{m_{j+1}} dg = (K_j / K_{j+1}) cos(th_{j-1})^{m_j} dx``: in the
+    variable ``gamma = C(g) = int cos^{m_{j+1}}``, ``g`` is a monotone function of ``x`` whose
+    slope ``|dgamma/dx|`` lies within ``[s_lo, s_hi]``, ``(K_j / K_{j+1}) cos^{m_j}`` at the
+    ends of ``th_{j-1}``'s range (as in :func:`monotone_reach_ok`), from its start to its goal.
+    ``y`` changes by ``(K_{j+2} / K_{j+1}) int cos(x)^{m_{j+2}} / cos(g)^{m_{j+1}} dx``, whose
+    integrand grows with ``g`` (so with ``gamma``): over every such path the integral is
+    largest (smallest) when ``gamma`` moves at ``s_hi`` first and ``s_lo`` after (or the
+    reverse), and a change of ``y`` outside the two extremes is out of reach. Sharper than
+    the pairs' bound, which lets ``g`` take its extreme value at once: on the goals
+    benchmark's ``r4_000`` ``th_4`` must move 0.04807 rad, the pairs allow 0.0433 to 0.0679,
+    the triples 0.0486 to 0.0497 (its NLP of rates of fixed signs ran to fatrop's iteration
+    cap, 12 ms, to find that out); on ``r4_003`` 0.4517 against at most 0.4486 (an NLP of 8
+    ms that ended with its sign slack)."""
     n = req.n
     a, b = [float(x) for x in req.start], [float(x) for x in req.goal]
     K, m = req.robot.gains, req.robot.exponents
@@ -227,24 +258,28 @@ def _triples_reach_ok(req: PlanRequest, th1_monotone: bool) -> bool:
         g_lo, g_hi = min(a[gi], b[gi]), max(a[gi], b[gi])
         if g_hi >= HALF_PI or p_lo >= HALF_PI:
             continue
+        mg = m[j - 1]
         ratio = K[j - 2] / K[j - 1]
-        s_lo = ratio * math.cos(p_hi) ** m[j - 2] / math.cos(g_lo) ** m[j - 1]
-        s_hi = ratio * math.cos(p_lo) ** m[j - 2] / math.cos(g_hi) ** m[j - 1]
-        dx, dg = b[xi] - a[xi], b[gi] - a[gi]
-        L, D = abs(dx), abs(dg)
-        if not s_lo * L - TRIPLE_SLACK <= D <= s_hi * L + TRIPLE_SLACK:
+        s_lo, s_hi = ratio * math.cos(p_hi) ** m[j - 2], ratio * math.cos(p_lo) ** m[j - 2]
+        c_ends = cos_power_antiderivative(np.array([a[gi], b[gi]]), mg)
+        dx = b[xi] - a[xi]
+        L, G = abs(dx), abs(float(c_ends[1] - c_ends[0]))
+        if not s_lo * L - TRIPLE_SLACK <= G <= s_hi * L + TRIPLE_SLACK:
             return False                 # g cannot move so far (so little) while x moves
-        if L == 0.0 or s_hi - s_lo <= 1e-12 * s_hi or not s_lo * L <= D <= s_hi * L:
+        if L == 0.0 or s_hi - s_lo <= 1e-12 * s_hi or not s_lo * L <= G <= s_hi * L:
             continue                     # (one path of g, or none: the bound above decides)
-        # where the fast-then-slow (slow-then-fast) path turns
-        u_fast = (D - s_lo * L) / (s_hi - s_lo)
-        u_slow = (s_hi * L - D) / (s_hi - s_lo)
+        sg, sx = (1.0 if b[gi] >= a[gi] else -1.0), math.copysign(1.0, dx)
         ends = []
-        for u_turn, first in ((u_fast, s_hi), (u_slow, s_lo)):
-            u = np.array([0.0, u_turn, L])
-            p = np.array([0.0, first * u_turn, D])
-            ends.append(K[j] / K[j - 1]
-                        * _path_integral(a[xi], dx, a[gi], dg, u, p, m[j], m[j - 1]))
+        # gamma moved from the start: fastest first (turning at u_fast), slowest first
+        for u_turn, first, second in (((G - s_lo * L) / (s_hi - s_lo), s_hi, s_lo),
+                                      ((s_hi * L - G) / (s_hi - s_lo), s_lo, s_hi)):
+            total = 0.0
+            for u0, u1, moved0, slope in ((0.0, u_turn, 0.0, first),
+                                          (u_turn, L, first * u_turn, second)):
+                if u1 > u0:
+                    total += _piece_integral(a[xi], sx, u0, u1, c_ends[0], sg, moved0, slope,
+                                             m[j], mg, g_lo, g_hi)
+            ends.append(K[j] / K[j - 1] * total)
         need = abs(b[yi] - a[yi])
         if not min(ends) - TRIPLE_SLACK <= need <= max(ends) + TRIPLE_SLACK:
             return False
