@@ -194,38 +194,56 @@ def cos_power_antiderivative(x: np.ndarray, m: int) -> np.ndarray:
     return total
 
 
-def _cos_power_inverse(gamma: np.ndarray, m: int, lo: float, hi: float) -> np.ndarray:
+def _cos_power_scalar(x: float, m: int) -> float:
+    """:func:`cos_power_antiderivative` of one value, in floats."""
+    c, s_ = math.cos(x), math.sin(x)
+    k, total = (0, x) if m % 2 == 0 else (1, s_)
+    while k + 2 <= m:
+        k += 2
+        total = c ** (k - 1) * s_ / k + (k - 1) / k * total
+    return total
+
+
+def _cos_power_inverse(gamma: float, m: int, lo: float, hi: float) -> float:
     """``x`` in ``[lo, hi]`` (within ``[0, pi/2)``) with ``C_m(x) = gamma``
-    (:func:`cos_power_antiderivative`, increasing there): interpolated in a table of ``C_m``,
-    then Newton's steps (the table's guess is within its spacing squared, so they converge at
-    once even where ``C_m`` flattens towards ``pi/2``)."""
-    grid = np.linspace(lo, hi, 2049)
-    x = np.interp(gamma, cos_power_antiderivative(grid, m), grid)
-    for _ in range(4):
-        x = np.clip(x - (cos_power_antiderivative(x, m) - gamma)
-                    / np.maximum(np.cos(x) ** m, 1e-300), lo, hi)
+    (:func:`cos_power_antiderivative`, increasing there): Newton's steps kept inside a
+    bracket that bisects where a step would leave it (``C_m`` flattens towards ``pi/2``)."""
+    x_lo, x_hi = lo, hi
+    c_lo, c_hi = _cos_power_scalar(lo, m), _cos_power_scalar(hi, m)
+    if gamma <= c_lo:
+        return lo
+    if gamma >= c_hi:
+        return hi
+    x = lo + (hi - lo) * (gamma - c_lo) / (c_hi - c_lo)
+    for _ in range(100):
+        f = _cos_power_scalar(x, m) - gamma
+        if f > 0.0:
+            x_hi = x
+        else:
+            x_lo = x
+        d = math.cos(x) ** m
+        step = x - f / d if d > 0.0 else -1.0
+        new = step if x_lo < step < x_hi else 0.5 * (x_lo + x_hi)
+        if abs(new - x) <= 1e-15 * max(1.0, abs(x)) or x_hi - x_lo <= 1e-15:
+            return new
+        x = new
     return x
 
 
-def _piece_integral(ax: float, sx: float, u0: float, u1: float, c0: float, sg: float,
-                    moved0: float, slope: float, mx: int, mg: int, g_lo: float, g_hi: float
-                    ) -> float:
-    """``int_{u0}^{u1} cos(x)^mx / cos(g)^mg du`` with ``x = ax + sx u`` and ``g`` where
-    ``gamma = C_mg(g) = c0 + sg (moved0 + slope (u - u0))`` (:func:`_triples_reach_ok`).
+def _piece_integral(ax: float, sx: float, u0: float, u1: float, g0: float, g1: float,
+                    slope: float, mx: int, mg: int) -> float:
+    """``int_{u0}^{u1} cos(x)^mx / cos(g)^mg du`` with ``x = ax + sx u`` and ``g`` moving
+    from ``g0`` to ``g1`` with ``C_mg(g)`` linear in ``u`` at ``slope`` (:func:`_triples_reach_ok`).
     Over ``g`` (``du = cos(g)^mg dg / slope``: the steep ``1 / cos(g)^mg`` near ``pi/2``
-    cancels), or over ``u`` with ``g`` fixed where ``gamma`` hardly moves."""
+    cancels), or over ``u`` with ``g`` fixed where ``g`` hardly moves."""
     x_gl, w_gl = _GL
-    g0 = float(_cos_power_inverse(np.array([c0 + sg * moved0]), mg, g_lo, g_hi)[0])
-    if slope * (u1 - u0) <= 1e-12:
+    if slope * (u1 - u0) <= 1e-12 or g0 == g1:
         half = 0.5 * (u1 - u0)
         uu = 0.5 * (u0 + u1) + half * x_gl
         return half * float(np.sum(w_gl * np.cos(ax + sx * uu) ** mx)) / math.cos(g0) ** mg
-    g1 = float(_cos_power_inverse(np.array([c0 + sg * (moved0 + slope * (u1 - u0))]), mg,
-                                  g_lo, g_hi)[0])
     half = 0.5 * (g1 - g0)
     gg = 0.5 * (g0 + g1) + half * x_gl
-    c_g0 = float(cos_power_antiderivative(np.array([g0]), mg)[0])
-    uu = u0 + np.abs(cos_power_antiderivative(gg, mg) - c_g0) / slope
+    uu = u0 + np.abs(cos_power_antiderivative(gg, mg) - _cos_power_scalar(g0, mg)) / slope
     return abs(half) * float(np.sum(w_gl * np.cos(ax + sx * uu) ** mx)) / slope
 
 
@@ -261,9 +279,9 @@ def _triples_reach_ok(req: PlanRequest, th1_monotone: bool) -> bool:
         mg = m[j - 1]
         ratio = K[j - 2] / K[j - 1]
         s_lo, s_hi = ratio * math.cos(p_hi) ** m[j - 2], ratio * math.cos(p_lo) ** m[j - 2]
-        c_ends = cos_power_antiderivative(np.array([a[gi], b[gi]]), mg)
+        c_a, c_b = _cos_power_scalar(a[gi], mg), _cos_power_scalar(b[gi], mg)
         dx = b[xi] - a[xi]
-        L, G = abs(dx), abs(float(c_ends[1] - c_ends[0]))
+        L, G = abs(dx), abs(c_b - c_a)
         if not s_lo * L - TRIPLE_SLACK <= G <= s_hi * L + TRIPLE_SLACK:
             return False                 # g cannot move so far (so little) while x moves
         if L == 0.0 or s_hi - s_lo <= 1e-12 * s_hi or not s_lo * L <= G <= s_hi * L:
@@ -273,12 +291,12 @@ def _triples_reach_ok(req: PlanRequest, th1_monotone: bool) -> bool:
         # gamma moved from the start: fastest first (turning at u_fast), slowest first
         for u_turn, first, second in (((G - s_lo * L) / (s_hi - s_lo), s_hi, s_lo),
                                       ((s_hi * L - G) / (s_hi - s_lo), s_lo, s_hi)):
+            g_turn = _cos_power_inverse(c_a + sg * first * u_turn, mg, g_lo, g_hi)
             total = 0.0
-            for u0, u1, moved0, slope in ((0.0, u_turn, 0.0, first),
-                                          (u_turn, L, first * u_turn, second)):
-                if u1 > u0:
-                    total += _piece_integral(a[xi], sx, u0, u1, c_ends[0], sg, moved0, slope,
-                                             m[j], mg, g_lo, g_hi)
+            if u_turn > 0.0:
+                total += _piece_integral(a[xi], sx, 0.0, u_turn, a[gi], g_turn, first, m[j], mg)
+            if L > u_turn:
+                total += _piece_integral(a[xi], sx, u_turn, L, g_turn, b[gi], second, m[j], mg)
             ends.append(K[j] / K[j - 1] * total)
         need = abs(b[yi] - a[yi])
         if not min(ends) - TRIPLE_SLACK <= need <= max(ends) + TRIPLE_SLACK:
