@@ -160,3 +160,32 @@ def test_the_closed_loop_can_keep_the_plans_reversals() -> None:
     assert free["terminal_error"] < 1e-9 and free["counted"] >= 1
     assert kept["counted"] == 0 and kept["replan_failures"] > 0
     assert kept["terminal_error"] > 1e-3
+
+
+def test_a_continuation_that_keeps_the_signs_keeps_them_after_its_defect_step() -> None:
+    """A 4-joint closed loop's replan (gains identified, reversals kept; the plan in its
+    compact form, saved from the replan benchmark's loop on r4_002): the sign-keeping
+    correction reaches the goal to 2e-8 rad, and the defect step after the proof (any sign)
+    had turned four positive rates of phi negative, a reversal more in a continuation that
+    said it kept every sign. Now: every rate keeps the sign it had in the plan's rest, the
+    answer ends within 1e-6 rad on its model (scipy, the handed-out samples)."""
+    import json
+    from pathlib import Path
+
+    from optimizer.planner.plan_state import read_plan
+
+    case = json.loads((Path(__file__).parent / "data" / "replan_kept_signs_case.json").read_text())
+    ps = read_plan(case["plan"])
+    cont = replan(case["plan"], case["time"], case["state"], rates=case["rates"],
+                  gains=case["gains"], keep_reversals=True)
+    assert cont["diagnostics"]["replan"]["signs_kept"] is True
+    new = np.array([s["u"] for s in cont["coefficients"]["segments"]])
+    k = ps.piece_at(ps.law.at(case["time"])[0])
+    before = np.sign(ps.rates[k:])
+    assert np.array_equal(np.sign(new[-before.shape[0]:]), before)
+    t = np.asarray(cont["path"]["t"])
+    u = np.asarray(cont["path"]["u"])
+    end = plant_run(np.asarray(case["gains"]), ps.robot.exponents, case["state"], t, u)
+    assert np.max(np.abs(end[1:] - np.asarray(ps.goal))) < 1e-6
+
+

@@ -568,10 +568,14 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     if cont.refine is not None and rep.success and miss > 1e-9:
         free = cont.refine(rep.final, rates[cont.kept:])
         again = np.vstack([rates[:cont.kept], free])
-        rep2 = _replay(robot, q_m, cont, again, sl)
-        miss2 = float(np.max(np.abs(rep2.final[1:] - goal))) if rep2.success else math.inf
-        if miss2 < miss:
-            rep, miss, rates = rep2, miss2, again
+        # the defect step has any sign: where the correction kept every rate's sign it may
+        # not undo that (a 4-joint closed loop's step turned four positive rates of phi
+        # negative, a reversal more that keep_reversals had refused elsewhere)
+        if not cont.signs_kept or np.array_equal(np.sign(again), np.sign(rates)):
+            rep2 = _replay(robot, q_m, cont, again, sl)
+            miss2 = float(np.max(np.abs(rep2.final[1:] - goal))) if rep2.success else math.inf
+            if miss2 < miss:
+                rep, miss, rates = rep2, miss2, again
     timing["verification"] = time.perf_counter() - t0
     if not rep.success:
         raise NumericalError(f"the continuation's re-integration failed: {rep.message}")
