@@ -182,26 +182,25 @@ def monotone_reach_ok(req: PlanRequest, th1_monotone: bool) -> bool:
 TRIPLE_SLACK = 1e-6
 
 
-def cos_power_antiderivative(x: np.ndarray, m: int) -> np.ndarray:
-    """``C_m(x) = int_0^x cos(s)^m ds`` in closed form (``C_0 = x``, ``C_1 = sin x``,
-    ``C_m = cos^{m-1} sin / m + (m - 1) / m C_{m-2}``)."""
-    x = np.asarray(x, float)
-    c, s_ = np.cos(x), np.sin(x)
+def _cos_power_recursion(x: Any, c: Any, s_: Any, m: int) -> Any:
+    """``C_m`` from ``x``, ``cos x`` and ``sin x`` (arrays or floats alike): ``C_0 = x``,
+    ``C_1 = sin x``, ``C_m = cos^{m-1} sin / m + (m - 1) / m C_{m-2}``."""
     k, total = (0, x) if m % 2 == 0 else (1, s_)
     while k + 2 <= m:
         k += 2
         total = c ** (k - 1) * s_ / k + (k - 1) / k * total
     return total
+
+
+def cos_power_antiderivative(x: np.ndarray, m: int) -> np.ndarray:
+    """``C_m(x) = int_0^x cos(s)^m ds`` in closed form (:func:`_cos_power_recursion`)."""
+    x = np.asarray(x, float)
+    return np.asarray(_cos_power_recursion(x, np.cos(x), np.sin(x), m))
 
 
 def _cos_power_scalar(x: float, m: int) -> float:
-    """:func:`cos_power_antiderivative` of one value, in floats."""
-    c, s_ = math.cos(x), math.sin(x)
-    k, total = (0, x) if m % 2 == 0 else (1, s_)
-    while k + 2 <= m:
-        k += 2
-        total = c ** (k - 1) * s_ / k + (k - 1) / k * total
-    return total
+    """:func:`cos_power_antiderivative` of one value, in floats (a tenth of numpy's time)."""
+    return float(_cos_power_recursion(x, math.cos(x), math.sin(x), m))
 
 
 def _cos_power_inverse(gamma: float, m: int, lo: float, hi: float) -> float:
