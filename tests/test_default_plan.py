@@ -155,6 +155,25 @@ def test_the_five_joint_goal_of_the_singular_normal_equations_is_planned() -> No
     assert np.all((q[:, 1:] > 0.0) & (q[:, 1:] < HALF_PI))
 
 
+#: A 6-joint goal from a state near the region's edge (th2 within 0.1 rad of pi/2: a replan's
+#: fallback from a state 0.05 deg off a benchmark plan). The first rung's path ends inside the
+#: region at its nodes (RK4) but the original model's left it (th5 at -0.1 rad): every method
+#: answered "infeasible" for this reachable goal until such a path went on to the finer rung.
+EDGE_SIX_JOINT_START = (1.3190825644222655, 1.4703678493722308, 0.9596915919456086,
+                        0.5001038695993614, 0.32344599531308255, 1.1790030071921205)
+EDGE_SIX_JOINT_GOAL = (1.3295159807900785, 1.4964891584875029, 0.9632727796345305,
+                       0.6246816318890367, 0.5943936540977689, 1.395743208790863)
+
+
+def test_a_rung_whose_true_path_leaves_the_region_goes_on_to_the_finer_rung() -> None:
+    req = PlanRequest(start=EDGE_SIX_JOINT_START, goal=EDGE_SIX_JOINT_GOAL,
+                      robot=Robot.default(6))
+    p = plan(req)
+    t, q = replay(p, req)
+    assert np.max(np.abs(q[-1, 1:] - np.array(EDGE_SIX_JOINT_GOAL))) < 1e-6
+    assert np.all((q[:, 1:] > 0.0) & (q[:, 1:] < HALF_PI)), np.degrees(q[:, 1:].min())
+
+
 def test_a_method_that_crashes_is_that_methods_failure(monkeypatch) -> None:
     shooting = registry.get("shooting")
 

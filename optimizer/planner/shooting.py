@@ -243,15 +243,18 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     try:
         return finish_solution(req, "shooting", nlp_for(req, tr, free=mono is None), sol, tr,
                                mono, tried, timing, {})
-    except NumericalError:
+    except (NumericalError, InfeasibleError) as exc:
         steps = ladder(req.n)
-        if tr not in steps[:-1]:
+        if tr not in steps[:-1] or (isinstance(exc, InfeasibleError)
+                                    and "margin" not in exc.diagnostics):
             raise
     # the rung's model (RK4 on its intervals) ends off the goal in a direction the Newton
     # correction cannot reach (the end map's weakest singular value; a 5-joint goal near the
-    # region's edge: 1.5e-6 rad along a direction of singular value 5e-8): the next rung, a
-    # finer model, from this path, its rates held to the same signs, else free (that 5-joint
-    # goal's finer NLP did not converge held in 60 iterations; free, it did at once)
+    # region's edge: 1.5e-6 rad along a direction of singular value 5e-8), or the original
+    # model's path leaves the region where the rung's nodes stay inside (a 6-joint goal with
+    # th2 near pi/2: th5 at -0.1 rad; an InfeasibleError with the path's margin): the next
+    # rung, a finer model, from this path, its rates held to the same signs, else free (that
+    # 5-joint goal's finer NLP did not converge held in 60 iterations; free, it did at once)
     finer = steps[steps.index(tr) + 1]
     nodes = resample_nodes(sol.nodes, finer.intervals)
     signs = None if mono is None else resample_signs(mono, finer.intervals)
