@@ -121,9 +121,9 @@ class ReplanRequest(RequestModel):
                     "optimizer.identification.GainEstimator); the continuation is planned and "
                     "verified on them and its robot says so. Default: the plan's robot.")
     fallback: bool = Field(
-        True, description="false: the fast path only (a 422 naming fallback where it fails), "
-                          "never the full planner: a bounded answer time for a controller's "
-                          "period.")
+        True, description="false: the fast path and one warm-started NLP only (a 422 naming "
+                          "fallback where they fail), never the full planner: a bounded answer "
+                          "time for a controller's period.")
     time_limit: num(hi=MAX_REPLAN_TIME_LIMIT, gt=0.0) = Field(  # type: ignore[valid-type]
         5.0, description="Seconds for the job (the full planner is the fast path's fallback).")
 

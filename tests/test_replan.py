@@ -61,12 +61,14 @@ def knots_of(ans: dict) -> list[float]:
     return list(law["phases"]["start"])
 
 
-def run_plant(ans: dict, q0: np.ndarray, t0: float, t1: float, K: tuple) -> np.ndarray:
-    """The plant (the tests' own model, gains ``K``) under the answer's rates, knot to knot."""
+def run_plant(ans: dict, q0: np.ndarray, t0: float, t1: float, K: tuple,
+              m: tuple = PROTOTYPE_M) -> np.ndarray:
+    """The plant (the tests' own model, gains ``K``, exponents ``m``) under the answer's
+    rates, knot to knot."""
     edges = sorted({t0, t1, *(k for k in knots_of(ans) if t0 < k < t1)})
     q = np.asarray(q0, float)
     for a, b in zip(edges[:-1], edges[1:]):
-        sol = solve_ivp(lambda t, x: model_rhs(x, rates_of(ans, t), K, PROTOTYPE_M), (a, b), q,
+        sol = solve_ivp(lambda t, x: model_rhs(x, rates_of(ans, t), K, m), (a, b), q,
                         method="DOP853", rtol=1e-12, atol=1e-13)
         assert sol.success
         q = sol.y[:, -1]
@@ -362,3 +364,64 @@ def test_the_fallback_keeps_to_the_time_limit(answer: dict, monkeypatch) -> None
     with pytest.raises(SolverTimeoutError) as err:
         replan(answer, t, state, time_limit=0.25)
     assert err.value.field == "time_limit" and [m for m, _ in given] == ["shooting"]
+
+
+# A 4-joint benchmark goal (r4_002) and a state 0.05 deg off its handed-out path where the
+# Gauss-Newton correction of the plan's rest does not reach the goal.
+WARM_START = (0.06155288665936719, 1.1146685664563871, 1.0618113844981167, 0.6561993569860203)
+WARM_GOAL = (0.5910253096953139, 0.9823358608067385, 1.0344812726248065, 0.6446090051140795)
+WARM_SAMPLE = 86
+WARM_OFFSET = -np.radians(0.05) * np.array([1.0, -1.0, 1.0, -1.0])
+
+
+@pytest.fixture(scope="module")
+def four_joints() -> dict:
+    from optimizer.model import Robot
+    return plan(PlanRequest(start=WARM_START, goal=WARM_GOAL, robot=Robot.default(4))).to_dict()
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_where_gauss_newton_fails_one_warm_started_nlp_continues(four_joints: dict,
+                                                                  keep: bool) -> None:
+    """The middle route: the correction of the plan's rest fails, one NLP warm-started on it
+    answers (not the full planner); its rates, integrated by scipy on the tests' model from
+    the measured state, reach the goal inside the region, start at the commanded rates and,
+    with keep_reversals, reverse phi and th1 no more often than the plan's rest."""
+    from optimizer.model import Robot
+    from optimizer.planner.replan import read_plan, sign_changes
+    robot = Robot.default(4)
+    t = float(four_joints["path"]["t"][WARM_SAMPLE])
+    q = np.array(four_joints["path"]["q"][WARM_SAMPLE]) + np.r_[0.0, WARM_OFFSET]
+    out = replan(four_joints, t, q, keep_reversals=keep)
+    info = out["diagnostics"]["replan"]
+    assert info["route"] == "warm_nlp"
+    assert any("Gauss-Newton" in f for f in info["fast_path_failed"])
+    assert rates_of(out, t + 1e-9) == pytest.approx(rates_of(four_joints, t), rel=1e-6,
+                                                    abs=1e-9)
+    end = run_plant(out, q, t, out["duration"], robot.gains, robot.exponents)
+    assert np.max(np.abs(end[1:] - np.array(WARM_GOAL))) < 1e-7
+    th = np.array(out["path"]["q"])[:, 1:]
+    assert np.all((th > 0.0) & (th < math.pi / 2))
+    if keep:
+        ps = read_plan(four_joints)
+        k = ps.piece_at(ps.law.at(t)[0])
+        rates = np.array([s["u"] for s in out["coefficients"]["segments"]])
+        assert sign_changes(rates) <= sign_changes(ps.rates[k:])
+
+
+def test_a_plant_off_the_model_stays_inside_in_closed_loop_near_the_edge() -> None:
+    """A 4-joint goal whose path passes 0.6 deg from pi/2 (th2), the plant's gains off by up
+    to 4 %, reversals kept: a correction that ran the model's path 1e-4 rad from the edge
+    let the plant cross it by 2.6e-3 rad; continuations now keep a margin (the plant's path
+    is integrated by scipy in optimizer.analysis)."""
+    from optimizer.analysis import closed_loop_run
+    from optimizer.model import Robot
+    goal = (0.39314071194892913, 1.3046926145479274, 1.2356423804917818, 0.4656667382499546)
+    nominal = (1.3407553162080403, 1.3400463387457455, 1.2296165497058316, 0.46146682675907086)
+    start = (1.3339412082299609, 1.338280231037412, 1.2312153183188388, 0.4571065231577324)
+    errors = (0.014411077678212217, 0.040231831901175005, -0.010897036953163478)
+    ans = plan(PlanRequest(start=nominal, goal=goal, robot=Robot.default(4))).to_dict()
+    run = closed_loop_run(ans, start, errors, 0.05, keep_reversals=True)
+    assert run["replans"] >= 3
+    th = np.asarray(run["path_q"])[:, 1:]
+    assert np.min(np.minimum(th, math.pi / 2 - th)) > 0.0

@@ -44,17 +44,26 @@ geometry and the timing are corrected separately.
    of the error at most 1e-11 rad, else by cascade quadrature); a miss above 1e-9 rad gets
    one defect-corrected step; every joint checked at every break (monotone on a
    constant-rate piece), the handed-out samples replayed by their rule.
-4. **Fallback: the full planner.** A correction that fails (near a reversal the end map's
-   Jacobian is ill-conditioned), or a plan of chained inputs (braked first): the full
-   planner (method ``shooting``, then ``penalty``) plans from the stop; its last piece is
-   split into the same geometric tail, and its pieces run rest to rest until the end.
+   The corrected part keeps :data:`REPLAN_MARGIN` from the limits (or half the room its stop
+   or the goal leaves): the plant is not the model, and a path verified 1e-4 rad from pi/2
+   is one a plant a few percent off crosses.
+4. **Middle route: one warm-started NLP** (from 4 joints, :mod:`.warm_continuation`). Where
+   Gauss-Newton fails, the shooting NLP of the first rung from the stop, its guess the
+   plan's rest from there (rates held to the plan's signs per interval with
+   ``keep_reversals``), fatrop alone; then Gauss-Newton from its rates onto the original
+   model's goal, and the proof of step 3.
+5. **Fallback: the full planner.** Where those fail, or a plan of chained inputs (braked
+   first): the full planner (method ``shooting``, then ``penalty``) plans from the stop; its
+   last piece is split into the same geometric tail, and its pieces run rest to rest until
+   the end.
 
 Why not change the current piece: its direction changed mid-motion would jump the rates; a
 stop is where the direction may change. The motion after the last replan is what no replan
 corrects (docs/closed-loop.md). At ``n >= 4`` the end map's Jacobian is nearly singular in
 the directions only higher brackets reach (smallest weighted singular values 1e-4 of the
 largest on the benchmark's goals): an error there needs a second-order correction, which
-Gauss-Newton does not find, and the full planner answers.
+Gauss-Newton does not find; the warm-started NLP finds it on most 4-joint states and many
+5-joint ones, the full planner on the rest.
 """
 
 from __future__ import annotations
@@ -83,7 +92,9 @@ from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
 from .continuation_map import (HALVING_STEPS, KERNEL_STEPS, WEIGHT_FLOOR, PieceMap,
                                correct_pieces, damped_correct, halving_correct,
                                kernel_correct, piece_end, piece_weights, weighted_step)
+from .nlp import MARGIN
 from .piece_proof import integrate_pieces
+from .warm_continuation import warm_nlp_pieces
 from .rules import TERMINAL_TOLERANCE, joint_limits, kept_limits, limits_region
 
 #: The continuation's last piece is split into this many parts and one more...
@@ -97,6 +108,12 @@ KERNEL_ACCEPT = 1e-9
 #: answer, the damped sign-keeping steps try (:func:`~.continuation_map.damped_correct`, see
 #: :func:`_correct`).
 LOOP_AFTER_KERNEL = 1e-5
+#: Distance (rad) from the limits that a continuation's corrected part keeps (half the
+#: planner's node margin, :data:`~.nlp.MARGIN`), or half the room its stop or goal leaves.
+REPLAN_MARGIN = 0.5 * MARGIN
+#: From this many joints a failed Gauss-Newton correction tries one NLP warm-started on the
+#: plan's rest (:mod:`.warm_continuation`) before the full planner.
+WARM_FROM_JOINTS = 4
 # ------------------------------------------------------------------ the replanner
 @dataclass(frozen=True)
 class Continuation:
@@ -162,8 +179,9 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
         motion, :mod:`optimizer.identification`); default the plan's. The continuation is
         planned and verified on that model, and its answer's ``robot`` says so.
     fallback : bool
-        False: only the fast path, never the full planner (a bounded answer time);
-        :class:`InfeasibleError` naming ``fallback`` where it fails.
+        False: only the fast path and the warm-started NLP (bounded by fatrop's iteration
+        cap), never the full planner; :class:`InfeasibleError` naming ``fallback`` where
+        they fail.
 
     Returns
     -------
@@ -228,27 +246,56 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
             result = _finish(ps, req, t, q_m, u_c, cont, timing, (lo, hi))
         except PlannerError as exc:
             errors.append(f"{exc.code}: {exc.message}")
+    if result is None and ps.rates is not None and n >= WARM_FROM_JOINTS:
+        try:
+            cont = _warm(ps, req, t, q_m, u_c, T_end, keep_reversals,
+                         t_start + float(time_limit))
+            if keep_reversals:
+                _refuse_added_reversals(ps, t, cont, errors)
+            result = _finish(ps, req, t, q_m, u_c, cont, timing, (lo, hi))
+        except PlannerError as exc:
+            errors.append(f"{exc.code}: {exc.message}")
+        except (ArithmeticError, ValueError, IndexError, np.linalg.LinAlgError) as exc:
+            errors.append(f"warm NLP: {type(exc).__name__}: {exc}")
     if result is None:
         if not fallback:
             raise InfeasibleError("the fast path found no continuation, and the full planner "
                                   "was not asked for (fallback=false)", field="fallback",
                                   diagnostics={"fast_path_failed": errors})
         cont = _fallback(ps, req, t, q_m, u_c, T_end, t_start + float(time_limit))
-        if keep_reversals and ps.rates is not None:
-            k = ps.piece_at(ps.law.at(t)[0])
-            had, has = sign_changes(ps.rates[k:]), sign_changes(cont.rates)
-            if has > had:
-                raise InfeasibleError(
-                    f"the only continuation found reverses phi or th1 {has} time(s), the plan's "
-                    f"rest {had}: none was handed out (keep_reversals=false accepts it; or run "
-                    "on the current plan)", field="keep_reversals",
-                    diagnostics={"reversals": has, "plan_reversals": had,
-                                 "fast_path_failed": errors})
+        if keep_reversals:
+            _refuse_added_reversals(ps, t, cont, errors)
         result = _finish(ps, req, t, q_m, u_c, cont, timing, (lo, hi))
     result["timing"]["total"] = time.perf_counter() - t_start
     if errors:
         result["diagnostics"]["replan"]["fast_path_failed"] = errors
     return json_safe(result) if plain else result
+
+
+def _refuse_added_reversals(ps: PlanState, t: float, cont: Continuation,
+                            errors: list[str]) -> None:
+    """Raise :class:`InfeasibleError` (``keep_reversals``) where ``cont`` reverses ``phi`` or
+    ``th1`` more often than the plan's rest from ``t``."""
+    if ps.rates is None:
+        return
+    k = ps.piece_at(ps.law.at(t)[0])
+    had, has = sign_changes(ps.rates[k:]), sign_changes(cont.rates)
+    if has > had:
+        raise InfeasibleError(
+            f"the only continuation found reverses phi or th1 {has} time(s), the plan's "
+            f"rest {had}: none was handed out (keep_reversals=false accepts it; or run "
+            "on the current plan)", field="keep_reversals",
+            diagnostics={"reversals": has, "plan_reversals": had,
+                         "fast_path_failed": list(errors)})
+
+
+def _required_margin(q_stop: np.ndarray, goal: np.ndarray, lo: np.ndarray, hi: np.ndarray
+                     ) -> np.ndarray:
+    """Per joint, the distance (rad) from its limits that a continuation's corrected part
+    keeps: :data:`REPLAN_MARGIN`, or half the room the stop ``q_stop`` or the goal leaves
+    where that is less (the planner's rule for its nodes, :func:`~.nlp.node_bounds`)."""
+    room = np.minimum(np.minimum(q_stop - lo, hi - q_stop), np.minimum(goal - lo, hi - goal))
+    return np.minimum(REPLAN_MARGIN, 0.5 * np.maximum(room, 0.0))
 
 
 def _pieces_end(robot: Robot, q0: np.ndarray, breaks: np.ndarray, rates: np.ndarray
@@ -337,13 +384,24 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
                 raise
             found = first, _correct(first.emap, first.q_stop, goal, first.W0, False,
                                     signed_first=False)
-    st, (err, W, steps, weights, signs_kept) = found
-    kept, free, emap, q_stop = st.kept, st.free, st.emap, st.q_stop
+    st, correction = found
+    return _corrected(ps, t, T_end, st.kept, st.free, st.q_stop, st.emap, correction,
+                      st.plain_law, "gauss_newton", st.braked)
+
+
+def _corrected(ps: PlanState, t: float, T_end: float, kept: Kept, free: np.ndarray,
+               q_stop: np.ndarray, emap: PieceMap,
+               correction: tuple[float, np.ndarray, int, np.ndarray, bool], plain_law: bool,
+               route: str, braked: bool) -> Continuation:
+    """The continuation of the kept motion and the corrected pieces ``free`` (a result of
+    :func:`_correct`), with the defect step of its proof."""
+    err, W, steps, weights, signs_kept = correction
+    goal = ps.goal
     L = np.diff(free)[:, None]
     M = free.size - 1
     new_rates = W / L
     t_stop = kept.law.end if kept.law.phases.size else t
-    if st.plain_law:
+    if plain_law:
         later = ps.law.after(t_stop).phases
     else:
         later = law_after_stop(t_stop, T_end, free, equal=True)
@@ -354,8 +412,32 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
         _, J = emap(q_stop, current * L)
         return current - weighted_step(J[1:], exact_end[1:] - goal, weights).reshape(M, 2) / L
 
-    return replace(_assemble(kept, free, new_rates, later, ps.plan_duration, "gauss_newton",
-                             steps, refine), signs_kept=signs_kept, braked=st.braked)
+    return replace(_assemble(kept, free, new_rates, later, ps.plan_duration, route,
+                             steps, refine), signs_kept=signs_kept, braked=braked)
+
+
+def _warm(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
+          T_end: float, keep_reversals: bool, deadline: float) -> Continuation:
+    """The middle route (:mod:`.warm_continuation`): the motion under way run to its stop,
+    one NLP from there warm-started on the plan's rest (rates held to the plan's signs with
+    ``keep_reversals``, free otherwise), then Gauss-Newton onto the goal of the original
+    model from the NLP's rates.
+
+    Raises
+    ------
+    PlannerError
+        The NLP did not converge, or its correction did not reach the goal.
+    """
+    assert ps.rates is not None
+    st = _setup(ps, t, q_m, u_c, T_end, brake=False)
+    breaks, rates = warm_nlp_pieces(ps, req, st.kept.s_stop, st.q_stop, keep_reversals,
+                                    _time_left(req, deadline))
+    free, rates0, _ = _tail(breaks, rates)
+    emap = PieceMap(tuple(ps.robot.gains), tuple(ps.robot.exponents), free.size - 1)
+    correction = _correct(emap, st.q_stop, ps.goal, rates0 * np.diff(free)[:, None],
+                          keep_reversals)
+    return _corrected(ps, t, T_end, st.kept, free, st.q_stop, emap, correction, False,
+                      "warm_nlp", st.braked)
 
 
 def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
@@ -589,6 +671,17 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         raise InfeasibleError(f"the continuation takes th{j + 1} outside its limits "
                               f"({lo[j]:.6g}, {hi[j]:.6g}) rad (margin {margin:.3g} rad)",
                               diagnostics={"margin": margin, "singular": bool(rep.singular)})
+    # the corrected part keeps a margin (the plant is not the model: a Gauss-Newton
+    # correction that ran a 4-joint continuation 1e-4 rad from pi/2 let a plant with gains
+    # 5 % off cross it by 2.6e-3 rad); less only where the stop or the goal is nearer
+    need = _required_margin(qb[cont.kept], goal, lo, hi)
+    later = margins[cont.kept:]
+    if np.any(later < need):
+        j = int(np.unravel_index(int(np.argmin(later - need)), later.shape)[1])
+        raise InfeasibleError(
+            f"the continuation takes th{j + 1} within {float(np.min(later[:, j])):.3g} rad of "
+            f"its limits ({lo[j]:.6g}, {hi[j]:.6g}) rad, nearer than the "
+            f"{float(need[j]):.3g} rad a continuation keeps", diagnostics={"margin": margin})
     if not miss <= TERMINAL_TOLERANCE:
         raise NumericalError(f"the continuation misses the goal by {miss:.3g} rad",
                              diagnostics={"terminal_error": miss})
