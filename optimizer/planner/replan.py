@@ -621,7 +621,8 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     ------
     InfeasibleError
         A joint leaves its limits (checked at every break: each joint is monotone on a piece
-        of constant rates).
+        of constant rates), or comes nearer to them after the stop than
+        :func:`_required_margin` allows.
     NumericalError
         The exact pieces, or the handed-out form, miss the goal by more than
         :data:`~.rules.TERMINAL_TOLERANCE`.
