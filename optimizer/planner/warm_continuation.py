@@ -53,17 +53,13 @@ def nodes_along(ps: PlanState, q0: np.ndarray, breaks: np.ndarray, rates: np.nda
     (:func:`~.continuation_map.piece_end`), as close as the NLP's own dynamics."""
     end = piece_end(tuple(ps.robot.gains), tuple(ps.robot.exponents))
     cuts = np.union1d(breaks, grid)
-    q = np.asarray(q0, float)
-    out = np.empty((grid.size, q.size))
-    at = {float(cuts[0]): q}
-    for a, b in zip(cuts[:-1], cuts[1:]):
-        k = min(max(int(np.searchsorted(breaks, 0.5 * (a + b), side="right")) - 1, 0),
-                rates.shape[0] - 1)
-        q = end(q, rates[k] * (b - a))[0]
-        at[float(b)] = q
-    for i, s in enumerate(grid):
-        out[i] = at[float(s)]
-    return out
+    states = np.empty((cuts.size, np.size(q0)))
+    states[0] = q0
+    pieces = np.clip(np.searchsorted(breaks, 0.5 * (cuts[:-1] + cuts[1:]), side="right") - 1,
+                     0, rates.shape[0] - 1)
+    for i, k in enumerate(pieces):
+        states[i + 1] = end(states[i], rates[k] * (cuts[i + 1] - cuts[i]))[0]
+    return states[np.searchsorted(cuts, grid)]
 
 
 def interval_signs(breaks: np.ndarray, rates: np.ndarray, grid: np.ndarray) -> np.ndarray:
