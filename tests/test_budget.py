@@ -87,6 +87,20 @@ def test_no_reversal_is_infeasible_where_phi_must_reverse() -> None:
     assert "max_reversals" in err.message and str(fewest) in err.message
 
 
+def test_a_budget_under_another_objective_looks_for_as_few_reversals_as_the_default() -> None:
+    """The ``weighted`` objective's plan of OPPOSED reverses far more often than the default
+    objective's (9 against 3 here); a budget of the default's count is still met: the budget
+    looks for as few reversals as the default plan has, whatever the objective picks (it
+    answered ``infeasible``, "the fewest found is 9", when the objective's plan set the floor)."""
+    own = plan(request(*OPPOSED, objective="weighted")).indicators.reversals
+    k = plan(request(*OPPOSED)).indicators.reversals
+    assert own > k  # (what makes this goal a test of it)
+    answer = plan(request(*OPPOSED, objective="weighted", max_reversals=k)).to_dict()
+    reversals, _, terminal, margin = measured(answer, *OPPOSED)
+    assert reversals <= k
+    assert terminal <= TERMINAL and margin > 0.0
+
+
 @pytest.fixture(scope="module")
 def budgets() -> dict[int, tuple[dict, tuple[int, float, float, float]]]:
     out = {}

@@ -283,3 +283,24 @@ def test_coarse_samples_are_made_denser_not_refused(method):
             info = p.diagnostics["samples"]
             assert info["asked"] == 5 and info["handed_out"] > 5
     assert hits >= 1  # 5 samples are too few for at least one of them (measured: 1 to 2)
+
+
+def test_an_energy_estimate_above_the_states_target_does_not_refuse_the_plan():
+    """A 4-joint plan (gains off the default, two joints bounded near 0, acceleration limits)
+    whose JointTrajectory form the cascade integrated to 1e-12 rad while the input energy's
+    relative estimate stayed at 1.5e-7 with the panel budget spent: the energy is an
+    indicator, not the proof, so the form (and with it the plan) is handed out. Before, every
+    method was refused ("the quintic_hermite form could not be integrated"). scipy's replay
+    of the JointTrajectory reaches the goal inside the region."""
+    req = PlanRequest(
+        start=(1.3148451358119058, 0.17868993360993662, 0.218268113711704, 0.8584763323709899),
+        goal=(1.3403029935299018, 0.1957430817651464, 0.3786426779201864, 0.988217587682331),
+        robot=Robot((0.996255703138959, 0.7161674916031566, 0.6421218664414561), (2, 2, 3)),
+        max_du1=6.2671866651822254, max_du2=9.318137485651572, max_ddu1=54.05046208300602,
+        joint_trajectory=True, time_limit=30.0,
+        joint_bounds=(None, (0.09056337156607025, 0.293243754189078),
+                      (0.20915952098481058, 0.4241979251842109), None))
+    p = plan(req)
+    _check_joint_trajectory(p, req, 1e-6)
+    assert p.execution is not None and p.execution.joint_trajectory_check is not None
+    assert p.execution.joint_trajectory_check.terminal_error <= 1e-6

@@ -9,7 +9,9 @@ the ``shooting`` transcription (:mod:`.nlp`), finished by the one finishing path
 the original model in the handed-out form):
 
 1. **the plan the objective picks** (the caller's: ``auto`` or the method asked for), under the
-   default objective the ladder's fewest-reversal plan;
+   default objective the ladder's fewest-reversal plan; under another objective that plan
+   too (the objective's may reverse far more: ``weighted`` 9 times where the default 3, and
+   the merging below looks for no fewer reversals than the first candidates have);
 2. **the straightest**: the transcription with free rate signs on :data:`BUDGET_TRANSCRIPTION`
    (30 intervals: more switching than the ladder's first rung allows), its deviation epigraph
    bounding the squared distance from the SEGMENT start -> goal (the answer's ``deviation``;
@@ -396,8 +398,8 @@ def node_deviation(req: PlanRequest, nodes: np.ndarray) -> float:
 
 def _dominated(req: PlanRequest, sol: ShootingSolution, first: Plan | None) -> bool:
     """True when the NLP answer ``sol`` cannot be a front member: its nodes alone are already
-    no straighter than ``first`` (the objective's plan, whose reversals end the merging, so it
-    has no more than any candidate). Such an answer is not finished (the correction and the
+    no straighter than ``first`` (the first candidate of the fewest reversals, whose reversals
+    end the merging, so it has no more than any candidate). Such an answer is not finished (the correction and the
     quadrature cost about one default plan) and not merged further (paths with fewer reversals
     are no straighter, see :func:`build_front`)."""
     if first is None:
@@ -405,11 +407,14 @@ def _dominated(req: PlanRequest, sol: ShootingSolution, first: Plan | None) -> b
     return node_deviation(req, sol.nodes) >= first.indicators.deviation - DEVIATION_TOLERANCE
 
 
-def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front:
+def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None,
+                fewest: Plan | None = None) -> Front:
     """The candidates of the module docstring and their non-dominated set.
 
-    ``first``: the plan the objective picked (None when none was found); its reversals end the
-    merging (fewer are not looked for).
+    ``first``: the plan the objective picked (None when none was found); ``fewest``: under
+    another objective than the default, the default objective's plan (the ladder's fewest
+    reversals), a candidate too. The one of them with the fewest reversals ends the merging
+    (fewer are not looked for) and is the reference of :func:`_dominated`.
     """
     t0 = time.perf_counter()
     deadline = ctx.deadline
@@ -417,7 +422,12 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
     cands: list[Candidate] = []
     if first is not None:
         cands.append(Candidate(first, "objective"))
-    floor = first.indicators.reversals if first is not None else 0
+    if fewest is not None:
+        cands.append(Candidate(fewest, "fewest reversals"))
+    # the fewest reversals among the first candidates: where the merging ends
+    reference = min((c.plan for c in cands), key=lambda p: p.indicators.reversals,
+                    default=None)
+    floor = reference.indicators.reversals if reference is not None else 0
     tr = budget_transcription(req.n)
     # the straightest from both of phi's directions (the NLP has local optima: on the bench's
     # 3-joint goals the two differed by up to 0.7 deg), the straighter verified one kept
@@ -435,7 +445,7 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
             continue
         tried.append({"candidate": "straightest", "status": alt.status,
                       "iterations": alt.iterations, "nlp_cpu_seconds": time.process_time() - c0})
-        if _dominated(req, alt, first):
+        if _dominated(req, alt, reference):
             tried.append({"candidate": "straightest", "outcome": DOMINATED})
             continue
         cand = _verified(req, tr, alt, None, "straightest", tried)
@@ -463,7 +473,7 @@ def build_front(req: PlanRequest, ctx: PlanContext, first: Plan | None) -> Front
                 tried.append({"candidate": f"merged to {fewer}", "status": alt.status,
                               "iterations": alt.iterations,
                               "nlp_cpu_seconds": time.process_time() - c0})
-                if _dominated(req, alt, first):
+                if _dominated(req, alt, reference):
                     # no straighter than the objective's plan, which has no more reversals;
                     # the merges after it would have fewer still (every path with fewer
                     # reversals is one with more: the straightest of them is no straighter;
@@ -511,25 +521,26 @@ def member(c: Candidate, main: Plan) -> ParetoMember:
 
 
 def plan_with_budget(req: PlanRequest, ctx: PlanContext, first: Plan | None,
-                     first_error: PlannerError | None) -> Plan:
+                     first_error: PlannerError | None, fewest: Plan | None = None) -> Plan:
     """The answer of a request with ``max_reversals`` or ``pareto`` (see the module docstring):
-    ``first`` is the plan the objective picked (None, with ``first_error``, when none was)."""
-    front = build_front(req, ctx, first)
+    ``first`` is the plan the objective picked (None, with ``first_error``, when none was);
+    ``fewest``, under another objective, the default objective's plan (:func:`build_front`)."""
+    front = build_front(req, ctx, first, fewest)
     k = req.max_reversals
     main: Plan | None
     if k is not None:
         pick = within_budget(front, k)
         if pick is None:
-            fewest = front.fewest
-            if fewest is None and first_error is not None:
+            least = front.fewest
+            if least is None and first_error is not None:
                 raise first_error
             raise InfeasibleError(
                 f"no verified path with at most max_reversals = {k} direction changes of phi "
-                f"and th1 was found: the fewest found is {fewest}; allow at least {fewest}"
-                if fewest is not None else
+                f"and th1 was found: the fewest found is {least}; allow at least {least}"
+                if least is not None else
                 f"no verified path with at most max_reversals = {k} was found",
                 field="max_reversals",
-                diagnostics={"fewest_reversals": fewest, "max_reversals": k,
+                diagnostics={"fewest_reversals": least, "max_reversals": k,
                              "budget": {"tried": front.tried}})
         main = pick.plan
     else:

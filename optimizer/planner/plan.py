@@ -13,7 +13,7 @@ import time
 from dataclasses import replace
 
 from ..errors import InfeasibleError, NumericalError
-from ..problem import PlanRequest
+from ..problem import DEFAULT_OBJECTIVE, PlanRequest
 from ..results import Plan
 from .auto import plan_auto
 from .budget import check_budget_request, plan_with_budget
@@ -45,23 +45,39 @@ def plan(req: PlanRequest) -> Plan:
     if budget:
         check_budget_request(req)
     try:
-        if req.method == AUTO:
-            result = plan_auto(req, ctx)
-        else:
-            result = get(req.method).plan(req, ctx)
+        result = _planned(req, ctx)
     except (InfeasibleError, NumericalError) as exc:
         if not budget:
             raise via_failure(req, exc)  # (exc itself without via points)
         # the budget's own candidates may still find a path (and say how few reversals)
-        result = plan_with_budget(req, ctx, None, exc)
+        result = plan_with_budget(req, ctx, None, exc, _fewest_reversals(req, ctx))
     else:
         if budget:
-            result = plan_with_budget(req, ctx, result, None)
+            result = plan_with_budget(req, ctx, result, None, _fewest_reversals(req, ctx))
     # the answer carries the request's bounds: a replan of it (handed back as it is) keeps them
     if req.joint_bounds is not None:
         result = replace(result, joint_bounds=req.joint_bounds)
     result.timing["total"] = time.perf_counter() - t0
     return result
+
+
+def _planned(req: PlanRequest, ctx: PlanContext) -> Plan:
+    """The plan of ``req``'s method (``auto`` or one method) under its objective."""
+    return plan_auto(req, ctx) if req.method == AUTO else get(req.method).plan(req, ctx)
+
+
+def _fewest_reversals(req: PlanRequest, ctx: PlanContext) -> Plan | None:
+    """Under another objective than the default, the default objective's plan (the ladder's
+    fewest reversals) for the reversal budget: the objective's own plan may reverse far more
+    (a 4-joint ``weighted`` plan 10 times where the default's reverses twice), and the budget
+    looks for no fewer reversals than its candidates' fewest. None under the default objective
+    (its plan is that plan) or where it finds no plan."""
+    if req.objective == DEFAULT_OBJECTIVE:
+        return None
+    try:
+        return _planned(replace(req, objective=DEFAULT_OBJECTIVE), ctx)
+    except (InfeasibleError, NumericalError):
+        return None
 
 
 def check_reach(req: PlanRequest) -> None:
