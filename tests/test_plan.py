@@ -218,3 +218,20 @@ def test_robustness_replays_honour_their_time_limit():
     with pytest.raises(SolverTimeoutError) as exc:
         robustness(p, perturbed_starts(req.start, 500, 0.01, 1), "v", req.goal, time_limit=0.2)
     assert exc.value.field == "time_limit"
+
+
+def test_when_every_method_fails_on_one_field_auto_names_it_and_what_to_change():
+    """A duration too short for a rate limit: every method auto runs refuses it for the same
+    field. The answer names that field (the service's 422 carries it) and keeps each method's
+    whole message, the shortest duration included (it was cut at 160 characters, no field);
+    each method runs once."""
+    with pytest.raises(InfeasibleError) as info:
+        plan(PlanRequest(start=(math.radians(10),) * 3, goal=(math.radians(30),) * 3,
+                         max_u1=0.2, duration=0.5))
+    err = info.value
+    assert err.field == "duration"
+    tried = err.diagnostics["auto"]["tried"]
+    assert len(tried) >= 2 and len({t["method"] for t in tried}) == len(tried)
+    for t in tried:
+        assert f"{t['method']}: infeasible: duration 0.5 s is too short" in err.message
+    assert err.message.count("the shortest duration that respects the limits is") == len(tried)

@@ -53,11 +53,13 @@ class _Run:
         self.ctx = ctx
         self.tried: list[dict[str, Any]] = []
         self.plans: list[Plan] = []
+        self.errors: list[tuple[str, PlannerError]] = []
         self.timed_out: SolverTimeoutError | None = None
 
     def attempt(self, name: str) -> Plan | None:
         method = get(name)
-        if not method.can_plan(self.req) or self.timed_out is not None:
+        if (not method.can_plan(self.req) or self.timed_out is not None
+                or any(t["method"] == name for t in self.tried)):  # (a method runs once)
             return None
         t0 = time.perf_counter()
         entry: dict[str, Any] = {"method": name}
@@ -70,6 +72,7 @@ class _Run:
             entry["outcome"] = "timeout"
         except PlannerError as exc:
             entry["outcome"] = f"{exc.code}: {exc.message[:MESSAGE_CHARS]}"
+            self.errors.append((name, exc))
         except Exception as exc:  # noqa: BLE001 - one method's bug is that method's failure
             log.exception("method %s failed unexpectedly inside auto", name)
             entry["outcome"] = f"internal_error: {type(exc).__name__}"
@@ -89,9 +92,15 @@ class _Run:
             if self.timed_out is not None:
                 self.timed_out.diagnostics["auto"] = {"tried": self.tried}
                 raise self.timed_out
+            # each method's whole message (what to change is often at its end: "a shorter
+            # controller_period"), and the field when every failure that names one names the
+            # same (the request's, such as duration or controller_period)
+            fields = {exc.field for _, exc in self.errors if exc.field is not None}
+            full = {name: f"{exc.code}: {exc.message}" for name, exc in self.errors}
             raise InfeasibleError(
                 "no method found a singularity-free path: " + "; ".join(
-                    f"{t['method']}: {t['outcome']}" for t in self.tried),
+                    f"{t['method']}: {full.get(t['method'], t['outcome'])}" for t in self.tried),
+                field=fields.pop() if len(fields) == 1 else None,
                 diagnostics={"auto": {"tried": self.tried}})
         chosen.diagnostics["auto"] = {
             "tried": self.tried,
