@@ -79,11 +79,18 @@ def linear_times(T: float, samples: int, stops: np.ndarray) -> np.ndarray:
     """Times of the linear form: ``samples`` evenly spaced, those within a quarter of the
     spacing of an inner stop moved onto it, and every inner stop once (the rates are
     continuous: no time is repeated)."""
-    inner = np.asarray(stops, float)[1:-1]
+    return even_times(0.0, T, samples, np.asarray(stops, float)[1:-1])
+
+
+def even_times(start: float, end: float, samples: int, inner: np.ndarray) -> np.ndarray:
+    """``samples`` times evenly spaced from ``start`` to ``end``, those within a quarter of the
+    spacing of a time of ``inner`` (sorted, strictly between ``start`` and ``end``) moved onto
+    it, and every time of ``inner`` once."""
     # a sample closer to a stop than a quarter of the spacing moves onto it: no sliver
     # intervals next to a stop, and a stop that falls on a sample (up to rounding) is exact
-    t = _snap(np.linspace(0.0, T, int(samples)), inner, 0.25 * T / (int(samples) - 1))
-    t[0], t[-1] = 0.0, T
+    t = _snap(np.linspace(start, end, int(samples)), inner,
+              0.25 * (end - start) / (int(samples) - 1))
+    t[0], t[-1] = start, end
     return np.unique(np.concatenate([t, inner]))
 
 

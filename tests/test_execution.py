@@ -164,6 +164,30 @@ def test_linear_times_follow_their_rule(seed):
     assert np.all(np.isin(times, np.concatenate([grid, inner])))
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_even_times_leave_no_sliver_next_to_an_inner_time(seed):
+    """The replanner's handed-out times (absolute: from the replan's time to the end): a phase
+    start one rounding step off an evenly spaced sample takes its place (a plain union left a
+    1e-16 s interval there, which a drive interpolating the rates divides by); the ends are
+    exact and every inner time is kept."""
+    from optimizer.execution import even_times
+
+    rng = np.random.default_rng(seed)
+    a = float(rng.uniform(0.1, 2.0))
+    b = a + float(rng.uniform(0.01, 1.0))
+    samples = int(rng.integers(11, 120))
+    grid = np.linspace(a, b, samples)
+    inner = np.sort(rng.uniform(a, b, 5))
+    inner[2] = np.nextafter(grid[samples // 2], b)
+    inner = np.unique(inner)
+    times = even_times(a, b, samples, inner)
+    assert times[0] == a and times[-1] == b
+    assert np.all(np.isin(inner, times))
+    gaps = np.diff(times)
+    close = np.min(np.diff(inner)) if inner.size > 1 else np.inf   # (inner times stay apart)
+    assert np.min(gaps) >= min(0.25 * (b - a) / (samples - 1), close) * (1 - 1e-12)
+
+
 def test_controller_period_must_fit_the_duration():
     start, goal = GOALS[3][0]
     for bad in (0.0, -0.01, 5e-5, 0.6, math.inf):

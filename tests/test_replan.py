@@ -425,3 +425,25 @@ def test_a_plant_off_the_model_stays_inside_in_closed_loop_near_the_edge() -> No
     assert run["replans"] >= 3
     th = np.asarray(run["path_q"])[:, 1:]
     assert np.min(np.minimum(th, math.pi / 2 - th)) > 0.0
+
+
+def test_replans_each_from_the_last_answer_are_accepted_to_the_end() -> None:
+    """A controller that replans from its last answer every time: twelve replans, each at 40 %
+    of the time left, 0.05 deg off the answer's path. Each answer is taken back (the tail
+    pieces get short: their rates, per second of plan time, passed 1e4 at the sixth replan,
+    which read_plan refused as 'not a plan of this service'), its samples are no slivers
+    (a sample 1e-16 s from a phase start was), and the last one, run on the tests' model
+    from its state, ends on the goal."""
+    start, goal = tuple(np.radians([10, 20, 30])), tuple(np.radians([40, 25, 15]))
+    ans = plan(PlanRequest(start=start, goal=goal)).to_dict()
+    offset = np.radians(0.05) * np.array([1.0, -1.0, 1.0])
+    for _ in range(12):
+        pt, pq = np.array(ans["path"]["t"]), np.array(ans["path"]["q"])
+        t = float(pt[0] + 0.4 * (pt[-1] - pt[0]))
+        q = np.array([np.interp(t, pt, pq[:, j]) for j in range(4)])
+        q[1:] += offset
+        ans = replan(ans, t, list(q))
+        gaps = np.diff(np.array(ans["path"]["t"]))
+        assert np.all((gaps == 0.0) | (gaps > 1e-9)), gaps.min()
+    end = run_plant(ans, q, t, ans["duration"], PROTOTYPE_K)
+    assert np.max(np.abs(end[1:] - np.array(goal))) < 1e-6

@@ -26,8 +26,12 @@ from ..timing import RAMP, ramp_profile
 
 #: Samples of the handed-out continuation (fewer when less time is left, at least 2 per piece).
 DEFAULT_SAMPLES = 101
-#: Rates above this (rad/s) are no plan of ours.
-MAX_RATE = 1e4
+#: A segment whose rates move an actuator by more than this (rad, rate times the segment's
+#: length) is no plan of ours (the NLPs bound each actuator's travel over the whole path to
+#: 40 rad). A bound on the rates themselves would refuse our own continuations: their rates
+#: are per second of plan time, and the time law runs a tail piece of 6e-6 s of plan time
+#: at 1e4 rad/s of it as 2 rad/s of the robot's.
+MAX_SEGMENT_TRAVEL = 1e3
 #: A rate below this (rad/s) is at rest.
 REST = 1e-12
 #: ``time_law.rule`` of a continuation (as :meth:`optimizer.timing.TimeLaw.as_dict` says it).
@@ -332,9 +336,10 @@ def _read(plan: Any) -> PlanState:
     rates: np.ndarray | None = None
     if all(isinstance(s.get("u"), list) and len(s["u"]) == 2 for s in segs):
         rates = finite_array([s["u"] for s in segs], "plan.coefficients.segments", (len(segs), 2))
-        if float(np.max(np.abs(rates))) > MAX_RATE:
-            raise invalid(f"plan.coefficients.segments hold rates above {MAX_RATE:g} rad/s: not a "
-                       "plan of this service", "plan.coefficients.segments")
+        if float(np.max(np.abs(rates) * np.diff(breaks)[:, None])) > MAX_SEGMENT_TRAVEL:
+            raise invalid(f"plan.coefficients.segments move an actuator by more than "
+                          f"{MAX_SEGMENT_TRAVEL:g} rad: not a plan of this service",
+                          "plan.coefficients.segments")
     T0 = float(breaks[-1])
     law_d = plan.get("time_law")
     if law_d is None:
@@ -403,6 +408,6 @@ def law_after_stop(t_stop: float, T_end: float, breaks: np.ndarray,
     return rows.reshape(-1, 6)
 
 
-__all__ = ["DEFAULT_SAMPLES", "LAW_RULE", "MAX_RATE", "PlanState", "REST", "TimeLaw",
+__all__ = ["DEFAULT_SAMPLES", "LAW_RULE", "MAX_SEGMENT_TRAVEL", "PlanState", "REST", "TimeLaw",
            "braking", "finite_array", "invalid", "law_after_stop", "read_plan",
            "rest_to_rest", "stop_and_go"]

@@ -76,6 +76,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..chained_form import chained_form
+from ..execution import even_times
 from ..errors import (InvalidRequestError, InfeasibleError, NumericalError, PlannerError,
                       SolverTimeoutError)
 from ..forms import EXECUTION_TOLERANCE, REPLAY_NODES, correct, linear_form
@@ -632,11 +633,12 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     law = cont.law
     T_end = law.end
     sb = cont.breaks - cont.breaks[0]
-    # the handed-out times: an even grid and every phase start; where the rates jump (a break
-    # passed at speed: plans without a time law) the time is there twice
-    times = np.unique(np.concatenate([np.linspace(t, T_end, ps.samples), law.phases[:, 0],
-                                      [T_end]]))
-    times = times[times >= t]
+    # the handed-out times: an even grid (a sample within a quarter of its spacing of a phase
+    # start moved onto it: no sliver intervals, which a naive union left 1e-16 s wide) and
+    # every phase start; where the rates jump (a break passed at speed: plans without a time
+    # law) the time is there twice
+    starts = law.phases[:, 0]
+    times = even_times(t, T_end, ps.samples, starts[(starts > t) & (starts < T_end)])
     sig, ds, _ = law.evaluate(times)
     # at the stops sigma' is 0 up to rounding of the cubics: the drive is told exactly 0
     ds[np.abs(ds) <= 1e-12 * max(1.0, float(np.max(np.abs(ds))))] = 0.0
