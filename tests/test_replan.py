@@ -447,3 +447,30 @@ def test_replans_each_from_the_last_answer_are_accepted_to_the_end() -> None:
         assert np.all((gaps == 0.0) | (gaps > 1e-9)), gaps.min()
     end = run_plant(ans, q, t, ans["duration"], PROTOTYPE_K)
     assert np.max(np.abs(end[1:] - np.array(goal))) < 1e-6
+
+
+def test_a_full_planner_that_runs_out_of_time_answers_in_the_replans_terms(answer, monkeypatch):
+    """Where the fast path and the warm NLP fail and the full planner's penalty NLP runs out
+    of its share of the time, the answer names the replan's time_limit (not the share: 'the
+    penalty NLP found no path within the time limit of 4.6 s' confused), and keeps the
+    planner's words and the fast path's failures in its diagnostics."""
+    import optimizer.planner.replan as rp
+    from optimizer.errors import NumericalError, SolverTimeoutError
+
+    def failing(*args, **kwargs):
+        raise NumericalError("the Gauss-Newton correction did not reach the goal")
+
+    def out_of_time(req):
+        raise SolverTimeoutError("the penalty NLP found no path within the time limit of 4.6 s",
+                                 field="time_limit")
+    monkeypatch.setattr(rp, "_fast", failing)
+    monkeypatch.setattr(rp, "_warm", failing)
+    monkeypatch.setattr(rp, "full_plan", out_of_time)
+    q = np.array([0.0, *START]) + 0.4 * (np.array([0.6, *GOAL]) - [0.0, *START])
+    with pytest.raises(SolverTimeoutError) as info:
+        replan(answer, 0.4, q, time_limit=7.0)
+    err = info.value
+    assert err.field == "time_limit"
+    assert "within the time limit of 7 s" in err.message and "raise time_limit" in err.message
+    assert "4.6 s" in err.diagnostics["full_planner"]
+    assert any("Gauss-Newton" in e for e in err.diagnostics["fast_path_failed"])

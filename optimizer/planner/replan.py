@@ -263,7 +263,11 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
             raise InfeasibleError("the fast path found no continuation, and the full planner "
                                   "was not asked for (fallback=false)", field="fallback",
                                   diagnostics={"fast_path_failed": errors})
-        cont = _fallback(ps, req, t, q_m, u_c, T_end, t_start + float(time_limit))
+        try:
+            cont = _fallback(ps, req, t, q_m, u_c, T_end, t_start + float(time_limit))
+        except PlannerError as exc:
+            exc.diagnostics["fast_path_failed"] = errors
+            raise
         if keep_reversals:
             _refuse_added_reversals(ps, t, cont, errors)
         result = _finish(ps, req, t, q_m, u_c, cont, timing, (lo, hi))
@@ -566,10 +570,23 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
     sub = replace(req, start=tuple(q_stop[1:]), phi_start=float(q_stop[0]), duration=None,
                   method="shooting", samples=11, time_limit=_time_left(req, deadline))
     try:
-        p = full_plan(sub)
-    except PlannerError:
-        # (each planner honours its own limit: the second gets what the first left)
-        p = full_plan(replace(sub, method="penalty", time_limit=_time_left(req, deadline)))
+        try:
+            p = full_plan(sub)
+        except PlannerError:
+            # (each planner honours its own limit: the second gets what the first left)
+            p = full_plan(replace(sub, method="penalty", time_limit=_time_left(req, deadline)))
+    except SolverTimeoutError as exc:
+        # in the replan's terms: its time limit, not the share of it a method of the full
+        # planner had ("the penalty NLP found no path within the time limit of 4.6 s")
+        raise SolverTimeoutError(
+            f"no continuation was found within the time limit of {req.time_limit:g} s "
+            "(raise time_limit)", field="time_limit",
+            diagnostics={"full_planner": exc.message}) from None
+    except (InfeasibleError, NumericalError) as exc:
+        raise type(exc)(
+            "no continuation was found: the fast path, the warm-started NLP and the full "
+            f"planner from the measured state failed (the full planner: {exc.message})",
+            field=exc.field, diagnostics=dict(exc.diagnostics)) from None
     sched = p.inputs
     breaks = kept.s_stop + np.asarray(sched.breaks, float)   # its plan time after the stop
     rates = np.asarray(sched.rates, float)                    # type: ignore[union-attr]
