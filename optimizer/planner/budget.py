@@ -399,9 +399,9 @@ def node_deviation(req: PlanRequest, nodes: np.ndarray) -> float:
 def _dominated(req: PlanRequest, sol: ShootingSolution, first: Plan | None) -> bool:
     """True when the NLP answer ``sol`` cannot be a front member: its nodes alone are already
     no straighter than ``first`` (the first candidate of the fewest reversals, whose reversals
-    end the merging, so it has no more than any candidate). Such an answer is not finished (the correction and the
-    quadrature cost about one default plan) and not merged further (paths with fewer reversals
-    are no straighter, see :func:`build_front`)."""
+    end the merging, so it has no more than any candidate). Such an answer is not finished
+    (the correction and the quadrature cost about one default plan) and not merged further
+    (paths with fewer reversals are no straighter, see :func:`build_front`)."""
     if first is None:
         return False
     return node_deviation(req, sol.nodes) >= first.indicators.deviation - DEVIATION_TOLERANCE
