@@ -122,3 +122,36 @@ def _replay(robot, t, q0, u_local):
         margin = min(margin, float(np.min(np.minimum(th, HALF_PI - th))))
         q = sol.y[:, -1]
     return q, margin
+
+
+def replay_linear_rk4(robot: Robot, t: np.ndarray, u: np.ndarray, q0: np.ndarray,
+                      substeps: int = 4) -> tuple[np.ndarray, float]:
+    """:func:`replay_linear` by classical RK4, ``substeps`` steps per sample interval (for
+    paths of many thousand samples, where a scipy solve per interval takes seconds): the
+    inputs are linear within each interval and the model smooth, so on intervals of a
+    millisecond the error is far below 1e-10 rad. Returns the final state and the smallest
+    region margin at the samples."""
+    K = np.array(robot.gains)
+    m = np.array(robot.exponents, float)
+
+    def rhs(q: np.ndarray, w: np.ndarray) -> np.ndarray:
+        return np.concatenate([[w[0], w[1]], K * np.cos(q[1:-1]) ** m * w[0]])
+    q = np.asarray(q0, float).copy()
+    margin = math.inf
+    for k in range(t.size - 1):
+        h = (t[k + 1] - t[k]) / substeps
+        if h <= 0.0:
+            continue
+        du = (u[k + 1] - u[k]) / substeps
+        for s in range(substeps):
+            w0 = u[k] + s * du
+            w1 = w0 + 0.5 * du
+            w2 = w0 + du
+            k1 = rhs(q, w0)
+            k2 = rhs(q + 0.5 * h * k1, w1)
+            k3 = rhs(q + 0.5 * h * k2, w1)
+            k4 = rhs(q + h * k3, w2)
+            q = q + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        th = q[1:]
+        margin = min(margin, float(np.min(np.minimum(th, HALF_PI - th))))
+    return q, margin

@@ -17,8 +17,9 @@ from optimizer.errors import InvalidRequestError
 from optimizer.model import Robot
 from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
+from reference import turns
 from replay_support import (joint_trajectory_arrays, quintic_rates, reachable_goals, replay_linear,
-                            replay_quintic, replay_zoh)
+                            replay_linear_rk4, replay_quintic, replay_zoh)
 
 GOALS = {n: reachable_goals(n, 1, 16 + n) for n in (3, 4, 5)}
 FAST = ["polynomial", "retimed", "constraint_points", "shooting"]
@@ -328,3 +329,28 @@ def test_an_energy_estimate_above_the_states_target_does_not_refuse_the_plan():
     _check_joint_trajectory(p, req, 1e-6)
     assert p.execution is not None and p.execution.joint_trajectory_check is not None
     assert p.execution.joint_trajectory_check.terminal_error <= 1e-6
+
+
+def test_a_jerk_limited_six_joint_plan_is_handed_out_denser_rather_than_refused():
+    """A 6-joint goal (a fuzzer's) with max_u2 and a jerk limit on u1: the S-curve law has
+    some 200 jerk phases, its linear form missed the goal by 8e-6 rad at 4097 samples, and
+    the correction of that miss (along the end map's weak directions) reversed th1 39 times:
+    every method was refused. The form is now made denser, up to 16385 samples, until it is
+    the plan's path: RK4 on the tests' model through the handed-out samples reaches the goal
+    inside the region, with the plan's reversals and within the rate limit."""
+    req = PlanRequest(
+        start=(1.0690002844799724, 1.0160898728786139, 1.1445411156956689,
+               1.1363591943860774, 1.024614496500098, 0.554521022017834),
+        goal=(1.5183957710738987, 1.0094742982090765, 1.1493543532758892,
+              1.1391633177510088, 1.0275355505918917, 0.5563733212087066),
+        robot=Robot.default(6), max_u2=3.241788871192267, max_ddu1=40.19007244229013,
+        time_limit=60.0)
+    p = plan(req)
+    assert p.path.t.size > 4097
+    end, margin = replay_linear_rk4(p.robot, p.path.t, p.path.u, req.q_start())
+    assert float(np.max(np.abs(end[1:] - np.array(req.goal)))) < 1e-6
+    assert margin > 0.0
+    assert float(np.max(np.abs(p.path.u[:, 1]))) <= 3.241788871192267 * (1 + 1e-9)
+    # the handed-out path reverses the actuators as the plan does (the correction added 39)
+    assert turns(p.path.q[:, 0]) + turns(p.path.q[:, 1]) == (p.plan_indicators.reversals_phi
+                                                             + p.plan_indicators.reversals_th1)
