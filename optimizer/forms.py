@@ -65,9 +65,13 @@ EXECUTION_TOLERANCE = 1e-6
 REPLAY_NODES = 12
 #: Gauss-Legendre nodes per interval of the Jacobian's quadrature (and of the region check).
 GAUSS = 3
-#: The handed-out forms may exceed a limit by this fraction (the correction moves the rates
-#: by ~1e-9 of their size; the time law plans 1e-3 inside the limits).
-LIMIT_TOLERANCE = 1e-2
+#: The handed-out forms may exceed a limit by this fraction: rounding (the time law plans 1e-3
+#: inside the limits, and a correction of 1e-9 of the rates stays there). A form whose
+#: correction takes it past a limit is made denser instead (its correction is then smaller):
+#: with 1e-2 a 4-joint penalty plan under a jerk limit handed out slopes 0.19 % above
+#: max_du1 (its 247-sample form, 1.3e-3 rad off before the correction); at 401 samples it
+#: keeps the limit.
+LIMIT_TOLERANCE = 1e-6
 
 
 # ---------------------------------------------------------------------- forms
