@@ -584,8 +584,8 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
             diagnostics={"full_planner": exc.message}) from None
     except (InfeasibleError, NumericalError) as exc:
         raise type(exc)(
-            "no continuation was found: the fast path, the warm-started NLP and the full "
-            f"planner from the measured state failed (the full planner: {exc.message})",
+            "no continuation was found from the measured state (after the fast path, the "
+            f"full planner: {exc.message})",
             field=exc.field, diagnostics=dict(exc.diagnostics)) from None
     sched = p.inputs
     breaks = kept.s_stop + np.asarray(sched.breaks, float)   # its plan time after the stop
