@@ -380,3 +380,20 @@ def test_a_corrected_linear_form_keeps_the_slope_limit_to_rounding():
     assert np.abs(u[:, 0]).max() <= req.max_u1 * (1 + 1e-6)
     end, margin = replay_linear(p.robot, t, u, req.q_start())
     assert float(np.max(np.abs(end[1:] - np.array(req.goal)))) < 2e-6 and margin > 0.0
+
+
+
+def test_a_joint_trajectory_form_of_fast_rates_is_integrated_rather_than_refused():
+    """A 5-joint request (a fuzzer's) with the JointTrajectory form, 983 samples and bounds on
+    phi's change: the quintic form's quadrature ran out of panels (4 per knot) at 1.5e-8 rad
+    above its 1e-8 target and every method was refused. The form's replays get 16 panels per
+    knot; scipy's replay of the handed-out JointTrajectory reaches the goal inside the region."""
+    req = PlanRequest(
+        start=(1.3580767775715805, 0.8563125030804356, 1.357596462052515,
+               0.4048901176896703, 0.8492645805949687),
+        goal=(0.6757917588442403, 0.8041115096633423, 1.0141760876153139,
+              0.2908583920804147, 0.3405564480949462),
+        robot=Robot.default(5), samples=983, joint_trajectory=True,
+        phi_change_bounds=(-0.456364954824489, 0.7123433975005522), time_limit=60.0)
+    p = plan(req)
+    _check_joint_trajectory(p, req, 1e-5)

@@ -17,7 +17,8 @@ These found, on first runs: a plan refused because its energy's quadrature estim
 the states' target; a budget under ``weighted`` that looked for no fewer reversals than the
 objective's plan; ``auto`` losing the field and the hint of a refusal; replans refused when an
 earlier replan's answer was sent back; 1e-16 s sample intervals in replans; a jerk-limited
-6-joint plan refused for its linear form of 4097 samples; slopes 0.19 % above ``max_du1``.
+6-joint plan refused for its linear form of 4097 samples; slopes 0.19 % above ``max_du1``;
+a JointTrajectory form's quadrature that ran out of panels.
 
 ``FUZZ_CASES`` sets the number of plan and replan cases (default 16 and 6; the long run of
 this session's notes used 120 to 200 per seed on 3..6 joints, ``FUZZ_JOINTS=3,4,5,6``);
