@@ -15,7 +15,10 @@ How
 * The key of a library is the SHA-256 of its C source, of the compiler command, of the CasADi
   version and of the platform and machine type (for a cache shared between machines): a
   cached library can never belong to other expressions (a changed model, transcription or
-  CasADi version gives other source, hence another key).
+  CasADi version gives other source, hence another key). An NLP's library is keyed by a
+  fingerprint of what its source is generated from (:func:`library_for_fingerprint`: its
+  serialised expressions and options) instead, so that a process finds it without
+  generating the source (0.4-1.3 s at 4 to 7 joints).
 * The build runs ``<cc> -O1 -fPIC -shared`` in a separate, detached process (``python -m
   optimizer.native``) that writes a temporary file and renames it into place, so a library is
   either complete or absent; a lock file keeps two processes of one machine from compiling the
@@ -41,7 +44,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 #: Flags of the compile (-O1: 5 s for the 5-joint NLP and within 2 % of -O2's speed, which
 #: takes 16 s; -O0 compiles in 1.6 s but runs 20 % slower).
@@ -208,11 +211,44 @@ def library_for(source: str, wait: bool = False) -> Library | None:
     cfg = _config
     if cfg is None or len(source) > MAX_SOURCE_BYTES:
         return None
-    lib = Library(library_key(source, cfg), cfg)
+    return _library(library_key(source, cfg), cfg, lambda: source, wait)
+
+
+def library_for_fingerprint(fingerprint: str, source: Callable[[], str],
+                            wait: bool = False) -> Library | None:
+    """:func:`library_for` keyed by ``fingerprint`` instead of the source, which
+    ``source()`` generates only when the library is not in the cache.
+
+    Why: an NLP's C source is generated from its solver's derivative functions (the
+    Lagrangian's Hessian, the Jacobians), and building those in CasADi's virtual machine and
+    writing their C took 0.4-1.3 s at 4 to 7 joints, each process's first plan of each joint
+    count, only to find a library that was already built. ``fingerprint`` must determine the
+    source as fully as the source determines itself: the serialised expressions the source is
+    generated from and every option of the generation (:meth:`MultipleShootingNLP.fingerprint
+    <optimizer.planner.nlp.MultipleShootingNLP.fingerprint>`); CasADi's version, the compiler
+    and the platform join it in the key as they join a source. A source above
+    :data:`MAX_SOURCE_BYTES` leaves a ``.failed`` file, so that it is generated once.
+    """
+    cfg = _config
+    if cfg is None:
+        return None
+    # (the size limit in the key: a source refused under one limit is tried under another)
+    key = library_key(f"fingerprint:{fingerprint}:{MAX_SOURCE_BYTES}", cfg)
+    return _library(key, cfg, source, wait)
+
+
+def _library(key: str, cfg: NativeConfig, source_of: Callable[[], str],
+             wait: bool) -> Library | None:
+    lib = Library(key, cfg)
     if lib.path.exists():
         return lib
     failed = cfg.cache_dir / f"{lib.key}.failed"
     if failed.exists():
+        return None
+    source = source_of()
+    if len(source) > MAX_SOURCE_BYTES:
+        failed.write_text(f"source of {len(source)} bytes, above {MAX_SOURCE_BYTES}: not "
+                          "compiled\n")
         return None
     src = cfg.cache_dir / f"{lib.key}.c"
     if not src.exists():

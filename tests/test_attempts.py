@@ -33,7 +33,7 @@ class ScriptedNLP:
 
     def __init__(self, script: dict[str, list[tuple[str, bool]]]) -> None:
         self.script = {k: list(v) for k, v in script.items()}
-        self.solvers = [(k, None) for k in script]
+        self.solver_names = tuple(script)
         self.callback = Callback()
         self.lbg = self.ubg = np.zeros(0)
         self.calls: list[str] = []

@@ -167,15 +167,51 @@ def test_a_failed_build_falls_back_and_is_not_retried(tmp_path):
     bad.chmod(0o755)
     cache = tmp_path / "cache"
     native.configure(cache, compiler=str(bad))
-    assert not shooting.prepare(Robot().gains, Robot().exponents, wait=True).compiled
+    built = shooting.prepare(Robot().gains, Robot().exponents, wait=True)
+    assert not built.compiled
     p = plan(_request())
     assert p.diagnostics["shooting"]["compiled"] is False
     failed = list(cache.glob("*.failed"))
     assert len(failed) == 1 and "no such luck" in failed[0].read_text()
-    # nor does a second process try again
-    for c in cache.glob("*.c"):
-        assert native.library_for(c.read_text()) is None
+
+    # nor does a second process try again, nor even generate the source
+    def no_source() -> str:
+        raise AssertionError("the source was generated again")
+
+    assert native.library_for_fingerprint(built.fingerprint("fatrop"), no_source) is None
     assert not native._builds
+
+
+def test_a_cached_nlp_library_is_found_without_its_source(default_cache, monkeypatch):
+    """A process finds an NLP's library by the NLP's fingerprint: neither the C source nor
+    the solver on CasADi's virtual machine is built (0.4-1.3 s at 4 to 7 joints)."""
+    native.configure(default_cache)
+    built = shooting.prepare(Robot().gains, Robot().exponents, wait=True)
+    assert built.compiled
+    fresh = nlp.MultipleShootingNLP(tuple(Robot().exponents), False,
+                                          nlp.ladder(3)[0].intervals,
+                                          nlp.ladder(3)[0].substeps)
+    assert fresh.fingerprint("fatrop") == built.fingerprint("fatrop")
+    monkeypatch.setattr(native, "nlp_source", lambda *a, **k: pytest.fail("source built"))
+    assert fresh.load_native(every=0.0) is True
+    assert fresh._built["fatrop"].oracle().class_name() == "External"
+    assert "ipopt" not in fresh._built  # (built at its first use only)
+
+
+def test_an_nlp_fingerprint_changes_with_what_its_source_is_generated_from():
+    ladder = nlp.ladder(3)[0]
+    base = nlp.MultipleShootingNLP((1, 1), False, ladder.intervals, ladder.substeps)
+    same = nlp.MultipleShootingNLP((1, 1), False, ladder.intervals, ladder.substeps)
+    assert base.fingerprint("fatrop") == same.fingerprint("fatrop")
+    others = [nlp.MultipleShootingNLP((1, 2), False, ladder.intervals, ladder.substeps),
+              nlp.MultipleShootingNLP((1, 1), True, ladder.intervals, ladder.substeps),
+              nlp.MultipleShootingNLP((1, 1), False, ladder.intervals + 1,
+                                            ladder.substeps),
+              nlp.MultipleShootingNLP((1, 1), False, ladder.intervals, ladder.substeps,
+                                            fatrop_settings=(("max_iter", 7.0),))]
+    for other in others:
+        assert other.fingerprint("fatrop") != base.fingerprint("fatrop")
+    assert base.fingerprint("ipopt") != base.fingerprint("fatrop")
 
 
 def test_no_compiler_turns_it_off(tmp_path):

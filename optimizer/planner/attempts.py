@@ -19,9 +19,9 @@ from .solvers import SolvableNLP, run_solver
 
 class AttemptableNLP(SolvableNLP, Protocol):
     """What :func:`first_converged` needs of an NLP: :class:`~.solvers.SolvableNLP` and the
-    names of its solvers (``solvers``: ``(name, solver)`` pairs)."""
+    names of its solvers, in order (``solver_names``)."""
 
-    solvers: list[tuple[str, Any]]
+    solver_names: tuple[str, ...]
 
 
 #: No attempt starts once less than this is left of the deadline (s).
@@ -94,7 +94,7 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
     NumericalError
         A solver raised (:func:`~.solvers.run_solver`).
     """
-    names = {name for name, _ in nlp.solvers}
+    names = set(nlp.solver_names)
     tried: list[dict[str, Any]] = []
     missed: np.ndarray | None = None
 

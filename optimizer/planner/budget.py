@@ -232,7 +232,7 @@ def _solve(req: PlanRequest, deadline: Any, tr: Transcription,
         travel = min(max(phi_travel, lo_phi), hi_phi)
         guess, x0 = f"phi travel {travel:+.3g} rad", nlp.guess(a, b, req.phi_start, travel)
     x0 = np.clip(x0, lbw, ubw)
-    have = dict(nlp.solvers)
+    have = nlp.solver_names
     if solvers is None:
         solvers = HELD_SOLVERS if signs is not None else FREE_SOLVERS
     names = [name for name in solvers

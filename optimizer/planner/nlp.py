@@ -376,7 +376,6 @@ class MultipleShootingNLP:
         n_g = int(nlp["g"].shape[0])
         self.equality = np.array(eq)
         self.callback = DeadlineCallback(self.nw, n_g, self.np)
-        self.solvers: list[tuple[str, Any]] = []
         self.native: native.Library | None = None
         self.native_ipopt: native.Library | None = None
         self.compiled = False
@@ -403,7 +402,13 @@ class MultipleShootingNLP:
         self._ipopt_opts = ipopt_options(self.callback)
         self._factories["ipopt"] = functools.partial(ca.nlpsol, f"{name}_ipopt", "ipopt", nlp,
                                                      self._ipopt_opts)
-        self.solvers = [(key, build()) for key, build in self._factories.items()]
+        #: the solvers' names, in the order the methods try them
+        self.solver_names: tuple[str, ...] = tuple(self._factories)
+        # each solver is built at its first use (solver): on CasADi's virtual machine that
+        # builds its derivative functions, 0.1-0.9 s at 4 to 7 joints, which a process whose
+        # compiled library is in the cache never needs
+        self._built: dict[str, Any] = {}
+        self._problem = nlp
         self._spent: dict[str, list[BufferedCall]] = {key: [] for key in self._factories}
         self._name = name
         self.lbg = np.where(self.equality, 0.0, -np.inf)
@@ -427,15 +432,15 @@ class MultipleShootingNLP:
         if cfg is not self._native_cfg:
             self._native_cfg, self.native, self.native_ipopt = cfg, None, None
             if cfg is not None and self.native_ok:
-                solvers = dict(self.solvers)
-                fatrop, ipopt = solvers.get("fatrop"), solvers.get("ipopt")
-                if fatrop is not None and not self.compiled:
-                    self.native = native.library_for(
-                        native.nlp_source(fatrop, self._correction_maps), wait=wait)
-                if (ipopt is not None and not self.ipopt_compiled and not self.soft_signs
+                if "fatrop" in self._factories and not self.compiled:
+                    self.native = native.library_for_fingerprint(
+                        self.fingerprint("fatrop"), lambda: native.nlp_source(
+                            self.solver("fatrop"), self._correction_maps), wait=wait)
+                if (not self.ipopt_compiled and not self.soft_signs
                         and self.n >= IPOPT_COMPILED_FROM_JOINTS):
-                    self.native_ipopt = native.library_for(native.nlp_source(ipopt),
-                                                           wait=wait)
+                    self.native_ipopt = native.library_for_fingerprint(
+                        self.fingerprint("ipopt"),
+                        lambda: native.nlp_source(self.solver("ipopt")), wait=wait)
             every = 0.0
         if self.native_ipopt is not None and not self.ipopt_compiled:
             self._load_ipopt(every)
@@ -482,8 +487,40 @@ class MultipleShootingNLP:
         self._replace("ipopt", solver)
         self.ipopt_compiled = True
 
+    @property
+    def solvers(self) -> list[tuple[str, Any]]:
+        """``(name, nlpsol)`` of fatrop (when CasADi has it) and IPOPT (each built now when
+        it was not yet: :meth:`solver`)."""
+        return [(key, self.solver(key)) for key in self.solver_names]
+
+    def solver(self, name: str) -> Any:
+        """Solver ``name`` (built at its first use: compiled when its library is loaded,
+        else on CasADi's virtual machine)."""
+        solver = self._built.get(name)
+        if solver is None:
+            solver = self._built[name] = self._factories[name]()
+        return solver
+
+    def fingerprint(self, name: str) -> str:
+        """What solver ``name``'s compiled library is generated from, as a string that changes
+        whenever its C source would (:func:`optimizer.native.library_for_fingerprint`): the
+        serialised problem ``(x, p) -> (f, g)``, the solver's plugin and options (those that
+        are data), and for fatrop the correction's maps compiled with it."""
+        opts = self._native_opts if name == "fatrop" else self._ipopt_opts
+        data = {k: v for k, v in opts.items()
+                if isinstance(v, (str, int, float, bool, list, tuple, dict))}
+        parts = [name, repr(sorted(data.items())), self._serialised_problem]
+        if name == "fatrop":
+            parts += [f.serialize() for f in self._correction_maps]
+        return "\0".join(parts)
+
+    @functools.cached_property
+    def _serialised_problem(self) -> str:
+        return ca.Function("nlp", [self._problem["x"], self._problem["p"]],
+                           [self._problem["f"], self._problem["g"]]).serialize()
+
     def _replace(self, name: str, solver: Any) -> None:
-        self.solvers = [(key, solver if key == name else s) for key, s in self.solvers]
+        self._built[name] = solver
         self._spent[name] = []  # their memories go with the solver they belong to
 
     def solver_call(self, name: str) -> BufferedCall:
@@ -502,7 +539,7 @@ class MultipleShootingNLP:
         MB each); then the solver is built anew (the old one frees them, and the next
         memories reuse that heap).
         """
-        solver = dict(self.solvers)[name]
+        solver = self.solver(name)
         spent = self._spent[name]
         if spent and len(spent) * memory_bytes(solver) > SPENT_MEMORY_BYTES:
             solver = self._factories[name]()

@@ -221,7 +221,7 @@ def solve_penalty(req: PlanRequest, deadline: Any, tr: Transcription | None = No
     w_sens = sensitivity_weight(req)
     starts = _starts(req, nlp, lbw, ubw, phi_range, warm_start)
     nlp.load_native()
-    solvers = [s for s in SOLVERS if s in dict(nlp.solvers)]
+    solvers = [s for s in SOLVERS if s in nlp.solver_names]
     if rate_signs is not None:
         # rates of fixed signs may be infeasible: fatrop's iteration cap bounds the cost of
         # finding out (the free rungs follow), from the one start that travels their way
