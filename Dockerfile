@@ -24,14 +24,11 @@ RUN useradd --system --create-home --uid 10001 planner
 USER planner
 WORKDIR /home/planner
 
-# The default robot's compiled shooting NLP and the proofs' compiled quadrature, built into the
-# image (other robots' NLPs are built on first use, in the background, into the same cache:
-# ~/.cache/chained-planner/native).
-RUN python -c "from optimizer import cascade_kernel, native; from optimizer.model import Robot; \
-from optimizer.planner.shooting import prepare; \
-native.configure(native.default_cache_dir()); r = Robot(); \
-print('compiled:', prepare(r.gains, r.exponents, wait=True).compiled, \
-cascade_kernel.prepare(wait=True))"
+# The compiled shooting NLPs of the default robot of every joint count the warm-up prepares and
+# the proofs' compiled quadrature, built into the image (service/prebuild.py): a worker's first
+# plan of any of them loads its library (other robots' exponents are built on first use, in the
+# background, into the same cache: ~/.cache/chained-planner/native).
+RUN python -m service.prebuild
 
 ENV PLANNER_HOST=0.0.0.0 \
     PLANNER_PORT=8000

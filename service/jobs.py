@@ -34,32 +34,46 @@ from optimizer.results import json_safe
 
 from .encoding import finite_json
 from .robot_spec import robot_from
+from .schema_fields import MAX_JOINTS, MIN_JOINTS
 
 log = logging.getLogger("service.worker")
 
 Payload = dict[str, Any]
 
 
+#: Joint counts whose default robot :func:`warm_up` prepares: every count the API accepts, so
+#: that no worker pays a build at its first request of a robot (0.15-1.2 s at 4 to 8 joints).
+WARM_JOINTS = range(MIN_JOINTS, MAX_JOINTS + 1)
+
+
 def warm_up() -> dict[str, Any]:
-    """Build the default robot's chained form (CasADi functions) and its shooting NLP once,
-    and draw a first figure (:func:`service.figures.warm_up`), in this process.
+    """Build, in this process: the chained form (CasADi functions) and the shooting NLPs of
+    the default robot of every joint count in :data:`WARM_JOINTS`; the 3-joint robot's
+    replan maps and reversal-budget NLP; a first figure (:func:`service.figures.warm_up`).
 
     Returns
     -------
     dict
-        ``robot`` (n), ``seconds`` spent, whether the shooting NLP's compiled functions
-        are in use (``shooting_compiled``) and the CPU seconds of the figure warm-up
-        (``figures_cpu_seconds``, 0 where a parent process had done it).
+        ``robots`` (the joint counts), ``seconds`` spent, whether the 3-joint shooting NLP's
+        compiled functions are in use (``shooting_compiled``) and the CPU seconds of the
+        figure warm-up (``figures_cpu_seconds``, 0 where a parent process had done it).
     """
     t0 = time.perf_counter()
+    first = None
+    for n in WARM_JOINTS:
+        robot = Robot.default(n)
+        cf = chained_form(robot)
+        q = np.concatenate([[0.0], np.full(n, 0.5)])
+        cf.from_chained(cf.to_chained(q))
+        cf.symbolic.forward(q, cf.gains)
+        # the shooting NLPs (0.03-0.15 s a robot): not paid by the first request. With
+        # compiled functions configured, the 3-joint robot's library is looked up (or built, in
+        # the background) now; another robot's at its first request (2 ms when the library is
+        # in the cache, as in the image): a fresh cache does not compile six libraries at once
+        shooting = prepare(robot.gains, robot.exponents, native=n == MIN_JOINTS)
+        first = first or shooting
+    assert first is not None
     robot = Robot.default(3)
-    cf = chained_form(robot)
-    q = np.array([0.0, 0.5, 0.5, 0.5])
-    cf.from_chained(cf.to_chained(q))
-    cf.symbolic.forward(q, cf.gains)
-    # the shooting NLP (0.1 s): not paid by the first 'shooting' request, and with compiled
-    # functions configured their build starts now, in the background
-    shooting = prepare(robot.gains, robot.exponents)
     # the replans' continuation maps and kernels (0.5-1 s of CPU): not paid by the first replan
     # (the proof's functions, piece_proof.prepare, about as much again, are built per size at
     # the first replan that needs them: every server start in the tests would pay them)
@@ -73,8 +87,8 @@ def warm_up() -> dict[str, Any]:
     from . import figures
 
     figure_seconds = figures.warm_up()
-    return {"robot": robot.n, "seconds": time.perf_counter() - t0,
-            "shooting_compiled": shooting.compiled, "figures_cpu_seconds": figure_seconds}
+    return {"robots": list(WARM_JOINTS), "seconds": time.perf_counter() - t0,
+            "shooting_compiled": first.compiled, "figures_cpu_seconds": figure_seconds}
 
 
 def job_plan(payload: Payload) -> dict[str, Any]:

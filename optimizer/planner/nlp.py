@@ -409,6 +409,7 @@ class MultipleShootingNLP:
         # compiled library is in the cache never needs
         self._built: dict[str, Any] = {}
         self._problem = nlp
+        self._fingerprints: dict[str, str] = {}
         self._spent: dict[str, list[BufferedCall]] = {key: [] for key in self._factories}
         self._name = name
         self.lbg = np.where(self.equality, 0.0, -np.inf)
@@ -506,13 +507,16 @@ class MultipleShootingNLP:
         whenever its C source would (:func:`optimizer.native.library_for_fingerprint`): the
         serialised problem ``(x, p) -> (f, g)``, the solver's plugin and options (those that
         are data), and for fatrop the correction's maps compiled with it."""
-        opts = self._native_opts if name == "fatrop" else self._ipopt_opts
-        data = {k: v for k, v in opts.items()
-                if isinstance(v, (str, int, float, bool, list, tuple, dict))}
-        parts = [name, repr(sorted(data.items())), self._serialised_problem]
-        if name == "fatrop":
-            parts += [f.serialize() for f in self._correction_maps]
-        return "\0".join(parts)
+        found = self._fingerprints.get(name)
+        if found is None:
+            opts = self._native_opts if name == "fatrop" else self._ipopt_opts
+            data = {k: v for k, v in opts.items()
+                    if isinstance(v, (str, int, float, bool, list, tuple, dict))}
+            parts = [name, repr(sorted(data.items())), self._serialised_problem]
+            if name == "fatrop":
+                parts += [f.serialize() for f in self._correction_maps]
+            found = self._fingerprints[name] = "\0".join(parts)
+        return found
 
     @functools.cached_property
     def _serialised_problem(self) -> str:

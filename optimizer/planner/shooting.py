@@ -127,11 +127,12 @@ class ShootingSolution:
 
 
 def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: bool = False,
-            wait: bool = False) -> MultipleShootingNLP:
+            wait: bool = False, native: bool = True) -> MultipleShootingNLP:
     """Build (and cache) the first rung's NLPs of a robot (free; with its rates' signs as
     bounds; with soft signs) ahead of its first request; with compiled functions configured
-    (:mod:`optimizer.native`) this also starts their build (``wait``: builds them before it
-    returns). Returns the free one."""
+    (:mod:`optimizer.native`) this also loads their library, or starts its build (``wait``:
+    builds it before it returns; ``native`` False: neither, the first solve does). Returns
+    the free one."""
     n = len(gains) + 1
     tr = ladder(n)[0]
     # (the free rung's goal may be elastic where the sign-held rungs' is hard:
@@ -147,7 +148,12 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
         if nlp not in nlps:
             nlps.append(nlp)
     for nlp in nlps:
-        nlp.load_native(every=0.0, wait=wait)
+        if nlp.native_ok and "fatrop" in nlp.solver_names:
+            # (10-60 ms: computed once, here, so that processes forked after a warm-up, the
+            # service's workers, find their libraries without it)
+            nlp.fingerprint("fatrop")
+        if native:
+            nlp.load_native(every=0.0, wait=wait)
     return nlps[0]
 
 
