@@ -50,6 +50,7 @@ limit stays met); a shorter one is refused, naming the limit and the shortest du
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar, Sequence
 
@@ -501,7 +502,12 @@ def topp_segment(path: GeometricPath, lam0: float, L: float,
     time_ = cp.sum(cp.multiply(2.0 * d, cp.inv_pos(sq[:-1] + sq[1:])))
     prob = cp.Problem(cp.Minimize(time_), cons)
     try:
-        prob.solve(solver=cp.CLARABEL)
+        with warnings.catch_warnings():
+            # an "optimal_inaccurate" solve is kept and its law checked like any other (the
+            # limits are measured on the handed-out path): cvxpy's warning about it would
+            # reach the service's stderr
+            warnings.simplefilter("ignore", UserWarning)
+            prob.solve(solver=cp.CLARABEL)
     except (cp.error.SolverError, ValueError):
         return None
     if prob.status not in ("optimal", "optimal_inaccurate") or b.value is None:

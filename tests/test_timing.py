@@ -350,3 +350,28 @@ def test_the_six_joint_goal_of_issue_25_is_honest_or_refused():
         ref.reversals_phi, ref.reversals_th1)
     assert abs(p.indicators.deviation - ref.deviation) <= math.radians(0.01)
     assert np.abs(p.path.u).max() < 10.0
+
+
+def test_an_inaccurate_convex_retiming_warns_no_one(monkeypatch):
+    """cvxpy warns when Clarabel ends "optimal_inaccurate"; the retiming keeps such a law
+    (its limits are checked on the handed-out path like any other) and its warning must not
+    reach the caller's (the service's) stderr."""
+    import warnings
+
+    import cvxpy as cp
+
+    solve = cp.Problem.solve
+    calls = []
+
+    def inaccurate(self, *args, **kwargs):
+        calls.append(1)
+        warnings.warn("Solution may be inaccurate. Try another solver, adjusting the solver "
+                      "settings, or solve with verbose=True for more information.", UserWarning)
+        return solve(self, *args, **kwargs)
+
+    monkeypatch.setattr(cp.Problem, "solve", inaccurate)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        p = plan(_request(3, "retimed", **LIMITS))
+    assert calls  # the convex retiming ran
+    assert np.abs(p.path.u).max() <= 1.0 * 1.01
