@@ -442,6 +442,16 @@ def _shape_need(path: GeometricPath, lam0: float, L: float,
     return best
 
 
+#: An actuator whose rate on a segment of constant direction is at most this share of the
+#: other's is still there for the limits: the segment takes the pace of the segments whose
+#: limits bind. Why: an NLP's rate that is nearly 0 (an 8-joint plan's u2 at 2e-6 of u1 on
+#: three pieces, interior-point solutions do not end on 0 exactly) divided into ``max_u2``
+#: ran those pieces of 0.05 rad of phi in 1e-7 s each, u1 at 5e5 rad/s: no motor's motion,
+#: and no form of a few thousand samples holds it. The still actuator then moves at a
+#: thousandth of the other's rate at most, within its limit at any pace the others allow.
+STILL_SHARE = 1e-3
+
+
 #: Intervals of the convex time-optimal retiming of a segment whose direction varies.
 TOPP_INTERVALS = 160
 #: It keeps this much more room below each limit (its constraints hold at the grid's
@@ -533,6 +543,8 @@ def _constant_need(g: np.ndarray, L: float,
     """The fastest law on a segment of constant direction ``g``, and its binding limit
     ``(order, actuator)`` (the bound with the least room per unit ``lam``)."""
     ag = np.abs(g)
+    # an actuator that barely moves on the segment does not set its pace (see STILL_SHARE)
+    ag = np.where(ag <= STILL_SHARE * float(np.max(ag)), 0.0, ag)
     per: list[tuple[float, int, int]] = []         # (bound per unit lam, order, actuator)
     for order, lim in enumerate(bounds):
         with np.errstate(divide="ignore"):
@@ -633,7 +645,9 @@ def time_law(path: GeometricPath, limits: Limits, duration: float | None, nomina
                 binding.append((D, order, i))
     bounded = [p.duration for p in parts_min if p is not None]
     hb = sum(h for p, h in zip(parts_min, hs) if p is not None)
-    rate = sum(bounded) / hb  # seconds per plan second where a limit binds
+    # seconds per plan second where a limit binds; where none binds anywhere (the limited
+    # actuators never move), the plan's own pace over the nominal duration
+    rate = sum(bounded) / hb if hb > 0.0 else nominal / float(sum(hs))
     parts = [p if p is not None else ramp_profile(float(L), float(h) * rate)
              for p, L, h in zip(parts_min, Ls, hs)]
     shortest = float(sum(p.duration for p in parts))

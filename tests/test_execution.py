@@ -331,13 +331,21 @@ def test_an_energy_estimate_above_the_states_target_does_not_refuse_the_plan():
     assert p.execution.joint_trajectory_check.terminal_error <= 1e-6
 
 
-def test_a_jerk_limited_six_joint_plan_is_handed_out_denser_rather_than_refused():
+@pytest.mark.parametrize("old_pace", [True, False], ids=["old_pace", "pace"])
+def test_a_jerk_limited_six_joint_plan_is_handed_out_denser_rather_than_refused(old_pace,
+                                                                               monkeypatch):
     """A 6-joint goal (a fuzzer's) with max_u2 and a jerk limit on u1: the S-curve law has
     some 200 jerk phases, its linear form missed the goal by 8e-6 rad at 4097 samples, and
     the correction of that miss (along the end map's weak directions) reversed th1 39 times:
     every method was refused. The form is now made denser, up to 16385 samples, until it is
     the plan's path: RK4 on the tests' model through the handed-out samples reaches the goal
-    inside the region, with the plan's reversals and within the rate limit."""
+    inside the region, with the plan's reversals and within the rate limit. (That law came
+    from pieces where u2 barely moves taking their pace from max_u2: ``old_pace``, which the
+    densification is tested on; they now take the pace of the others, timing.STILL_SHARE,
+    and the form needs no densification.)"""
+    if old_pace:
+        from optimizer import timing
+        monkeypatch.setattr(timing, "STILL_SHARE", 0.0)
     req = PlanRequest(
         start=(1.0690002844799724, 1.0160898728786139, 1.1445411156956689,
                1.1363591943860774, 1.024614496500098, 0.554521022017834),
@@ -346,7 +354,7 @@ def test_a_jerk_limited_six_joint_plan_is_handed_out_denser_rather_than_refused(
         robot=Robot.default(6), max_u2=3.241788871192267, max_ddu1=40.19007244229013,
         time_limit=60.0)
     p = plan(req)
-    assert p.path.t.size > 4097
+    assert p.path.t.size > 4097 or not old_pace
     end, margin = replay_linear_rk4(p.robot, p.path.t, p.path.u, req.q_start())
     assert float(np.max(np.abs(end[1:] - np.array(req.goal)))) < 1e-6
     assert margin > 0.0
@@ -397,3 +405,55 @@ def test_a_joint_trajectory_form_of_fast_rates_is_integrated_rather_than_refused
         phi_change_bounds=(-0.456364954824489, 0.7123433975005522), time_limit=60.0)
     p = plan(req)
     _check_joint_trajectory(p, req, 1e-5)
+
+
+#: A random 8-joint request of the semantic fuzzer (tests/test_request_fuzz.py, seed 15): only
+#: ``max_u2`` limits the law, and the plan's u2 on its first three pieces is 2e-6 to 3e-5 of u1.
+EIGHT_JOINTS_MAX_U2 = {
+    "start": [1.1622538762143202, 0.6172451513260913, 0.283674139715292, 0.6752221192290225,
+              1.2810099102109476, 0.49950937020852026, 0.7856375373320407, 0.15558383676439777],
+    "goal": [0.4550193338899075, 0.5308244481142068, 0.08212645444638769, 0.39494366455191116,
+             1.0670332991156881, 0.4564891925279306, 0.5571172365688084, 0.043528085800838966],
+    "robot": {"gains": [0.88658] * 6 + [0.7115], "exponents": [2] * 6 + [3]},
+    "max_u2": 1.1513083110823095, "samples": 323, "method": "shooting"}
+
+
+def _replay_miss(d: dict, p) -> tuple[float, float]:
+    out = p.to_dict()
+    robot = Robot(tuple(d["robot"]["gains"]), tuple(d["robot"]["exponents"]))
+    t, u = (np.asarray(out["path"][k], float) for k in ("t", "u"))
+    end, margin = replay_linear(robot, t, u, np.concatenate([[0.0], d["start"]]))
+    return float(np.max(np.abs(end[1:] - np.asarray(d["goal"])))), margin
+
+
+def test_a_limited_actuator_that_barely_moves_does_not_set_an_absurd_pace():
+    """Where the limited actuator (u2) barely moves, dividing its limit by its rate let the law
+    run three pieces of 0.05 rad of phi in 1e-7 s each (u1 at 5e5 rad/s); such pieces now take
+    the pace of the pieces whose limit binds. The handed-out path, replayed by scipy, reaches
+    the goal (before: 0.12 rad off, while the answer said 3e-8)."""
+    p = plan(PlanRequest.from_dict(EIGHT_JOINTS_MAX_U2))
+    miss, margin = _replay_miss(EIGHT_JOINTS_MAX_U2, p)
+    assert miss < 1e-6 and margin > 0.0
+    stops = np.asarray(p.time_law.stops)
+    assert np.min(np.diff(stops)) > 1e-3
+    u = np.asarray(p.path.u)
+    assert np.abs(u[:, 1]).max() <= 1.1513083110823095 * (1.0 + 1e-6)
+    assert np.abs(u[:, 0]).max() < 10.0
+
+
+def test_a_linear_form_missing_a_kink_is_replayed_not_taken_for_the_plan(monkeypatch):
+    """With the old pace (the still actuator's limit binding) the law's phases within a
+    thousandth of the spacing of a stop are not samples: the linear form then does not hold
+    the plan's rates, and its own replay, not the plan's, decides. The answer is a refusal
+    or a path that scipy's replay brings to the goal."""
+    from optimizer import timing
+    from optimizer.errors import PlannerError
+
+    monkeypatch.setattr(timing, "STILL_SHARE", 0.0, raising=False)  # (the old pace)
+    d = {**EIGHT_JOINTS_MAX_U2, "time_limit": 3.0}
+    try:
+        p = plan(PlanRequest.from_dict(d))
+    except PlannerError:
+        return
+    miss, margin = _replay_miss(d, p)
+    assert miss < 1e-6 and margin > 0.0
