@@ -73,6 +73,11 @@ def warm_up() -> dict[str, Any]:
         shooting = prepare(robot.gains, robot.exponents, native=n == MIN_JOINTS)
         first = first or shooting
     assert first is not None
+    # the 3-joint robot's fatrop on CasADi's virtual machine (50-90 ms): what answers until its
+    # compiled library is found or built, and with compiled functions off (other robots
+    # build theirs at their first solve; a worker that finds their libraries never needs one)
+    if "fatrop" in first.solver_names:
+        first.solver("fatrop")
     robot = Robot.default(3)
     # the replans' continuation maps and kernels (0.5-1 s of CPU): not paid by the first replan
     # (the proof's functions, piece_proof.prepare, about as much again, are built per size at
