@@ -382,6 +382,7 @@ class MultipleShootingNLP:
         self.ipopt_compiled = False
         self._native_cfg: native.NativeConfig | None = None
         self._native_opts: dict[str, Any] = {}
+        self._fatrop_opts: dict[str, Any] = {}
         # only the first rung is compiled: the second's C (4-11 MB) takes 10-20 s and up to
         # 1.6 GB to compile, for a rung that runs rarely (and for about a second)
         first = ladder(n)[0]
@@ -399,6 +400,7 @@ class MultipleShootingNLP:
                 ca.nlpsol, f"{name}_fatrop", "fatrop", nlp, fatrop_opts)
             # for the same functions compiled (optimizer.native), see load_native
             self._native_opts = {k: v for k, v in fatrop_opts.items() if k != "expand"}
+            self._fatrop_opts = fatrop_opts
         self._ipopt_opts = ipopt_options(self.callback)
         self._factories["ipopt"] = functools.partial(ca.nlpsol, f"{name}_ipopt", "ipopt", nlp,
                                                      self._ipopt_opts)
@@ -509,7 +511,8 @@ class MultipleShootingNLP:
         are data), and for fatrop the correction's maps compiled with it."""
         found = self._fingerprints.get(name)
         if found is None:
-            opts = self._native_opts if name == "fatrop" else self._ipopt_opts
+            # (the options the source is generated under: the virtual machine's solver's)
+            opts = self._fatrop_opts if name == "fatrop" else self._ipopt_opts
             data = {k: v for k, v in opts.items()
                     if isinstance(v, (str, int, float, bool, list, tuple, dict))}
             parts = [name, repr(sorted(data.items())), self._serialised_problem]
