@@ -284,3 +284,12 @@ def test_five_joints_the_straightest_nlp_reaches_the_goal() -> None:
         assert terminal <= TERMINAL and margin > 0.0
     assert budget[0] <= 10 and len(answer["diagnostics"]["budget"]["front"]) > 1
     assert budget[1] < plain[1] - 0.3 * DEG
+
+
+def test_prepare_builds_the_budgets_solvers_ahead_of_the_first_request():
+    """The budget's NLPs are never compiled: their solvers on CasADi's virtual machine
+    (0.2-0.4 s at 3 joints) are built by prepare (the service's warm-up), not by the first
+    max_reversals or pareto request."""
+    # (a shape no other test plans: its NLP is built here, not taken from the cache)
+    nlp = budget.prepare((0.9, 0.8), (3, 2), fixed_phi=True)
+    assert set(nlp._built) == set(nlp.solver_names) == {"fatrop", "ipopt"}

@@ -291,8 +291,10 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *,
     from 5 joints: otherwise the first such request pays it). The built solver holds nothing
     of a request: every solve takes a fresh memory (:meth:`~.nlp.MultipleShootingNLP.solver_call`),
     start, goal, weights and bounds are its parameters."""
-    return _nlp_of(tuple(float(k) for k in gains), tuple(int(m) for m in exponents),
-                   fixed_phi, budget_transcription(len(gains) + 1))
+    nlp = _nlp_of(tuple(float(k) for k in gains), tuple(int(m) for m in exponents),
+                  fixed_phi, budget_transcription(len(gains) + 1))
+    nlp.solvers  # noqa: B018 - builds them (an NLP builds its solvers at their first use)
+    return nlp
 
 
 def runs(signs: np.ndarray, rates: np.ndarray) -> list[tuple[float, int, int, int]]:

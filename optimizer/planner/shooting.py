@@ -131,8 +131,9 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
     """Build (and cache) the first rung's NLPs of a robot (free; with its rates' signs as
     bounds; with soft signs) ahead of its first request; with compiled functions configured
     (:mod:`optimizer.native`) this also loads their library, or starts its build (``wait``:
-    builds it before it returns; ``native`` False: neither, the first solve does). Returns
-    the free one."""
+    builds it before it returns; ``native`` False: neither, the first solve does). The
+    solvers themselves are built at their first solve (compiled once the library is loaded;
+    :meth:`~.nlp.MultipleShootingNLP.solver` builds one now). Returns the free one."""
     n = len(gains) + 1
     tr = ladder(n)[0]
     # (the free rung's goal may be elastic where the sign-held rungs' is hard:
