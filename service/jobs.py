@@ -78,7 +78,7 @@ def warm_up() -> dict[str, Any]:
     # build theirs at their first solve; a worker that finds their libraries never needs one)
     if "fatrop" in first.solver_names:
         first.solver("fatrop")
-    robot = Robot.default(3)
+    robot = Robot.default(MIN_JOINTS)
     # the replans' continuation maps and kernels (0.5-1 s of CPU): not paid by the first replan
     # (the proof's functions, piece_proof.prepare, about as much again, are built per size at
     # the first replan that needs them: every server start in the tests would pay them)

@@ -27,8 +27,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if native.configure(native.default_cache_dir()) is None:
         print("no C compiler: nothing compiled")
         return 1
-    compiled = {n: prepare(Robot.default(n).gains, Robot.default(n).exponents,
-                           wait=True).compiled for n in args.joints}
+    robots = {n: Robot.default(n) for n in args.joints}
+    compiled = {n: prepare(r.gains, r.exponents, wait=True).compiled for n, r in robots.items()}
     kernel = cascade_kernel.prepare(wait=True)
     print("compiled:", " ".join(f"{n}={'yes' if ok else 'no'}" for n, ok in compiled.items()),
           f"kernel={'yes' if kernel else 'no'}")

@@ -188,9 +188,9 @@ def test_a_cached_nlp_library_is_found_without_its_source(default_cache, monkeyp
     native.configure(default_cache)
     built = shooting.prepare(Robot().gains, Robot().exponents, wait=True)
     assert built.compiled
-    fresh = nlp.MultipleShootingNLP(tuple(Robot().exponents), False,
-                                          nlp.ladder(3)[0].intervals,
-                                          nlp.ladder(3)[0].substeps)
+    first = nlp.ladder(3)[0]
+    fresh = nlp.MultipleShootingNLP(tuple(Robot().exponents), False, first.intervals,
+                                    first.substeps)
     assert fresh.fingerprint("fatrop") == built.fingerprint("fatrop")
     monkeypatch.setattr(native, "nlp_source", lambda *a, **k: pytest.fail("source built"))
     assert fresh.load_native(every=0.0) is True
@@ -205,10 +205,9 @@ def test_an_nlp_fingerprint_changes_with_what_its_source_is_generated_from():
     assert base.fingerprint("fatrop") == same.fingerprint("fatrop")
     others = [nlp.MultipleShootingNLP((1, 2), False, ladder.intervals, ladder.substeps),
               nlp.MultipleShootingNLP((1, 1), True, ladder.intervals, ladder.substeps),
-              nlp.MultipleShootingNLP((1, 1), False, ladder.intervals + 1,
-                                            ladder.substeps),
+              nlp.MultipleShootingNLP((1, 1), False, ladder.intervals + 1, ladder.substeps),
               nlp.MultipleShootingNLP((1, 1), False, ladder.intervals, ladder.substeps,
-                                            fatrop_settings=(("max_iter", 7.0),))]
+                                      fatrop_settings=(("max_iter", 7.0),))]
     for other in others:
         assert other.fingerprint("fatrop") != base.fingerprint("fatrop")
     assert base.fingerprint("ipopt") != base.fingerprint("fatrop")

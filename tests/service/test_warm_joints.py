@@ -26,12 +26,12 @@ def counting(self, *args, **kwargs):
     built.append(len(args[0]) + 1)
     original(self, *args, **kwargs)
 nlp.MultipleShootingNLP.__init__ = counting
-ranks = {}
+methods = {}
 for n in range(MIN_JOINTS, MAX_JOINTS + 1):
     goal = generate(n, 1, seed=5)[0]
     p = plan(PlanRequest.from_dict({"start": list(goal.start), "goal": list(goal.goal)}))
-    ranks[n] = p.method
-print(json.dumps({"info": info, "built": built, "methods": ranks,
+    methods[n] = p.method
+print(json.dumps({"info": info, "built": built, "methods": methods,
                   "joints": [MIN_JOINTS, MAX_JOINTS]}))
 """
 
