@@ -91,7 +91,14 @@ def even_times(start: float, end: float, samples: int, inner: np.ndarray) -> np.
     t = _snap(np.linspace(start, end, int(samples)), inner,
               0.25 * (end - start) / (int(samples) - 1))
     t[0], t[-1] = start, end
-    return np.unique(np.concatenate([t, inner]))
+    # np.unique's result (sorted, exact repeats once) without its dispatch: a replan and a
+    # plan each make such a grid
+    out = np.concatenate([t, inner])
+    out.sort()
+    keep = np.empty(out.size, bool)
+    keep[:1] = True
+    np.not_equal(out[1:], out[:-1], out=keep[1:])
+    return out[keep]
 
 
 def period_times(T: float, period: float, breaks: np.ndarray) -> np.ndarray:

@@ -46,7 +46,7 @@ def run_on(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
     tol = 1e-9 * max(1.0, ps.plan_duration)
     k = ps.piece_at(s_t + tol)
     if v <= REST:
-        if float(np.max(np.abs(u_c))) > 1e-9:
+        if float(np.abs(u_c).max()) > 1e-9:
             raise NumericalError("the plan is at rest at this time but rates were given",
                                  field="rates")
         if abs(s_t - ps.breaks[k]) > tol:
@@ -61,7 +61,7 @@ def run_on(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
         at_rest = P[(P[:, 0] > t) & (np.abs(P[:, 3]) <= REST), 0]
         t_stop = float(at_rest[0]) if at_rest.size else ps.law.end
         s_stop = ps.law.at(t_stop)[0] if at_rest.size \
-            else float(ps.law.sigma_ends()[-1])
+            else ps.law.last_sigma()
     j = int(np.argmin(np.abs(ps.breaks - s_stop)))
     if abs(ps.breaks[j] - s_stop) > 1e-7 * max(1.0, ps.plan_duration):
         raise NumericalError("the time law stops between the plan's breaks")
