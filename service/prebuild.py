@@ -3,7 +3,7 @@
 default robot of every joint count the warm-up prepares (:data:`service.jobs.WARM_JOINTS`) and
 the proofs' quadrature kernel, and wait for them: the image build runs it, so that a worker's
 first plan of any joint count loads a library instead of starting a compiler. An NLP whose C
-is too large to compile (:data:`optimizer.native.MAX_SOURCE_BYTES`: 7 and 8 joints) stays on
+is too large to compile (:data:`optimizer.native.MAX_SOURCE_BYTES`: 8 joints) stays on
 CasADi's virtual machine, as it would at run time. Prints what was compiled."""
 
 from __future__ import annotations

@@ -304,6 +304,6 @@ class ShootingMethod(Method):
         return plan_shooting(req, ctx.deadline)
 
 
-__all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "LADDER", "LADDER_3_JOINTS", "MARGIN",
-           "ShootingMethod", "correct_rates", "plan_shooting", "prepare",
+__all__ = ["CORRECTION_TARGET", "DEVIATION_WEIGHT", "D_A_WEIGHT", "LADDER", "LADDER_3_JOINTS",
+           "MARGIN", "ShootingMethod", "correct_rates", "plan_shooting", "prepare",
            "solve_shooting"]
