@@ -457,3 +457,22 @@ def test_a_linear_form_missing_a_kink_is_replayed_not_taken_for_the_plan(monkeyp
         return
     miss, margin = _replay_miss(d, p)
     assert miss < 1e-6 and margin > 0.0
+
+
+def test_the_kinks_are_samples_check_is_exact_membership():
+    """``execute`` takes the plan's replay for the linear form's only when every kink is a
+    sample; the check answers as plain membership does: kinks drawn from the samples, and
+    kinks a rounding step off a sample, before the first or after the last."""
+    from optimizer.execution import _all_samples
+
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        times = np.unique(rng.uniform(0.0, 2.0, int(rng.integers(2, 60))))
+        kinks = rng.choice(times, int(rng.integers(0, 6)))
+        if rng.random() < 0.5 and kinks.size:
+            j = int(rng.integers(0, kinks.size))
+            kinks[j] = np.nextafter(kinks[j], rng.choice([-np.inf, np.inf]))
+        if rng.random() < 0.2:
+            kinks = np.append(kinks, rng.choice([-1.0, 3.0]))
+        kinks = np.sort(kinks)
+        assert _all_samples(kinks, times) == all(float(k) in set(times.tolist()) for k in kinks)

@@ -474,3 +474,32 @@ def test_a_full_planner_that_runs_out_of_time_answers_in_the_replans_terms(answe
     assert "within the time limit of 7 s" in err.message and "raise time_limit" in err.message
     assert "4.6 s" in err.diagnostics["full_planner"]
     assert any("Gauss-Newton" in e for e in err.diagnostics["fast_path_failed"])
+
+
+@pytest.mark.parametrize("equal", [False, True])
+def test_the_law_after_a_stop_runs_every_piece_rest_to_rest(equal):
+    """:func:`law_after_stop`'s rows, read by the law's own cubics (``TimeLaw.evaluate``):
+    contiguous phases from the stop to ``T_end`` (to rounding); at each piece's end the plan time
+    is that break (to rounding) and the speed is 0; the pieces' durations are in proportion to
+    their lengths (``equal``: all the same); ``last_sigma`` is the law's value at its end."""
+    from optimizer.planner.plan_state import TimeLaw, law_after_stop
+
+    rng = np.random.default_rng(11 + int(equal))
+    for _ in range(20):
+        breaks = np.cumsum(rng.uniform(0.01, 0.4, int(rng.integers(2, 12))))
+        t_stop, T_end = float(rng.uniform(0.0, 1.0)), float(rng.uniform(1.5, 4.0))
+        law = TimeLaw(law_after_stop(t_stop, T_end, breaks, equal))
+        P = law.phases
+        assert P[0, 0] == t_stop and law.end == pytest.approx(T_end, abs=1e-12)
+        assert np.allclose(P[1:, 0], P[:-1, 0] + P[:-1, 1], rtol=0.0, atol=1e-12)
+        ends = P[2::3, 0] + P[2::3, 1]            # each piece is three phases
+        sig, ds, _ = law.evaluate(ends)
+        assert np.allclose(sig, breaks[1:], rtol=0.0, atol=1e-12)
+        assert np.allclose(ds, 0.0, atol=1e-9 * float(np.max(np.abs(P[:, 3]))))
+        D = np.diff(np.concatenate([[t_stop], ends]))
+        L = np.diff(breaks)
+        want = np.full(L.size, (T_end - t_stop) / L.size) if equal else \
+            (T_end - t_stop) * L / L.sum()
+        assert np.allclose(D, want, rtol=1e-12, atol=1e-12)
+        assert law.last_sigma() == pytest.approx(float(law.evaluate(np.array([T_end]))[0][0]),
+                                                 abs=1e-12)

@@ -108,14 +108,9 @@ class TimeLaw:
         return TimeLaw(rows[rows[:, 1] > 0.0] if rows.shape[0] > 1 else rows)
 
     def last_sigma(self) -> float:
-        """``sigma`` at the law's end (:meth:`sigma_ends`' last, in floats)."""
+        """``sigma`` at the law's end: its last phase's cubic at its length, in floats."""
         _, s, s0, v0, a0, j = self.phases[-1].tolist()
         return s0 + v0 * s + 0.5 * a0 * s * s + j * s ** 3 / 6.0
-
-    def sigma_ends(self) -> np.ndarray:
-        P = self.phases
-        s = P[:, 1]
-        return P[:, 2] + P[:, 3] * s + 0.5 * P[:, 4] * s * s + P[:, 5] * s ** 3 / 6.0
 
     def as_dict(self, plan_duration: float, breaks: np.ndarray) -> dict[str, Any]:
         """The answer's ``time_law`` in the shape of :meth:`optimizer.timing.TimeLaw.as_dict`
