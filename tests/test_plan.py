@@ -235,3 +235,36 @@ def test_when_every_method_fails_on_one_field_auto_names_it_and_what_to_change()
     for t in tried:
         assert f"{t['method']}: infeasible: duration 0.5 s is too short" in err.message
     assert err.message.count("the shortest duration that respects the limits is") == len(tried)
+    # every method proved it: nothing is said to be a mere search
+    assert "not a proof" not in err.message
+    assert err.diagnostics["auto"]["searched_without_proof"] == []
+
+
+def test_when_the_searches_find_nothing_auto_does_not_call_it_a_proof(monkeypatch):
+    """Where every method fails, the answer is ``infeasible``; where some of them failed
+    because their NLP converged nowhere near a path (no proof that none exists: an 8-joint
+    goal of every joint +20 deg exhausts every method in 10 s that way), the message says so
+    and names them, and the diagnostics list them; a method that proved its own failure
+    (here the family, with no feasible dphi) is not among them."""
+    from optimizer.planner.registry import get
+
+    def found_nothing(self, req, ctx):
+        raise InfeasibleError("the NLP found no path from any start",
+                              diagnostics={"blocking": "nlp_failed", "tried": []})
+
+    def proved(self, req, ctx):
+        raise InfeasibleError("no phi_change gives a singularity-free path of the family",
+                              diagnostics={"blocking": "no_feasible_phi_change"})
+
+    for name in ("shooting", "penalty"):
+        monkeypatch.setattr(type(get(name)), "run", found_nothing)
+    monkeypatch.setattr(type(get("polynomial")), "run", proved)
+    with pytest.raises(InfeasibleError) as info:
+        plan(PlanRequest(start=(math.radians(10),) * 3, goal=(math.radians(30),) * 3))
+    err = info.value
+    tried = [t["method"] for t in err.diagnostics["auto"]["tried"]]
+    assert "shooting" in tried and "polynomial" in tried
+    searched = err.diagnostics["auto"]["searched_without_proof"]
+    assert "polynomial" not in searched and set(searched) <= {"shooting", "penalty"}
+    assert "shooting" in searched
+    assert f"({', '.join(searched)}: a search that found none, not a proof" in err.message

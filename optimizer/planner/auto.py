@@ -97,11 +97,21 @@ class _Run:
             # same (the request's, such as duration or controller_period)
             fields = {exc.field for _, exc in self.errors if exc.field is not None}
             full = {name: f"{exc.code}: {exc.message}" for name, exc in self.errors}
+            # an NLP that converged nowhere near a path is a search that found none, not a
+            # proof that none exists (an 8-joint goal of every joint +20 deg: every method
+            # exhausted in 10 s, where an NLP of other intervals or rates may still find one);
+            # the answer says which it is
+            searched = [name for name, exc in self.errors
+                        if exc.diagnostics.get("blocking") == "nlp_failed"]
             raise InfeasibleError(
-                "no method found a singularity-free path: " + "; ".join(
+                "no method found a singularity-free path"
+                + (f" ({', '.join(searched)}: a search that found none, not a proof that none "
+                   "exists: the goal may be reached by a path these NLPs do not find; "
+                   "planning to an intermediate goal first may help)"
+                   if searched else "") + ": " + "; ".join(
                     f"{t['method']}: {full.get(t['method'], t['outcome'])}" for t in self.tried),
                 field=fields.pop() if len(fields) == 1 else None,
-                diagnostics={"auto": {"tried": self.tried}})
+                diagnostics={"auto": {"tried": self.tried, "searched_without_proof": searched}})
         chosen.diagnostics["auto"] = {
             "tried": self.tried,
             "chosen": chosen.method,
