@@ -407,8 +407,8 @@ def _unpadded(emap: "PieceMap", W_end: np.ndarray, err: float, W: np.ndarray,
     W_new = np.asarray(W_end, float).reshape(emap.P, 2)[emap.P - emap.M:].copy()
     if signed:
         W_new[signs == 0.0] = 0.0
-    if not (math.isfinite(err) and np.all(np.isfinite(W_new))) or \
-            (signed and np.any(W_new * signs < 0.0)):
+    if not (math.isfinite(err) and np.isfinite(W_new).all()) or \
+            (signed and (W_new * signs < 0.0).any()):
         return math.inf, W
     return err, W_new
 
@@ -432,7 +432,7 @@ def damped_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.nd
         for damping in ((mu,) if mu else ()) + DAMPINGS:
             r, V, rV, ok = fn(q0, full, goal, D2_full, s_full, np.array([damping]),
                               np.array([5.0 if damping == 0.0 else 2.0]))
-            err, size = float(np.max(np.abs(r))), float(r @ r)
+            err, size = float(np.abs(r).max()), float(r @ r)
             if not math.isfinite(size) or err <= target or steps == max_steps:
                 break
             if ok[0] == 1.0:
@@ -446,7 +446,7 @@ def damped_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.nd
         full = V.reshape(P, 2)
         steps += 1
         if stalls >= 3:
-            err = float(np.max(np.abs(rV)))
+            err = float(np.abs(rV).max())
             break
     return (*_unpadded(emap, full, err, W, signs, True), steps)
 
@@ -459,7 +459,7 @@ def halving_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.n
     W, signs, full, _, D2_full = _padded(emap, W0, False, floor)
     fn = halving_kernel(emap.gains, emap.exponents, emap.P)
     W_end, r = fn(np.asarray(q0, float), full, np.asarray(goal, float), D2_full)
-    return _unpadded(emap, W_end, float(np.max(np.abs(r))), W, signs, False)
+    return _unpadded(emap, W_end, float(np.abs(r).max()), W, signs, False)
 
 
 def kernel_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
@@ -472,7 +472,7 @@ def kernel_correct(emap: "PieceMap", q0: np.ndarray, goal: np.ndarray, W0: np.nd
     W, signs, full, s_full, D2_full = _padded(emap, W0, signed, floor)
     fn = signed_kernel(emap.gains, emap.exponents, emap.P)
     W_end, r = fn(np.asarray(q0, float), full, np.asarray(goal, float), D2_full, s_full)
-    return _unpadded(emap, W_end, float(np.max(np.abs(r))), W, signs, signed)
+    return _unpadded(emap, W_end, float(np.abs(r).max()), W, signs, signed)
 
 
 def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], build: bool = False
@@ -574,7 +574,7 @@ def correct_pieces(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
         W[np.asarray(held, bool)] = 0.0
     end, J = emap(q0, W)
     r = end[1:] - goal
-    err = float(np.max(np.abs(r)))
+    err = float(np.abs(r).max())
     size = float(r @ r)
     steps = 0
     while err > target and steps < max_steps:
@@ -587,7 +587,7 @@ def correct_pieces(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
             V = W - alpha * full
             end2, J2 = emap(q0, V)
             r2 = end2[1:] - goal
-            e2 = float(np.max(np.abs(r2)))
+            e2 = float(np.abs(r2).max())
             s2 = float(r2 @ r2)
             if math.isfinite(s2) and s2 < size:
                 accepted = True
@@ -647,7 +647,7 @@ def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
     D2 = piece_weights(W0, signs == 0.0)
     end, J = emap(q0, W)
     r = end[1:] - goal
-    err = float(np.max(np.abs(r)))
+    err = float(np.abs(r).max())
     size = float(r @ r)
     steps = stalls = 0
     mu = 0.0
@@ -676,7 +676,7 @@ def correct_signed(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndar
         # the miss (twice) says the signs keep the goal out of reach
         stalls = stalls + 1 if s2 > STALL * size else 0
         W, J, r, size = V, J2, r2, s2
-        err = float(np.max(np.abs(r)))
+        err = float(np.abs(r).max())
         steps += 1
         if stalls >= 3:
             break

@@ -102,7 +102,7 @@ def integrate_pieces(gains: tuple[float, ...], exponents: tuple[int, ...], q0: n
 
     Each joint is monotone on a piece (``th_i' = K_i cos(th_{i-1})^{m_i} u_1`` with ``u_1``
     constant and ``cos > 0`` inside), so the states at the breaks bound the whole path."""
-    L = np.diff(breaks)
+    L = breaks[1:] - breaks[:-1]
     M = L.size
     W = np.asarray(rates, float) * L[:, None]
     P = size_for(M)
@@ -125,7 +125,7 @@ def integrate_pieces(gains: tuple[float, ...], exponents: tuple[int, ...], q0: n
     Ws[:S] = np.asarray(rates, float)[k] * (s_eval - breaks[k])[:, None]
     Qs = sample_states(gains, exponents, N)(Q, Ws)[0].reshape(N, nq)[:S]
     th = Xb[:, 1:-1]
-    singular = bool(np.any(th <= 0.0) or np.any(th >= 0.5 * math.pi))
+    singular = bool((th <= 0.0).any() or (th >= 0.5 * math.pi).any())
     return PieceProof(np.vstack([Xb, Qs]), Xb[-1].copy(), est, singular)
 
 

@@ -102,6 +102,9 @@ from .rules import TERMINAL_TOLERANCE, joint_limits, kept_limits, limits_region
 TAIL_PIECES = 4
 #: ... each this fraction of the rest: run in equal times, the motion slows geometrically.
 TAIL_RATIO = 0.35
+#: The tail's parts as shares of the last piece (each TAIL_RATIO of what is left, the rest last).
+_TAIL_SHARES = np.concatenate([(1.0 - TAIL_RATIO) * TAIL_RATIO ** np.arange(TAIL_PIECES),
+                               [TAIL_RATIO ** TAIL_PIECES]])
 #: The compiled kernel's correction is taken when its map misses by at most this (rad); the
 #: verification's defect step removes the map's own error (~1e-9 rad).
 KERNEL_ACCEPT = 1e-9
@@ -310,7 +313,7 @@ def _pieces_end(robot: Robot, q0: np.ndarray, breaks: np.ndarray, rates: np.ndar
     proves the whole)."""
     end = piece_end(tuple(robot.gains), tuple(robot.exponents))
     q = np.asarray(q0, float)
-    for L, r in zip(np.diff(breaks), rates):
+    for L, r in zip(breaks[1:] - breaks[:-1], rates):
         if L > 0.0:
             q = end(q, np.asarray(r, float) * L)[0]
     return q
@@ -351,13 +354,13 @@ def _setup(ps: PlanState, t: float, q_m: np.ndarray, u_c: np.ndarray, T_end: flo
     split = 1 if 2 * M >= n + 2 else math.ceil((n + 2) / (2 * M))
     if split > 1:
         w = np.arange(split) / split
-        free = np.concatenate([(free[:-1, None] + np.diff(free)[:, None] * w).ravel(),
+        free = np.concatenate([(free[:-1, None] + (free[1:] - free[:-1])[:, None] * w).ravel(),
                                free[-1:]])
         rates0 = np.repeat(rates0, split, axis=0)
     free, rates0, tailed = _tail(free, rates0)
     emap = PieceMap(tuple(ps.robot.gains), tuple(ps.robot.exponents), free.size - 1)
     # a piece of plan time L at geometric rate g moves as the unit piece at rate g L
-    W0 = rates0 * np.diff(free)[:, None]
+    W0 = rates0 * (free[1:] - free[:-1])[:, None]
     q_stop = _pieces_end(ps.robot, q_m, kept.breaks, kept.rates)
     plain_law = T_end == ps.end_time and split == 1 and not braked and kept.own and not tailed
     return _Setup(kept, free, W0, q_stop, emap, plain_law, braked)
@@ -402,7 +405,7 @@ def _corrected(ps: PlanState, t: float, T_end: float, kept: Kept, free: np.ndarr
     :func:`_correct`), with the defect step of its proof."""
     err, W, steps, weights, signs_kept = correction
     goal = ps.goal
-    L = np.diff(free)[:, None]
+    L = (free[1:] - free[:-1])[:, None]
     M = free.size - 1
     new_rates = W / L
     t_stop = kept.law.end if kept.law.phases.size else t
@@ -439,7 +442,7 @@ def _warm(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
                                     _time_left(req, deadline))
     free, rates0, _ = _tail(breaks, rates)
     emap = PieceMap(tuple(ps.robot.gains), tuple(ps.robot.exponents), free.size - 1)
-    correction = _correct(emap, st.q_stop, ps.goal, rates0 * np.diff(free)[:, None],
+    correction = _correct(emap, st.q_stop, ps.goal, rates0 * (free[1:] - free[:-1])[:, None],
                           keep_reversals)
     return _corrected(ps, t, T_end, st.kept, free, st.q_stop, emap, correction, False,
                       "warm_nlp", st.braked)
@@ -503,12 +506,11 @@ def _tail(free: np.ndarray, rates: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     whole. A path that already ends shorter than its previous piece is left as it is (a
     continuation's tail is not split again). Returns the breaks, the rates and whether the
     tail was split."""
-    L = np.diff(free)
+    L = free[1:] - free[:-1]
     if L.size >= 2 and L[-1] < 0.9 * L[-2]:
         return free, rates, False
     a, ell = float(free[-2]), float(L[-1])
-    parts = ell * np.concatenate([(1.0 - TAIL_RATIO) * TAIL_RATIO ** np.arange(TAIL_PIECES),
-                                  [TAIL_RATIO ** TAIL_PIECES]])
+    parts = ell * _TAIL_SHARES
     ends = a + np.cumsum(parts)
     ends[-1] = free[-1]
     return (np.concatenate([free[:-1], ends]),
@@ -552,7 +554,7 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
         kept = run_on(ps, t, u_c)
         if kept.k >= ps.rates.shape[0]:
             kept = brake_now(ps, t, u_c, T_end)
-    elif float(np.max(np.abs(u_c))) > REST:
+    elif float(np.abs(u_c).max()) > REST:
         Db = min(BRAKE_TIME, 0.5 * (T_end - t))
         kept = Kept(0, np.array([0.0, 0.5 * Db]), np.asarray(u_c, float)[None, :],
                     TimeLaw(braking(t, Db, 0.0)))
@@ -564,7 +566,7 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
         raise NumericalError("nothing is left after the current motion's stop to correct the "
                              "miss: give a later duration", field="duration")
     lo, hi = joint_limits(req)
-    if not (np.all(np.isfinite(q_stop)) and np.all(q_stop[1:] > lo) and np.all(q_stop[1:] < hi)):
+    if not (np.isfinite(q_stop).all() and (q_stop[1:] > lo).all() and (q_stop[1:] < hi).all()):
         raise InfeasibleError("the motion under way leaves the region before its next stop: "
                               "no continuation starts there", field="state")
     sub = replace(req, start=tuple(q_stop[1:]), phi_start=float(q_stop[0]), duration=None,
@@ -658,7 +660,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     times = even_times(t, T_end, ps.samples, starts[(starts > t) & (starts < T_end)])
     sig, ds, _ = law.evaluate(times)
     # at the stops sigma' is 0 up to rounding of the cubics: the drive is told exactly 0
-    ds[np.abs(ds) <= 1e-12 * max(1.0, float(np.max(np.abs(ds))))] = 0.0
+    ds[np.abs(ds) <= 1e-12 * max(1.0, float(np.abs(ds).max()))] = 0.0
     sl = np.minimum(np.maximum(sig - cont.breaks[0], 0.0), float(sb[-1]))
     ph = law.phases
     # (a comparison of every pair: np.isin costs about 15 us on these few values)
@@ -666,7 +668,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     jump_t = ph[(ph[:, 3] > REST) & at_break & (ph[:, 0] > t), 0]
     rates = cont.rates
     rep = _replay(robot, q_m, cont, rates, sl)
-    miss = float(np.max(np.abs(rep.final[1:] - goal))) if rep.success else math.inf
+    miss = float(np.abs(rep.final[1:] - goal).max()) if rep.success else math.inf
     if cont.refine is not None and rep.success and miss > 1e-9:
         free = cont.refine(rep.final, rates[cont.kept:])
         again = np.vstack([rates[:cont.kept], free])
@@ -675,7 +677,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         # negative, a reversal more that keep_reversals had refused elsewhere)
         if not cont.signs_kept or np.array_equal(np.sign(again), np.sign(rates)):
             rep2 = _replay(robot, q_m, cont, again, sl)
-            miss2 = float(np.max(np.abs(rep2.final[1:] - goal))) if rep2.success else math.inf
+            miss2 = float(np.abs(rep2.final[1:] - goal).max()) if rep2.success else math.inf
             if miss2 < miss:
                 rep, miss, rates = rep2, miss2, again
     timing["verification"] = time.perf_counter() - t0
@@ -684,7 +686,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     lo, hi = limits
     qb = rep.q[:sb.size, 1:]
     margins = np.minimum(qb - lo, hi - qb)
-    margin = float(np.min(margins))
+    margin = float(margins.min())
     # (a joint that reaches 0 or pi/2 is outside its limits too: the region is within them)
     if not margin > 0.0 or rep.singular:
         j = int(np.unravel_index(int(np.argmin(margins)), margins.shape)[1])
@@ -696,7 +698,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     # 5 % off cross it by 2.6e-3 rad); less only where the stop or the goal is nearer
     need = _required_margin(qb[cont.kept], goal, lo, hi)
     later = margins[cont.kept:]
-    if np.any(later < need):
+    if (later < need).any():
         j = int(np.unravel_index(int(np.argmin(later - need)), later.shape)[1])
         raise InfeasibleError(
             f"the continuation takes th{j + 1} within {float(np.min(later[:, j])):.3g} rad of "
@@ -742,7 +744,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
     else:
         exe_final, exe_integrator = rep.final, rep.integrator
-    exe_err = float(np.max(np.abs(exe_final[1:] - goal)))
+    exe_err = float(np.abs(exe_final[1:] - goal).max())
     ind = compute_indicators(times, q, u)
     timing["sampling"] = time.perf_counter() - t0 - timing["verification"]
     out: dict[str, Any] = {
