@@ -449,7 +449,7 @@ def test_a_linear_form_missing_a_kink_is_replayed_not_taken_for_the_plan(monkeyp
     from optimizer import timing
     from optimizer.errors import PlannerError
 
-    monkeypatch.setattr(timing, "STILL_SHARE", 0.0, raising=False)  # (the old pace)
+    monkeypatch.setattr(timing, "STILL_SHARE", 0.0)  # (the old pace)
     d = {**EIGHT_JOINTS_MAX_U2, "time_limit": 3.0}
     try:
         p = plan(PlanRequest.from_dict(d))

@@ -387,7 +387,6 @@ class MultipleShootingNLP:
         self.compiled = False
         self.ipopt_compiled = False
         self._native_cfg: native.NativeConfig | None = None
-        self._native_opts: dict[str, Any] = {}
         self._fatrop_opts: dict[str, Any] = {}
         # only the first rung is compiled: the second's C (4-11 MB) takes 10-20 s and up to
         # 1.6 GB to compile, for a rung that runs rarely (and for about a second)
@@ -404,8 +403,6 @@ class MultipleShootingNLP:
             fatrop_opts["fatrop"].update(dict(fatrop_settings))
             self._factories["fatrop"] = functools.partial(
                 ca.nlpsol, f"{name}_fatrop", "fatrop", nlp, fatrop_opts)
-            # for the same functions compiled (optimizer.native), see load_native
-            self._native_opts = {k: v for k, v in fatrop_opts.items() if k != "expand"}
             self._fatrop_opts = fatrop_opts
         self._ipopt_opts = ipopt_options(self.callback)
         self._factories["ipopt"] = functools.partial(ca.nlpsol, f"{name}_ipopt", "ipopt", nlp,
@@ -461,8 +458,10 @@ class MultipleShootingNLP:
         if path is None:
             return False
         try:
+            # the same options but expand: the library's functions are compiled already
+            opts = {k: v for k, v in self._fatrop_opts.items() if k != "expand"}
             build = functools.partial(ca.nlpsol, f"{self._name}_fatrop", "fatrop", str(path),
-                                      self._native_opts)
+                                      opts)
             solver = build()
             fine_end, end_jacobian = (ca.external(f.name(), str(path))
                                       for f in self._correction_maps)
