@@ -343,3 +343,40 @@ def test_the_damped_steps_say_when_the_signs_cannot_reach(pieces) -> None:
     err, W1, _ = damped_correct(emap, q0, goal, W)
     assert not err <= 1e-6
     assert np.all(W1 * np.sign(W) >= 0.0)
+
+
+@pytest.mark.parametrize("n, damped", [(3, True), (4, False)])
+def test_the_damped_steps_follow_a_singular_kernel_below_four_joints(monkeypatch, n, damped
+                                                                     ) -> None:
+    """Where the full-step kernel's system is singular (no finite answer), the damped
+    sign-keeping steps try before any sign is given up on 3 joints (in closed loop they kept
+    the signs there), not from 4 joints on (they almost never did: the steps with any sign
+    follow at once). A kernel that ends near the goal is followed by them at every n."""
+    from optimizer.planner import replan as rp
+
+    calls: list[str] = []
+    W0 = np.full((6, 2), 0.01)
+
+    def kernel(emap, q0, goal, W):
+        calls.append("kernel")
+        return (float("inf") if len(calls) == 1 else 5e-6), W
+
+    def damped_steps(emap, q0, goal, W):
+        calls.append("damped")
+        return 1.0, W, 3
+
+    def halving(emap, q0, goal, W, floor=None):
+        calls.append("halving")
+        return 0.0, W
+
+    monkeypatch.setattr(rp, "kernel_correct", kernel)
+    monkeypatch.setattr(rp, "damped_correct", damped_steps)
+    monkeypatch.setattr(rp, "halving_correct", halving)
+    q0 = np.zeros(n + 1)
+    *_, kept = rp._correct(None, q0, np.zeros(n), W0, keep_reversals=False)
+    assert calls == (["kernel", "damped", "halving"] if damped else ["kernel", "halving"])
+    assert kept is False
+    calls.clear()
+    calls.append("first")       # the kernel now ends 5e-6 rad off: damped steps at every n
+    rp._correct(None, q0, np.zeros(n), W0, keep_reversals=False)
+    assert calls == ["first", "kernel", "damped", "halving"]
