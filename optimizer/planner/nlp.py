@@ -61,7 +61,7 @@ from ..dynamics import rk4_step, vector_field
 from ..errors import InvalidRequestError
 from ..problem import PlanRequest
 from . import via
-from .solvers import (SPENT_MEMORY_BYTES, BufferedCall, DeadlineCallback,
+from .solvers import (SPENT_MEMORY_BYTES, BufferedCall, DeadlineCallback, SolverPace,
                       fatrop_options, ipopt_options, memory_bytes)
 
 
@@ -382,6 +382,8 @@ class MultipleShootingNLP:
         n_g = int(nlp["g"].shape[0])
         self.equality = np.array(eq)
         self.callback = DeadlineCallback(self.nw, n_g, self.np)
+        #: how fast its solvers' iterations went (fatrop is not started past the deadline)
+        self.pace = SolverPace()
         self.native: native.Library | None = None
         self.native_ipopt: native.Library | None = None
         self.compiled = False

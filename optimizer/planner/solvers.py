@@ -4,8 +4,9 @@ the NLP layer: it knows no transcription).
 
 fatrop (an interior-point solver for stage-structured problems, bundled with CasADi) and IPOPT
 take the options of :func:`fatrop_options` and :func:`ipopt_options`. IPOPT is stopped at the
-deadline by :class:`DeadlineCallback`; fatrop by its iteration cap :data:`FATROP_MAX_ITER` (tens
-of milliseconds). :func:`run_solver` runs one of them and classifies its return status
+deadline by :class:`DeadlineCallback`; fatrop, which calls no callback, by its iteration cap
+:data:`FATROP_MAX_ITER`, and is not started when that cap, at the pace its NLP's solves went
+(:class:`SolverPace`), would outlast the time left. :func:`run_solver` runs one of them and classifies its return status
 (:data:`SUCCESS`, :data:`TIMEOUT`, :data:`INFEASIBLE`); :func:`error_for` turns a class into the
 library's typed error.
 """
@@ -24,9 +25,46 @@ from ..errors import (InfeasibleError, NumericalError, PlannerError, SolverTimeo
 from ..problem import MAX_TIME_LIMIT
 
 
+class SolverPace:
+    """Seconds per iteration of each solver of one NLP: the slowest of its last
+    :data:`PACE_SOLVES` solves of at least :data:`PACE_MIN_ITERATIONS` iterations (the call,
+    with its fresh memory's set-up: the same NLP's solves went at 2.2 and 6.7 ms an iteration
+    one after the other; a solver's build at its first use is not in it).
+
+    fatrop calls no iteration callback, so nothing stops it at the deadline: a solve started
+    with little time left runs to convergence or to its cap (on 7-joint replans with a 0.5 s
+    limit, the 50-interval rung's solve on CasADi's virtual machine started 0.04-0.3 s before
+    the deadline and took 0.2-1.0 s). :func:`run_solver` starts no such solve whose cap, at
+    this pace, would end after the deadline. The pace is the one thing a process remembers of
+    earlier solves; it decides only whether a solve starts that would end past the time limit,
+    where an answer depends on the machine's speed anyway.
+    """
+
+    def __init__(self) -> None:
+        self.recent: dict[str, list[float]] = {}
+
+    def record(self, name: str, seconds: float, iterations: int) -> None:
+        if iterations >= PACE_MIN_ITERATIONS:
+            kept = self.recent.setdefault(name, [])
+            kept.append(seconds / iterations)
+            del kept[:-PACE_SOLVES]
+
+    def too_slow(self, name: str, iterations: int, seconds_left: float) -> bool:
+        """Whether ``iterations`` of solver ``name`` at its pace would outlast
+        ``seconds_left`` (False when its pace is not known yet)."""
+        kept = self.recent.get(name)
+        return bool(kept) and max(kept) * iterations > seconds_left  # type: ignore[arg-type]
+
+
+#: A solve of fewer iterations does not set its solver's pace (its fixed costs would weigh).
+PACE_MIN_ITERATIONS = 5
+#: The pace is the slowest of this many recent solves.
+PACE_SOLVES = 8
+
+
 class SolvableNLP(Protocol):
     """What :func:`run_solver` needs of an NLP: a fresh call of a solver, the deadline
-    callback and the constraints' bounds."""
+    callback and the constraints' bounds (and, optionally, a ``pace``: :class:`SolverPace`)."""
 
     callback: "DeadlineCallback"
     lbg: np.ndarray
@@ -114,6 +152,10 @@ TIMEOUT = ("User_Requested_Stop", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_
 
 #: Return statuses that mean "no point satisfies the constraints" (IPOPT's local certificate).
 INFEASIBLE = ("Infeasible_Problem_Detected",)
+
+
+#: Solvers that no callback stops at the deadline (see :class:`SolverPace`).
+UNSTOPPABLE = ("fatrop",)
 
 
 class DeadlineCallback(ca.Callback):
@@ -332,9 +374,17 @@ def run_solver(nlp: "SolvableNLP", name: str, x0: np.ndarray, p: np.ndarray,
     t0 = time.perf_counter()
     iterations = 0
     best: tuple[float, str, np.ndarray] | None = None  # (miss, status, x) of converged rounds
+    pace: SolverPace | None = getattr(nlp, "pace", None)
+    x: np.ndarray | None = None
     for round_ in range(ELASTIC_ROUNDS + 1):
+        if (name in UNSTOPPABLE and pace is not None
+                and pace.too_slow(name, FATROP_MAX_ITER, t0 + seconds - time.perf_counter())):
+            kind, status = "timeout", (f"not started: {FATROP_MAX_ITER} iterations at its pace "
+                                       "would end after the time limit")
+            break
         solver = nlp.solver_call(name)
         nlp.callback.stop_at = t0 + seconds
+        t_call = time.perf_counter()
         try:
             x = solver(x0, p, lbx, ubx, nlp.lbg, nlp.ubg)[0]
             stats = solver.stats()
@@ -345,6 +395,8 @@ def run_solver(nlp: "SolvableNLP", name: str, x0: np.ndarray, p: np.ndarray,
             nlp.callback.stop_at = math.inf
         status, success = solver_status(name, stats)
         kind = classify(status, success)
+        if pace is not None:
+            pace.record(name, time.perf_counter() - t_call, int(stats.get("iter_count", -1)))
         iterations += int(stats.get("iter_count", -1))
         if kind != "success" or not np.all(np.isfinite(x)):
             break
