@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from optimizer.errors import NumericalError
 from optimizer.model import Robot
 from optimizer import native
 from optimizer.planner.continuation_map import (CompiledCall, PieceMap,
@@ -350,8 +351,9 @@ def test_the_damped_steps_follow_a_singular_kernel_below_four_joints(monkeypatch
                                                                      ) -> None:
     """Where the full-step kernel's system is singular (no finite answer), the damped
     sign-keeping steps try before any sign is given up on 3 joints (in closed loop they kept
-    the signs there), not from 4 joints on (they almost never did: the steps with any sign
-    follow at once). A kernel that ends near the goal is followed by them at every n."""
+    the signs there), not from 4 joints on (they seldom did: the steps with any sign follow
+    at once) unless the request keeps its reversals. A kernel that ends near the goal is
+    followed by them at every n."""
     from optimizer.planner import replan as rp
 
     calls: list[str] = []
@@ -380,3 +382,7 @@ def test_the_damped_steps_follow_a_singular_kernel_below_four_joints(monkeypatch
     calls.append("first")       # the kernel now ends 5e-6 rad off: damped steps at every n
     rp._correct(None, q0, np.zeros(n), W0, keep_reversals=False)
     assert calls == ["first", "kernel", "damped", "halving"]
+    calls.clear()               # the signs asked for: damped steps after a singular kernel
+    with pytest.raises(NumericalError):
+        rp._correct(None, q0, np.zeros(n), W0, keep_reversals=True)
+    assert calls == ["kernel", "damped"]

@@ -114,10 +114,12 @@ KERNEL_ACCEPT = 1e-9
 LOOP_AFTER_KERNEL = 1e-5
 #: Below this many joints the damped steps also try where the kernel's system was singular
 #: (no finite answer). They kept the signs there in 3-joint closed loops (22 of 45 singular
-#: kernels over two runs of five goals), but from 4 joints on almost never: 0 of 19, 58 and
-#: 131 singular kernels in closed loops of 4 and 5 joints (with and without identified gains
+#: kernels over two runs of five goals), but from 4 joints on seldom: 0 of 19, 58 and 131
+#: singular kernels in closed loops of 4 and 5 joints (with and without identified gains
 #: and kept reversals), 2 of 407 on 4- and 5-joint states 0.005-0.5 deg off plans of a seed
 #: the benchmark does not use; each try costs about 0.5 ms, a sixth of a 4-joint replan.
+#: With ``keep_reversals`` they always try: there the signs are the request (a saved 4-joint
+#: closed-loop state, tests/data/replan_kept_signs_case.json, keeps them only through them).
 DAMPED_SINGULAR_BELOW_JOINTS = 4
 #: Distance (rad) from the limits that a continuation's corrected part keeps (half the
 #: planner's node margin, :data:`~.nlp.MARGIN`), or half the room its stop or goal leaves.
@@ -481,12 +483,13 @@ def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
         # corrections where the kernel had not, each of them singular (without it two goals
         # reversed four times more); where the kernel ends far off the goal (1e-4 to 1e3
         # rad) it reached it on 1 of 74 corrections at n = 4 and none of 81 random states:
-        # not run there; nor after a singular kernel from DAMPED_SINGULAR_BELOW_JOINTS on
+        # not run there; nor after a singular kernel from DAMPED_SINGULAR_BELOW_JOINTS on,
+        # unless the signs must be kept (keep_reversals)
         err, W = kernel_correct(emap, q0, goal, W0)
         if err <= KERNEL_ACCEPT:
             return err, W, KERNEL_STEPS, piece_weights(W0, W == 0.0), True
-        if err <= LOOP_AFTER_KERNEL or (not math.isfinite(err)
-                                        and q0.size - 1 < DAMPED_SINGULAR_BELOW_JOINTS):
+        if err <= LOOP_AFTER_KERNEL or (not math.isfinite(err) and (
+                keep_reversals or q0.size - 1 < DAMPED_SINGULAR_BELOW_JOINTS)):
             err, W, steps = damped_correct(emap, q0, goal, W0)
             if err <= 1e-6:
                 return err, W, steps, piece_weights(W0, W == 0.0), True
