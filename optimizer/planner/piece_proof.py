@@ -33,10 +33,14 @@ VERIFY_SUBSTEPS = 16
 VERIFY_TOL = 1e-11
 #: Sizes of the compiled sample maps (samples padded to the next).
 SAMPLE_SIZES = (64, 128, 256, 512, 1024, 2048, 4096)
-#: RK4 steps of a sample from its piece's start (a part of a piece: within 1e-10 rad of the
-#: exact model on the benchmark's continuations; the samples show the path, the states at the
-#: breaks prove it). The samples dominate the cost: 32 steps took 1.2 ms for 230 samples.
-SAMPLE_SUBSTEPS = 8
+#: RK4 steps of a sample from its piece's start (a part of a piece; the samples show the
+#: path, the states at the breaks prove it). Against 256 steps on the continuations of the
+#: latency benchmark's states: within 1.2e-9 rad (n = 3) and 3e-9 (n = 5) with 4 steps, 7e-11
+#: and 1.8e-10 with 8, a thousandth of the plan's terminal tolerance either way; the samples
+#: dominate the proof's cost (32 steps took 1.2 ms for 230 samples), and 4 steps instead of 8
+#: made the 3-joint replan 4-5 % cheaper (p50 0.91 / 0.89 / 0.92 -> 0.90 / 0.86 / 0.84 ms,
+#: alternating processes on a quiet machine).
+SAMPLE_SUBSTEPS = 4
 
 
 def break_states(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> BoundCall:
