@@ -6,9 +6,9 @@ fatrop (an interior-point solver for stage-structured problems, bundled with Cas
 take the options of :func:`fatrop_options` and :func:`ipopt_options`. IPOPT is stopped at the
 deadline by :class:`DeadlineCallback`; fatrop, which calls no callback, by its iteration cap
 :data:`FATROP_MAX_ITER`, and is not started when that cap, at the pace its NLP's solves went
-(:class:`SolverPace`), would outlast the time left. :func:`run_solver` runs one of them and classifies its return status
-(:data:`SUCCESS`, :data:`TIMEOUT`, :data:`INFEASIBLE`); :func:`error_for` turns a class into the
-library's typed error.
+(:class:`SolverPace`), would outlast the time left. :func:`run_solver` runs one of them and
+classifies its return status (:data:`SUCCESS`, :data:`TIMEOUT`, :data:`INFEASIBLE`);
+:func:`error_for` turns a class into the library's typed error.
 """
 
 from __future__ import annotations
@@ -53,7 +53,9 @@ class SolverPace:
         """Whether ``iterations`` of solver ``name`` at its pace would outlast
         ``seconds_left`` (False when its pace is not known yet)."""
         kept = self.recent.get(name)
-        return bool(kept) and max(kept) * iterations > seconds_left  # type: ignore[arg-type]
+        if not kept:
+            return False
+        return max(kept) * iterations > seconds_left
 
 
 #: A solve of fewer iterations does not set its solver's pace (its fixed costs would weigh).
