@@ -145,7 +145,7 @@ def test_fatrop_is_not_started_when_its_cap_at_its_pace_outlasts_the_time_left()
     from optimizer.planner.solvers import FATROP_MAX_ITER, SolverPace, run_solver
 
     nlp = ScriptedNLP({"fatrop": [("success", True)], "ipopt": [("Solve_Succeeded", True)]})
-    nlp.pace = SolverPace()  # type: ignore[attr-defined]
+    nlp.pace = SolverPace({"fatrop": FATROP_MAX_ITER})  # type: ignore[attr-defined]
     nlp.pace.record("fatrop", 0.5, 10)          # 0.05 s an iteration
     nlp.pace.record("ipopt", 5.0, 10)
     z = np.zeros(2)
@@ -156,12 +156,13 @@ def test_fatrop_is_not_started_when_its_cap_at_its_pace_outlasts_the_time_left()
     out = run_solver(nlp, "ipopt", z, z, z - 1, z + 1, left)  # type: ignore[arg-type]
     assert out.kind == "success" and nlp.calls == ["ipopt"]
     # with time for the cap it runs, and its own solve sets the pace
-    out = run_solver(nlp, "fatrop", z, z, z - 1, z + 1, 1.1 * 0.05 * FATROP_MAX_ITER)  # type: ignore[arg-type]
+    enough = 1.1 * 0.05 * FATROP_MAX_ITER
+    out = run_solver(nlp, "fatrop", z, z, z - 1, z + 1, enough)  # type: ignore[arg-type]
     assert out.kind == "success" and nlp.calls == ["ipopt", "fatrop"]
     assert len(nlp.pace.recent["fatrop"]) == 2
     # through the attempts' loop: a timeout naming the time limit
     nlp2 = ScriptedNLP({"fatrop": [("success", True)]})
-    nlp2.pace = SolverPace()  # type: ignore[attr-defined]
+    nlp2.pace = SolverPace({"fatrop": FATROP_MAX_ITER})  # type: ignore[attr-defined]
     nlp2.pace.record("fatrop", 100.0, 10)
     with pytest.raises(SolverTimeoutError) as info:
         run(nlp2, [Attempt("fatrop", "a", np.zeros(2))])
@@ -171,13 +172,27 @@ def test_fatrop_is_not_started_when_its_cap_at_its_pace_outlasts_the_time_left()
 def test_the_pace_is_the_slowest_of_the_recent_solves() -> None:
     from optimizer.planner.solvers import PACE_MIN_ITERATIONS, PACE_SOLVES, SolverPace
 
-    pace = SolverPace()
-    assert not pace.too_slow("fatrop", 60, 1e-9)          # unknown: no guess
+    pace = SolverPace({"fatrop": 60})
+    assert not pace.too_slow("fatrop", 1e-9)              # unknown: no guess
     pace.record("fatrop", 1.0, PACE_MIN_ITERATIONS - 1)   # too few iterations: not counted
-    assert not pace.too_slow("fatrop", 60, 1e-9)
+    assert not pace.too_slow("fatrop", 1e-9)
     pace.record("fatrop", 6.7, 1000)                      # 6.7 ms an iteration
     pace.record("fatrop", 2.2, 1000)
-    assert pace.too_slow("fatrop", 60, 0.40) and not pace.too_slow("fatrop", 60, 0.41)
+    assert pace.too_slow("fatrop", 0.40) and not pace.too_slow("fatrop", 0.41)
     for _ in range(PACE_SOLVES - 1):                      # the slow one ages out
         pace.record("fatrop", 2.2, 1000)
-    assert not pace.too_slow("fatrop", 60, 0.14) and pace.too_slow("fatrop", 60, 0.13)
+    assert not pace.too_slow("fatrop", 0.14) and pace.too_slow("fatrop", 0.13)
+    pace.record("ipopt", 100.0, 10)                       # no cap (its callback stops it)
+    assert not pace.too_slow("ipopt", 1e-9)
+
+
+def test_the_pace_counts_the_nlps_own_iteration_cap() -> None:
+    """The reversal budget's NLP caps fatrop at 150 iterations, not 60: its pace says so."""
+    from optimizer.model import Robot
+    from optimizer.planner import budget
+    from optimizer.planner.solvers import FATROP_MAX_ITER
+
+    robot = Robot.default(3)
+    nlp = budget.prepare(robot.gains, robot.exponents)
+    assert nlp.pace.caps == {"fatrop": dict(budget.FATROP_SETTINGS)["max_iter"]} != {
+        "fatrop": FATROP_MAX_ITER}

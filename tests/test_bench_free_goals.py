@@ -38,7 +38,8 @@ def test_the_table_says_what_was_planned() -> None:
              "slowest_planned_s": math.nan, "reversals": [], "others": {"timeout": 1},
              "uniform": {"seconds": 12.3, "answer": "infeasible"}}]
     text = markdown(rows, 7)
-    assert "| 6 | 1 of 3 | 9.50 s | 1.90 s | 19-19 | 1 infeasible, 1 timeout | 0.27 s, 6 reversals |" in text
+    assert ("| 6 | 1 of 3 | 9.50 s | 1.90 s | 19-19 | 1 infeasible, 1 timeout "
+            "| 0.27 s, 6 reversals |") in text
     assert "| 8 | 0 of 1 | 10.00 s | - | - | 1 timeout | infeasible after 12.3 s |" in text
 
 

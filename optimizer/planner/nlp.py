@@ -382,8 +382,6 @@ class MultipleShootingNLP:
         n_g = int(nlp["g"].shape[0])
         self.equality = np.array(eq)
         self.callback = DeadlineCallback(self.nw, n_g, self.np)
-        #: how fast its solvers' iterations went (fatrop is not started past the deadline)
-        self.pace = SolverPace()
         self.native: native.Library | None = None
         self.native_ipopt: native.Library | None = None
         self.compiled = False
@@ -411,6 +409,10 @@ class MultipleShootingNLP:
                                                      self._ipopt_opts)
         #: the solvers' names, in the order the methods try them
         self.solver_names: tuple[str, ...] = tuple(self._factories)
+        #: how fast its solvers' iterations went (fatrop, at its own cap, is not started
+        #: past the deadline)
+        self.pace = SolverPace({"fatrop": int(self._fatrop_opts["fatrop"]["max_iter"])}
+                               if self._fatrop_opts else {})
         # each solver is built at its first use (solver): on CasADi's virtual machine that
         # builds its derivative functions, 0.1-0.9 s at 4 to 7 joints, which a process whose
         # compiled library is in the cache never needs

@@ -159,7 +159,8 @@ class TimeLaw:
                 or not (lam_k[1:] > lam_k[:-1]).all() or not (slope > 0.0).all()):
             raise invalid("plan.time_law's phases and knots are not a law of this library",
                        "plan.time_law")
-        if cols[0].size > 1 and float(np.abs(cols[0][1:] - cols[0][:-1] - cols[1][:-1]).max()) > 1e-9:
+        gaps = cols[0][1:] - cols[0][:-1] - cols[1][:-1]
+        if gaps.size and float(np.abs(gaps).max()) > 1e-9:
             raise invalid("plan.time_law.phases must be contiguous", "plan.time_law.phases")
         return cls(np.ascontiguousarray(np.stack(cols, axis=1))), lam_k, sig_k, slope
 

@@ -38,9 +38,17 @@ class SolverPace:
     this pace, would end after the deadline. The pace is the one thing a process remembers of
     earlier solves; it decides only whether a solve starts that would end past the time limit,
     where an answer depends on the machine's speed anyway.
+
+    Parameters
+    ----------
+    caps : dict
+        The iteration cap of each solver that no callback stops (the NLP's own fatrop
+        options: :data:`FATROP_MAX_ITER`, or the reversal budget's 150); the others are never
+        too slow.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, caps: dict[str, int]) -> None:
+        self.caps = dict(caps)
         self.recent: dict[str, list[float]] = {}
 
     def record(self, name: str, seconds: float, iterations: int) -> None:
@@ -49,13 +57,13 @@ class SolverPace:
             kept.append(seconds / iterations)
             del kept[:-PACE_SOLVES]
 
-    def too_slow(self, name: str, iterations: int, seconds_left: float) -> bool:
-        """Whether ``iterations`` of solver ``name`` at its pace would outlast
-        ``seconds_left`` (False when its pace is not known yet)."""
+    def too_slow(self, name: str, seconds_left: float) -> bool:
+        """Whether solver ``name``'s iteration cap at its pace would outlast
+        ``seconds_left`` (False for a solver without a cap, or whose pace is not known yet)."""
         kept = self.recent.get(name)
-        if not kept:
+        if not kept or name not in self.caps:
             return False
-        return max(kept) * iterations > seconds_left
+        return max(kept) * self.caps[name] > seconds_left
 
 
 #: A solve of fewer iterations does not set its solver's pace (its fixed costs would weigh).
@@ -155,9 +163,6 @@ TIMEOUT = ("User_Requested_Stop", "Maximum_WallTime_Exceeded", "Maximum_CpuTime_
 #: Return statuses that mean "no point satisfies the constraints" (IPOPT's local certificate).
 INFEASIBLE = ("Infeasible_Problem_Detected",)
 
-
-#: Solvers that no callback stops at the deadline (see :class:`SolverPace`).
-UNSTOPPABLE = ("fatrop",)
 
 
 class DeadlineCallback(ca.Callback):
@@ -379,9 +384,8 @@ def run_solver(nlp: "SolvableNLP", name: str, x0: np.ndarray, p: np.ndarray,
     pace: SolverPace | None = getattr(nlp, "pace", None)
     x: np.ndarray | None = None
     for round_ in range(ELASTIC_ROUNDS + 1):
-        if (name in UNSTOPPABLE and pace is not None
-                and pace.too_slow(name, FATROP_MAX_ITER, t0 + seconds - time.perf_counter())):
-            kind, status = "timeout", (f"not started: {FATROP_MAX_ITER} iterations at its pace "
+        if pace is not None and pace.too_slow(name, t0 + seconds - time.perf_counter()):
+            kind, status = "timeout", (f"not started: {pace.caps[name]} iterations at its pace "
                                        "would end after the time limit")
             break
         solver = nlp.solver_call(name)
