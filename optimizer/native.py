@@ -259,6 +259,8 @@ def _library(key: str, cfg: NativeConfig, source_of: Callable[[], str],
     args = [cfg.compiler, str(src), str(lib.path)]
     if wait:
         _run_quiet(entry + args)
+        if not lib.path.exists() and _await_other_build(lib):
+            _run_quiet(entry + args)  # the other build died: its lock was taken over
         return lib if lib.path.exists() else None
     if not hasattr(os, "fork"):  # no detached build (not POSIX): only builds asked to wait
         return None
@@ -271,6 +273,33 @@ def _library(key: str, cfg: NativeConfig, source_of: Callable[[], str],
         nice = ["nice", "-n", "10"] if shutil.which("nice") else []
         _run_quiet(nice + entry + ["--detach"] + args)
     return lib
+
+
+def _await_other_build(lib: Library, poll: float = 0.05) -> bool:
+    """Wait while another process holds the build lock of ``lib`` (a fresh one).
+
+    Why: a build asked to wait returns at once when another process builds the same library
+    (:func:`build`), and a caller that then ran without it would answer with other code than
+    that process: two service workers started together on an empty cache prepared the proofs'
+    compiled quadrature, one of them built it, the other ran numpy's for its whole life, and
+    the same request got answers differing in the last bits by the worker that served it.
+
+    Returns
+    -------
+    bool
+        True when the wait ended with neither the library nor a ``.failed`` file (the lock went
+        stale): the caller may build it itself.
+    """
+    lock = lib.path.with_suffix(".lock")
+    failed = lib.path.with_suffix(".failed")
+    while lock.exists() and not lib.path.exists():
+        try:
+            if time.time() - lock.stat().st_mtime >= STALE_LOCK:
+                break
+        except OSError:  # released between the two looks
+            break
+        time.sleep(poll)
+    return not lib.path.exists() and not failed.exists()
 
 
 def _run_quiet(argv: list[str]) -> None:

@@ -276,6 +276,47 @@ def test_a_fresh_lock_means_someone_else_builds_and_a_stale_one_is_taken_over(tm
     assert res.returncode == 0 and target.exists()
 
 
+def test_a_build_asked_to_wait_waits_for_the_one_another_process_runs(tmp_path):
+    """Two service workers starting on an empty cache ask for the same library, both waiting:
+    the second must get it when the first has built it, not run without it (it then answered
+    with numpy's quadrature for its life, the first with the compiled one)."""
+    import threading
+
+    cfg = native.configure(tmp_path)
+    assert cfg is not None
+    source = "int answer(void) { return 42; }\n"
+    lib = native.Library(native.library_key(source, cfg), cfg)
+    lock = lib.path.with_suffix(".lock")
+    lock.write_text("")  # the other process's build, under way
+
+    def other_build_finishes() -> None:
+        time.sleep(0.6)
+        src = tmp_path / "other.c"
+        src.write_text(source)
+        assert native.build(cfg.compiler, src, tmp_path / "other.so") == 0
+        os.replace(tmp_path / "other.so", lib.path)
+        lock.unlink()
+
+    other = threading.Thread(target=other_build_finishes)
+    started = time.monotonic()
+    other.start()
+    got = native.library_for(source, wait=True)
+    other.join()
+    assert got is not None and got.ready(0.0) == lib.path
+    assert time.monotonic() - started >= 0.5  # it waited for the other build
+    # a lock left by a build that died is taken over, and the library built here
+    native.configure(None)
+    cfg = native.configure(tmp_path / "second")
+    assert cfg is not None
+    lib = native.Library(native.library_key(source, cfg), cfg)
+    lock = lib.path.with_suffix(".lock")
+    lock.write_text("")
+    old = time.time() - native.STALE_LOCK - 10
+    os.utime(lock, (old, old))
+    got = native.library_for(source, wait=True)
+    assert got is not None and got.ready(0.0) == lib.path
+
+
 def test_sources_too_large_to_compile_are_left_to_the_virtual_machine(tmp_path, monkeypatch):
     native.configure(tmp_path)
     monkeypatch.setattr(native, "MAX_SOURCE_BYTES", 1000)
