@@ -503,3 +503,40 @@ def test_the_law_after_a_stop_runs_every_piece_rest_to_rest(equal):
         assert np.allclose(D, want, rtol=1e-12, atol=1e-12)
         assert law.last_sigma() == pytest.approx(float(law.evaluate(np.array([T_end]))[0][0]),
                                                  abs=1e-12)
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_from_four_joints_damped_steps_after_a_singular_kernel_come_last(
+        four_joints: dict, keep: bool, monkeypatch) -> None:
+    """The fast path's first tries keep every rate's sign whatever the request; after a
+    kernel whose system was singular, the damped sign-keeping steps follow at once from 4
+    joints only where the request keeps its reversals; otherwise they come after the steps
+    with any sign (which mostly answer: the damped ones seldom kept the signs there). The
+    kernel is made singular here (the state is one where Gauss-Newton fails)."""
+    from optimizer.planner import replan as rp
+    calls: list[str] = []
+
+    def singular_kernel(emap, q0, goal, W0, *args, **kwargs):
+        calls.append("kernel")
+        return math.inf, np.array(W0, float)
+
+    def recorded(name, f):
+        def g(*args, **kwargs):
+            calls.append(name)
+            return f(*args, **kwargs)
+        return g
+
+    monkeypatch.setattr(rp, "kernel_correct", singular_kernel)
+    monkeypatch.setattr(rp, "damped_correct", recorded("damped", rp.damped_correct))
+    monkeypatch.setattr(rp, "halving_correct", recorded("halving", rp.halving_correct))
+    t = float(four_joints["path"]["t"][WARM_SAMPLE])
+    q = np.array(four_joints["path"]["q"][WARM_SAMPLE]) + np.r_[0.0, WARM_OFFSET]
+    try:
+        replan(four_joints, t, q, keep_reversals=keep, fallback=False)
+    except PlannerError:
+        pass
+    assert calls[:2] == ["kernel", "damped"] if keep else calls[:3] == ["kernel", "kernel",
+                                                                         "halving"]
+    assert ("halving" in calls) is not keep
+    if not keep:
+        assert "damped" in calls        # last, where the steps with any sign failed

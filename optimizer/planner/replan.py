@@ -382,25 +382,43 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
     The rates keep their signs first with the motion under way run to its piece's end, then
     with it braked now (its piece's rest correctable too: near the end the piece under way
     holds most of what is left); then, unless ``keep_reversals``, any sign (run to the end).
+    From :data:`DAMPED_SINGULAR_BELOW_JOINTS` joints (unless ``keep_reversals``) the damped
+    sign-keeping steps after a singular kernel come last, where every other try failed: the
+    steps with any sign mostly answer first, and the damped ones cost more than they find.
     """
     assert ps.rates is not None
     goal = ps.goal
     first = _setup(ps, t, q_m, u_c, T_end, brake=False)
-    found = None
-    try:
-        found = first, _correct(first.emap, first.q_stop, goal, first.W0, True)
-    except NumericalError:
-        if first.kept.pieces and not first.braked:
+    setups = [first]
+
+    def signed(damp: bool) -> tuple[_Setup, Any] | None:
+        for i in range(2):
+            if i == len(setups):  # (built at its first use: most replans need none)
+                if not (first.kept.pieces and not first.braked):
+                    break
+                setups.append(_setup(ps, t, q_m, u_c, T_end, brake=True))
             try:
-                braked = _setup(ps, t, q_m, u_c, T_end, brake=True)
-                found = braked, _correct(braked.emap, braked.q_stop, goal, braked.W0, True)
+                return setups[i], _correct(setups[i].emap, setups[i].q_stop, goal,
+                                           setups[i].W0, True, damp_singular=damp)
             except NumericalError:
                 pass
-        if found is None:
-            if keep_reversals:
-                raise
+        return None
+
+    damp_first = keep_reversals or ps.robot.n < DAMPED_SINGULAR_BELOW_JOINTS
+    found = signed(damp_first)
+    if found is None and not keep_reversals:
+        try:
             found = first, _correct(first.emap, first.q_stop, goal, first.W0, False,
                                     signed_first=False)
+        except NumericalError:
+            if damp_first:
+                raise
+    if found is None and not damp_first:
+        found = signed(True)
+    if found is None:
+        raise NumericalError("the Gauss-Newton correction of the later pieces' rates did not "
+                             "reach the goal" + (" keeping their signs" if keep_reversals
+                                                 else ""))
     st, correction = found
     return _corrected(ps, t, T_end, st.kept, st.free, st.q_stop, st.emap, correction,
                       st.plain_law, "gauss_newton", st.braked)
@@ -458,7 +476,8 @@ def _warm(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
 
 
 def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
-             keep_reversals: bool, signed_first: bool = True
+             keep_reversals: bool, signed_first: bool = True, *,
+             damp_singular: bool | None = None
              ) -> tuple[float, np.ndarray, int, np.ndarray, bool]:
     """The later pieces' rates moved onto the goal: first with no rate changing sign
     (:func:`~.continuation_map.kernel_correct`, one compiled call of full sign-keeping steps:
@@ -469,12 +488,19 @@ def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
     least-norm step). Returns the map's miss, the rates, the steps, the
     weights used (for the defect step) and whether the signs were kept.
 
+    ``keep_reversals``: no rate may change sign (raise where they cannot all keep theirs).
+    ``damp_singular``: the damped sign-keeping steps follow a kernel whose system was
+    singular (default: with ``keep_reversals``, or below
+    :data:`DAMPED_SINGULAR_BELOW_JOINTS` joints).
+
     Raises
     ------
     NumericalError
         No correction reached the goal.
     """
     err = math.inf
+    if damp_singular is None:
+        damp_singular = keep_reversals or q0.size - 1 < DAMPED_SINGULAR_BELOW_JOINTS
     if signed_first:
         # one compiled call of full steps; where a system was singular (fewer rates left
         # free than joints to move: no finite answer, or a hair off the goal), the long way,
@@ -488,8 +514,7 @@ def _correct(emap: PieceMap, q0: np.ndarray, goal: np.ndarray, W0: np.ndarray,
         err, W = kernel_correct(emap, q0, goal, W0)
         if err <= KERNEL_ACCEPT:
             return err, W, KERNEL_STEPS, piece_weights(W0, W == 0.0), True
-        if err <= LOOP_AFTER_KERNEL or (not math.isfinite(err) and (
-                keep_reversals or q0.size - 1 < DAMPED_SINGULAR_BELOW_JOINTS)):
+        if err <= LOOP_AFTER_KERNEL or (not math.isfinite(err) and damp_singular):
             err, W, steps = damped_correct(emap, q0, goal, W0)
             if err <= 1e-6:
                 return err, W, steps, piece_weights(W0, W == 0.0), True
