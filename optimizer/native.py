@@ -21,9 +21,11 @@ How
   generating the source (0.4-1.3 s at 4 to 7 joints).
 * The build runs ``<cc> -O1 -fPIC -shared`` in a separate, detached process (``python -m
   optimizer.native``) that writes a temporary file and renames it into place, so a library is
-  either complete or absent; a lock file keeps two processes of one machine from compiling the
-  same key at once, and a failed build leaves a ``.failed`` file (with the compiler's messages)
-  so it is not retried.
+  either complete or absent; a lock file (naming its machine and builder's PID) keeps two
+  processes of one machine from compiling the same key at once, a build asked to wait waits
+  for the one under way, a lock whose builder is gone (or that is older than
+  :data:`STALE_LOCK`) is taken over, and a failed build leaves a ``.failed`` file (with the
+  compiler's messages) so it is not retried.
 * Nothing happens until :func:`configure` is called with a directory: a library that starts a
   compiler and writes files only when asked. The service does it in every worker (setting
   ``PLANNER_NATIVE_CACHE``); the benchmark compiles before it measures.
@@ -52,7 +54,8 @@ FLAGS: tuple[str, ...] = ("-O1", "-fPIC", "-shared")
 #: Larger sources are not compiled: cc1's time and memory grow with them (a 1.6 MB source:
 #: 5.6 s and 0.29 GB; 10.6 MB, the 6-joint 50-interval NLP: 20 s and 1.6 GB).
 MAX_SOURCE_BYTES = 3_000_000
-#: A lock older than this (s) belongs to a build that died: it is taken over.
+#: A lock older than this (s) belongs to a build that died: it is taken over. Sooner where the
+#: lock names its builder on this machine and that process is gone (:func:`_lock_is_stale`).
 STALE_LOCK = 300.0
 
 
@@ -294,12 +297,47 @@ def _await_other_build(lib: Library, poll: float = 0.05) -> bool:
     failed = lib.path.with_suffix(".failed")
     while lock.exists() and not lib.path.exists():
         try:
-            if time.time() - lock.stat().st_mtime >= STALE_LOCK:
+            if _lock_is_stale(lock):
                 break
         except OSError:  # released between the two looks
             break
         time.sleep(poll)
     return not lib.path.exists() and not failed.exists()
+
+
+def _lock_owner() -> str:
+    """What a build writes into its lock: this machine's name and the builder's PID."""
+    return f"{os.uname().nodename} {os.getpid()}\n"
+
+
+def _lock_is_stale(lock: Path) -> bool:
+    """Whether ``lock`` belongs to a build that died: older than :data:`STALE_LOCK`, or
+    written on this machine by a process that no longer runs (a container killed while
+    compiling into a persistent cache, a build killed by its session's end: without this,
+    every later start waited out :data:`STALE_LOCK`). A lock of another machine (a cache
+    shared by pods) is judged by its age alone.
+
+    Raises
+    ------
+    OSError
+        The lock is gone.
+    """
+    if time.time() - lock.stat().st_mtime >= STALE_LOCK:
+        return True
+    try:
+        host, pid_text = lock.read_text().split()
+        pid = int(pid_text)
+    except ValueError:  # empty (being written, or of an older version): by its age
+        return False
+    if host != os.uname().nodename or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # another user's process: it runs
+        return False
+    return False
 
 
 def _run_quiet(argv: list[str]) -> None:
@@ -322,13 +360,16 @@ def build(compiler: str, source: Path, target: Path) -> int:
         fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
     except FileExistsError:
         try:
-            if time.time() - lock.stat().st_mtime < STALE_LOCK:
+            if not _lock_is_stale(lock):
                 return 0
             lock.unlink()
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
         except OSError:
             return 0
-    os.close(fd)
+    try:
+        os.write(fd, _lock_owner().encode())
+    finally:
+        os.close(fd)
     tmp = target.with_name(f"{target.stem}.{os.getpid()}.so.tmp")
     try:
         if target.exists():

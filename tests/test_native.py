@@ -317,6 +317,63 @@ def test_a_build_asked_to_wait_waits_for_the_one_another_process_runs(tmp_path):
     assert got is not None and got.ready(0.0) == lib.path
 
 
+def test_a_lock_whose_builder_is_gone_is_stale_at_once(tmp_path):
+    """A build killed while compiling (a container stopped, a session ended) leaves a fresh
+    lock: where it names a process of this machine that no longer runs, the next build takes
+    it over at once instead of waiting out STALE_LOCK; a running builder's lock, or one of
+    another machine (a shared cache), stands until it is old."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    host = os.uname().nodename
+    lock = tmp_path / "k.lock"
+    lock.write_text(f"{host} {dead.pid}\n")
+    assert native._lock_is_stale(lock)
+    lock.write_text(f"{host} {os.getpid()}\n")
+    assert not native._lock_is_stale(lock)
+    lock.write_text(f"{host}-elsewhere {dead.pid}\n")
+    assert not native._lock_is_stale(lock)
+    lock.write_text("")
+    assert not native._lock_is_stale(lock)
+    # build() writes its own name into the lock it holds, and takes a dead builder's over
+    cc = shutil.which("cc") or shutil.which("gcc")
+    src = tmp_path / "k.c"
+    src.write_text("int answer(void) { return 42; }\n")
+    lock.write_text(f"{host} {dead.pid}\n")
+    seen: list[str] = []
+    real_run = subprocess.run
+
+    def run(argv, *args, **kwargs):
+        seen.append(lock.read_text())
+        return real_run(argv, *args, **kwargs)
+
+    native.subprocess.run = run
+    try:
+        assert native.build(cc, src, tmp_path / "k.so") == 0
+    finally:
+        native.subprocess.run = real_run
+    assert (tmp_path / "k.so").exists() and not lock.exists()
+    assert seen == [f"{host} {os.getpid()}\n"]
+
+
+def test_a_waiting_build_builds_itself_when_the_other_builder_dies(tmp_path):
+    """The other process holds the lock and dies mid-build (no library, no .failed): the
+    waiting call notices, builds the library itself and returns it."""
+    import threading
+
+    cfg = native.configure(tmp_path)
+    assert cfg is not None
+    source = "int answer(void) { return 7; }\n"
+    lib = native.Library(native.library_key(source, cfg), cfg)
+    lock = lib.path.with_suffix(".lock")
+    builder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.5)"])
+    lock.write_text(f"{os.uname().nodename} {builder.pid}\n")
+    threading.Thread(target=builder.wait).start()  # reaped when it ends: gone, not a zombie
+    started = time.monotonic()
+    got = native.library_for(source, wait=True)
+    assert got is not None and got.ready(0.0) == lib.path
+    assert time.monotonic() - started < 0.5 * native.STALE_LOCK
+
+
 def test_sources_too_large_to_compile_are_left_to_the_virtual_machine(tmp_path, monkeypatch):
     native.configure(tmp_path)
     monkeypatch.setattr(native, "MAX_SOURCE_BYTES", 1000)
