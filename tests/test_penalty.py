@@ -158,10 +158,13 @@ def test_penalty_weight_grows_while_the_solution_leaves_the_region(monkeypatch):
 
 @pytest.mark.parametrize("start, goal", BENCH_GOALS,
                          ids=[f"{len(s)}j_{s[0]:g}_{g[0]:g}" for s, g in BENCH_GOALS])
-def test_no_worse_than_shooting_on_the_same_region(start, goal):
+def test_no_worse_than_shooting_on_the_same_region(start, goal, monkeypatch):
     """On the benchmark's goals, with shooting given the same region (th_n in (0, pi/2) too)
     and the same objective, the penalty's plan is shooting's: an exact penalty has the
-    constrained problem's minimisers. Deviation and reversals are no worse."""
+    constrained problem's minimisers. Deviation and reversals are no worse. (The two NLPs are
+    compared: shooting's own later step, merging runs for fewer reversals, is off.)"""
+    from optimizer.planner import rungs
+    monkeypatch.setattr(rungs, "MERGE_TRIES", 0)
     n = len(start)
     bounds = (None,) * (n - 1) + ((0.0, HALF_PI),)
     s = plan(request(start, goal, "shooting", joint_bounds=bounds))
@@ -182,9 +185,12 @@ def test_no_worse_than_shooting_on_the_same_region(start, goal):
 
 
 # ---------------------------------------------------------------------- warm starts, objectives
-def test_warm_start_from_a_plan_is_used_and_stays_put():
+def test_warm_start_from_a_plan_is_used_and_stays_put(monkeypatch):
     """From shooting's own plan (actuator rates) the penalty starts there and ends at the same
-    plan; from the polynomial optimum (chained inputs) it starts there too."""
+    plan; from the polynomial optimum (chained inputs) it starts there too. (Shooting's plan of
+    its NLPs: its merging of runs for fewer reversals, a step the penalty has not, is off.)"""
+    from optimizer.planner import rungs
+    monkeypatch.setattr(rungs, "MERGE_TRIES", 0)
     bounds = (None, None, (0.0, HALF_PI))
     shot = plan(request(*OPP_A, method="shooting", joint_bounds=bounds))
     req = request(*OPP_A)

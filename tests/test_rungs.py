@@ -127,6 +127,39 @@ def test_th1_held_that_failed_before_the_free_rung_is_not_solved_again(monkeypat
             return free
         raise InfeasibleError("out of reach", diagnostics={"tried": []})
 
-    sol, _, signs, _ = rungs_mod.solve_rungs(req, solve)
-    assert calls == ["held [0.0, 1.0]", "free"]
+    sol, _, signs, _ = rungs_mod.solve_rungs(req, solve, merge_runs=True)
+    # (then up to MERGE_TRIES patterns of its runs merged, each failing here)
+    assert calls[:2] == ["held [0.0, 1.0]", "free"]
+    assert calls.count("held [0.0, 1.0]") == 1
+    assert len(calls) == 2 + rungs_mod.MERGE_TRIES
     assert sol is free and signs is None
+
+
+def test_a_merge_that_loses_a_reversal_is_kept_and_one_that_fails_is_not(monkeypatch):
+    """An answer with two reversals or more: its runs, the one that travels least first, are
+    merged into their neighbours and the NLP held to each pattern (rungs.MERGE_TRIES in all);
+    the first that gains is kept, and the merging goes on from it."""
+    req = PlanRequest(start=START[:4], goal=GOAL[:4], robot=Robot.default(4))
+    tr = ladder(4)[0]
+    monkeypatch.setattr(rungs_mod, "rungs", lambda r: [(tr, None)])
+    monkeypatch.setattr(rungs_mod, "direction_conflict", lambda r: None)
+    monkeypatch.setattr(rungs_mod, "th1_reach_ok", lambda r: False)
+    # phi: + for 6 intervals, - for 2 (a short run), + for the rest: 2 reversals; th1 forward
+    rates = np.ones((N, 2))
+    rates[6:8, 0] = -1.0    # (8 % of its travel: no wiggle, rungs.WIGGLE_SHARE)
+    free = answer(2, 0)
+    free.nodes, free.rates = free.nodes[:, :5], rates
+    held_seen: list[np.ndarray] = []
+    merged = answer(0, 0)
+    merged.nodes = merged.nodes[:, :5]
+
+    def solve(tr_, signs, start_nodes=None, light=False):
+        if signs is None:
+            return free
+        held_seen.append(np.asarray(signs))
+        return merged
+
+    sol, _, signs, _ = rungs_mod.solve_rungs(req, solve, merge_runs=True)
+    assert sol is merged
+    assert len(held_seen) == 1          # one gain, then nothing left to merge
+    assert np.all(held_seen[0][:, 0] == 1.0) and np.all(held_seen[0][:, 1] == 1.0)

@@ -244,7 +244,8 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
     sol, tr, mono, tried = solve_rungs(
         req, lambda tr, signs, start=None, light=False: (
             solve_shooting(req, deadline, tr, signs, start, light=True) if light
-            else solve_shooting(req, deadline, tr, signs, start)), light_first=True)
+            else solve_shooting(req, deadline, tr, signs, start)), light_first=True,
+        merge_runs=True)
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
     try:
