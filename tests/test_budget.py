@@ -16,7 +16,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from optimizer.errors import InfeasibleError, InvalidRequestError
-from optimizer.planner import budget
+from optimizer.planner import budget, rungs
 from optimizer.planner.context import Deadline
 from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
@@ -174,10 +174,10 @@ def test_non_dominated_keeps_the_straightest_of_equal_reversals() -> None:
 def test_merging_a_run_removes_its_reversals() -> None:
     signs = np.array([[1, 1], [1, -1], [-1, -1], [1, -1], [1, 1], [1, 1]], float)
     rates = signs * np.array([[1.0, 1.0], [1.0, 0.01], [0.2, 0.5], [1.0, 0.5], [1, 1], [1, 1]])
-    runs = budget.runs(signs, rates)
+    runs = rungs.runs(signs, rates)
     smallest = min(runs)
     assert smallest[1:] == (0, 2, 3)  # phi's one interval backwards
-    merged = budget.merge(signs, smallest)
+    merged = rungs.merge(signs, smallest)
     assert np.all(merged[:, 0] == 1.0) and np.all(merged[:, 1] == signs[:, 1])
 
 

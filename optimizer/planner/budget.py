@@ -76,7 +76,7 @@ from . import nlp as nlp_layer
 from .context import PlanContext
 from .correction import finish_solution
 from .nlp import D_A_WEIGHT, Transcription, node_bounds
-from .rungs import th1_reach_ok
+from .rungs import merge, runs, th1_reach_ok
 from .attempts import Attempt, first_converged
 from .ranking import best
 from .rules import joint_limits, monotone_reach_ok, monotone_signs
@@ -297,19 +297,6 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *,
     return nlp
 
 
-def runs(signs: np.ndarray, rates: np.ndarray) -> list[tuple[float, int, int, int]]:
-    """The runs of one sign of each actuator in a sign pattern ``(N, 2)``: ``(travel, actuator,
-    first interval, end)``, travel the run's ``sum |U| / N`` under ``rates`` (N, 2)."""
-    N = signs.shape[0]
-    out: list[tuple[float, int, int, int]] = []
-    for c in (0, 1):
-        edges = np.flatnonzero(np.diff(signs[:, c])) + 1
-        starts, ends = np.r_[0, edges], np.r_[edges, N]
-        for s, e in zip(starts, ends):
-            out.append((float(np.sum(np.abs(rates[s:e, c]))) / N, c, int(s), int(e)))
-    return out
-
-
 def pattern(rates: np.ndarray) -> np.ndarray:
     """The sign pattern ``(N, 2)`` of rates, with runs whose travel is within the reversal
     dead band merged into their neighbours (they reverse nothing the answer counts; a zero rate
@@ -353,15 +340,6 @@ def possible(req: PlanRequest, signs: np.ndarray) -> bool:
 
 def _count(col: np.ndarray) -> int:
     return int(np.count_nonzero(np.diff(col)))
-
-
-def merge(signs: np.ndarray, run: tuple[float, int, int, int]) -> np.ndarray:
-    """``signs`` with ``run`` (of :func:`runs`) given its neighbours' sign."""
-    _, c, s, e = run
-    out = signs.copy()
-    N = signs.shape[0]
-    out[s:e, c] = signs[s - 1, c] if s > 0 else signs[e, c] if e < N else signs[s, c]
-    return out
 
 
 def _verified(req: PlanRequest, tr: Transcription, sol: ShootingSolution,
