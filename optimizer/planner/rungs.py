@@ -1,8 +1,10 @@
 """The ladder a method climbs under the default objective: which transcriptions and rate
 signs it tries in turn (:func:`rungs`), and :func:`solve_rungs`, which keeps the answer with
-the fewest reversals, then the smallest deviation, over those rungs and the two improvements
-that follow (``th_1`` held monotone instead, wiggles removed). Used by ``shooting`` and
-``penalty``; above the NLP layer (:mod:`.nlp`, :mod:`.solvers`).
+the fewest reversals, then the smallest deviation, over those rungs and the improvements
+that follow (``th_1`` held monotone instead, wiggles removed, and for ``shooting`` the
+smallest runs of sign merged); the runs of a sign pattern and their merge (:func:`runs`,
+:func:`merge`, the reversal budget's too). Used by ``shooting`` and ``penalty``; above the NLP
+layer (:mod:`.nlp`, :mod:`.solvers`).
 """
 
 from __future__ import annotations
