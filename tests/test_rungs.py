@@ -163,3 +163,38 @@ def test_a_merge_that_loses_a_reversal_is_kept_and_one_that_fails_is_not(monkeyp
     assert sol is merged
     assert len(held_seen) == 1          # one gain, then nothing left to merge
     assert np.all(held_seen[0][:, 0] == 1.0) and np.all(held_seen[0][:, 1] == 1.0)
+
+
+def test_merging_leaves_the_time_a_plan_needs(monkeypatch):
+    """A merge's NLP starts only while MERGE_RESERVE times the rung's solve time is left, and
+    one that runs out of time ends the merging with the answer found: the merging is an
+    improvement, never the reason a found plan times out."""
+    from optimizer.errors import SolverTimeoutError
+
+    req = PlanRequest(start=START[:4], goal=GOAL[:4], robot=Robot.default(4))
+    tr = ladder(4)[0]
+    monkeypatch.setattr(rungs_mod, "rungs", lambda r: [(tr, None)])
+    monkeypatch.setattr(rungs_mod, "direction_conflict", lambda r: None)
+    monkeypatch.setattr(rungs_mod, "th1_reach_ok", lambda r: False)
+    rates = np.ones((N, 2))
+    rates[6:8, 0] = -1.0
+    rates[12:14, 1] = -1.0
+    free = answer(2, 2)
+    free.nodes, free.rates = free.nodes[:, :5], rates
+    held: list[str] = []
+
+    def solve(tr_, signs, start_nodes=None, light=False):
+        if signs is None:
+            return free
+        held.append("held")
+        raise SolverTimeoutError("out of time", field="time_limit",
+                                 diagnostics={"tried": [{"solver": "fatrop"}]})
+
+    # no time left: no merge starts
+    sol, _, _, _ = rungs_mod.solve_rungs(req, solve, merge_runs=True, time_left=lambda: 0.0)
+    assert sol is free and held == []
+    # time left, but the first merge runs out of it: the free answer stands, no second merge
+    sol, _, _, tried = rungs_mod.solve_rungs(req, solve, merge_runs=True,
+                                             time_left=lambda: 1e3)
+    assert sol is free and held == ["held"]
+    assert {"solver": "fatrop"} in tried

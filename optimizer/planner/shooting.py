@@ -245,7 +245,7 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
         req, lambda tr, signs, start=None, light=False: (
             solve_shooting(req, deadline, tr, signs, start, light=True) if light
             else solve_shooting(req, deadline, tr, signs, start)), light_first=True,
-        merge_runs=True)
+        merge_runs=True, time_left=lambda: float(deadline.remaining))
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
     try:
