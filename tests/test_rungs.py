@@ -135,20 +135,31 @@ def test_th1_held_that_failed_before_the_free_rung_is_not_solved_again(monkeypat
     assert sol is free and signs is None
 
 
-def test_a_merge_that_loses_a_reversal_is_kept_and_one_that_fails_is_not(monkeypatch):
-    """An answer with two reversals or more: its runs, the one that travels least first, are
-    merged into their neighbours and the NLP held to each pattern (rungs.MERGE_TRIES in all);
-    the first that gains is kept, and the merging goes on from it."""
+def _one_free_rung(monkeypatch, phi_turns: int, th1_turns: int) -> tuple[PlanRequest, Answer]:
+    """A 4-joint request whose ladder is one free rung (no th_1-held alternative) and that
+    rung's answer: rates forward but for a short run backwards of phi (intervals 6-7) and,
+    with ``th1_turns``, of th_1 (12-13), each 8 % of its actuator's travel (no wiggle,
+    rungs.WIGGLE_SHARE)."""
     req = PlanRequest(start=START[:4], goal=GOAL[:4], robot=Robot.default(4))
     tr = ladder(4)[0]
     monkeypatch.setattr(rungs_mod, "rungs", lambda r: [(tr, None)])
     monkeypatch.setattr(rungs_mod, "direction_conflict", lambda r: None)
     monkeypatch.setattr(rungs_mod, "th1_reach_ok", lambda r: False)
-    # phi: + for 6 intervals, - for 2 (a short run), + for the rest: 2 reversals; th1 forward
     rates = np.ones((N, 2))
-    rates[6:8, 0] = -1.0    # (8 % of its travel: no wiggle, rungs.WIGGLE_SHARE)
-    free = answer(2, 0)
+    rates[6:8, 0] = -1.0
+    if th1_turns:
+        rates[12:14, 1] = -1.0
+    free = answer(phi_turns, th1_turns)
     free.nodes, free.rates = free.nodes[:, :5], rates
+    return req, free
+
+
+def test_a_merge_that_loses_a_reversal_is_kept_and_one_that_fails_is_not(monkeypatch):
+    """An answer with two reversals or more: its runs, the one that travels least first, are
+    merged into their neighbours and the NLP held to each pattern (rungs.MERGE_TRIES in all);
+    the first that gains is kept, and the merging goes on from it."""
+    # phi: + for 6 intervals, - for 2 (a short run), + for the rest: 2 reversals; th1 forward
+    req, free = _one_free_rung(monkeypatch, 2, 0)
     held_seen: list[np.ndarray] = []
     merged = answer(0, 0)
     merged.nodes = merged.nodes[:, :5]
@@ -171,16 +182,7 @@ def test_merging_leaves_the_time_a_plan_needs(monkeypatch):
     improvement, never the reason a found plan times out."""
     from optimizer.errors import SolverTimeoutError
 
-    req = PlanRequest(start=START[:4], goal=GOAL[:4], robot=Robot.default(4))
-    tr = ladder(4)[0]
-    monkeypatch.setattr(rungs_mod, "rungs", lambda r: [(tr, None)])
-    monkeypatch.setattr(rungs_mod, "direction_conflict", lambda r: None)
-    monkeypatch.setattr(rungs_mod, "th1_reach_ok", lambda r: False)
-    rates = np.ones((N, 2))
-    rates[6:8, 0] = -1.0
-    rates[12:14, 1] = -1.0
-    free = answer(2, 2)
-    free.nodes, free.rates = free.nodes[:, :5], rates
+    req, free = _one_free_rung(monkeypatch, 2, 2)
     held: list[str] = []
 
     def solve(tr_, signs, start_nodes=None, light=False):
