@@ -262,7 +262,7 @@ def _library(key: str, cfg: NativeConfig, source_of: Callable[[], str],
     args = [cfg.compiler, str(src), str(lib.path)]
     if wait:
         _run_quiet(entry + args)
-        if not lib.path.exists() and _await_other_build(lib):
+        if not lib.path.exists() and _await_other_build(lib, failed):
             _run_quiet(entry + args)  # the other build died: its lock was taken over
         return lib if lib.path.exists() else None
     if not hasattr(os, "fork"):  # no detached build (not POSIX): only builds asked to wait
@@ -278,7 +278,7 @@ def _library(key: str, cfg: NativeConfig, source_of: Callable[[], str],
     return lib
 
 
-def _await_other_build(lib: Library, poll: float = 0.05) -> bool:
+def _await_other_build(lib: Library, failed: Path, poll: float = 0.05) -> bool:
     """Wait while another process holds the build lock of ``lib`` (a fresh one).
 
     Why: a build asked to wait returns at once when another process builds the same library
@@ -290,11 +290,10 @@ def _await_other_build(lib: Library, poll: float = 0.05) -> bool:
     Returns
     -------
     bool
-        True when the wait ended with neither the library nor a ``.failed`` file (the lock went
-        stale): the caller may build it itself.
+        True when the wait ended with neither the library nor its ``failed`` file (the lock
+        went stale): the caller may build it itself.
     """
     lock = lib.path.with_suffix(".lock")
-    failed = lib.path.with_suffix(".failed")
     while lock.exists() and not lib.path.exists():
         try:
             if _lock_is_stale(lock):
@@ -336,7 +335,7 @@ def _lock_is_stale(lock: Path) -> bool:
     except ProcessLookupError:
         return True
     except PermissionError:  # another user's process: it runs
-        return False
+        pass
     return False
 
 

@@ -317,7 +317,7 @@ def test_a_build_asked_to_wait_waits_for_the_one_another_process_runs(tmp_path):
     assert got is not None and got.ready(0.0) == lib.path
 
 
-def test_a_lock_whose_builder_is_gone_is_stale_at_once(tmp_path):
+def test_a_lock_whose_builder_is_gone_is_stale_at_once(tmp_path, monkeypatch):
     """A build killed while compiling (a container stopped, a session ended) leaves a fresh
     lock: where it names a process of this machine that no longer runs, the next build takes
     it over at once instead of waiting out STALE_LOCK; a running builder's lock, or one of
@@ -346,11 +346,9 @@ def test_a_lock_whose_builder_is_gone_is_stale_at_once(tmp_path):
         seen.append(lock.read_text())
         return real_run(argv, *args, **kwargs)
 
-    native.subprocess.run = run
-    try:
-        assert native.build(cc, src, tmp_path / "k.so") == 0
-    finally:
-        native.subprocess.run = real_run
+    monkeypatch.setattr(native.subprocess, "run", run)
+    assert native.build(cc, src, tmp_path / "k.so") == 0
+    monkeypatch.undo()
     assert (tmp_path / "k.so").exists() and not lock.exists()
     assert seen == [f"{host} {os.getpid()}\n"]
 

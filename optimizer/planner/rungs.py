@@ -62,9 +62,10 @@ IMPROVE_BELOW_JOINTS = 5
 #: generated goals (0-1 reversals) do not try.
 MERGE_FROM_REVERSALS = 2
 MERGE_TRIES = 2
-#: A merge's NLP starts only while more than this many times the rung's own solve time is
-#: left before the deadline (``time_left``): the plan found must still be finished and handed
-#: out. Without it, 2 of 12 free 4-joint goals that a time limit of 0.1 s planned timed out.
+#: A merge's NLP starts only while more than this many times what the rung took so far (its
+#: solve and the improvements before the merging) is left before the deadline
+#: (``time_left``): the plan found must still be finished and handed out. Without it, 2 of
+#: 12 free 4-joint goals that a time limit of 0.1 s planned timed out.
 MERGE_RESERVE = 3.0
 
 
@@ -199,7 +200,7 @@ def solve_rungs(req: PlanRequest, solve: Callable[..., SolutionT], light_first: 
     * ``merge_runs`` (the ``shooting`` method's): an answer that still reverses
       :data:`MERGE_FROM_REVERSALS` times or more has its smallest runs merged, each solved
       held to that pattern (:data:`MERGE_TRIES` NLPs at most, each only while ``time_left()``
-      seconds exceed :data:`MERGE_RESERVE` times the rung's solve; one that runs out of time
+      seconds exceed :data:`MERGE_RESERVE` times the rung's time so far; one that runs out of time
       ends the merging with the best answer so far).
 
     ``light_first`` (``solve`` then takes ``light=True``): from :data:`LIGHT_FROM_JOINTS`
