@@ -540,3 +540,21 @@ def test_from_four_joints_damped_steps_after_a_singular_kernel_come_last(
     assert ("halving" in calls) is not keep
     if not keep:
         assert "damped" in calls        # last, where the steps with any sign failed
+
+
+def test_a_failed_fast_path_names_the_miss_of_its_steps_with_any_sign(
+        four_joints: dict, monkeypatch) -> None:
+    """Where every Gauss-Newton try fails from 4 joints (the damped sign-keeping steps last),
+    the error says how far the steps with any sign ended from the goal, in rad."""
+    from optimizer.planner import replan as rp
+    monkeypatch.setattr(rp, "kernel_correct",
+                        lambda emap, q0, goal, W0, *a, **k: (math.inf, np.array(W0, float)))
+    monkeypatch.setattr(rp, "halving_correct",
+                        lambda emap, q0, goal, W0, *a, **k: (0.0123, np.array(W0, float)))
+    monkeypatch.setattr(rp, "damped_correct",
+                        lambda emap, q0, goal, W0, *a, **k: (0.5, np.array(W0, float), 3))
+    t = float(four_joints["path"]["t"][WARM_SAMPLE])
+    q = np.array(four_joints["path"]["q"][WARM_SAMPLE]) + np.r_[0.0, WARM_OFFSET]
+    with pytest.raises(PlannerError) as info:
+        replan(four_joints, t, q, fallback=False)
+    assert "miss 0.0123 rad" in info.value.diagnostics["fast_path_failed"][0]

@@ -406,19 +406,22 @@ def _fast(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.nd
 
     damp_first = keep_reversals or ps.robot.n < DAMPED_SINGULAR_BELOW_JOINTS
     found = signed(damp_first)
+    any_sign: NumericalError | None = None  # (its message has the miss in rad)
     if found is None and not keep_reversals:
         try:
             found = first, _correct(first.emap, first.q_stop, goal, first.W0, False,
                                     signed_first=False)
-        except NumericalError:
+        except NumericalError as exc:
             if damp_first:
                 raise
+            any_sign = exc
     if found is None and not damp_first:
         found = signed(True)
     if found is None:
+        if any_sign is not None:
+            raise any_sign
         raise NumericalError("the Gauss-Newton correction of the later pieces' rates did not "
-                             "reach the goal" + (" keeping their signs" if keep_reversals
-                                                 else ""))
+                             "reach the goal keeping their signs")
     st, correction = found
     return _corrected(ps, t, T_end, st.kept, st.free, st.q_stop, st.emap, correction,
                       st.plain_law, "gauss_newton", st.braked)
