@@ -8,8 +8,8 @@ original model, as in ``test_shooting.py``.
 
 from __future__ import annotations
 
+import json
 import math
-
 import os
 import shutil
 import stat
@@ -82,6 +82,44 @@ def test_compiled_plan_equals_the_virtual_machine_and_reaches_the_goal(default_c
     t, q = scipy_path(p, req)
     assert np.max(np.abs(q[-1, 1:] - np.array(req.goal))) < 1e-8
     assert np.all((q[:, 1:3] > 0.0) & (q[:, 1:3] < np.pi / 2))
+
+
+def _without_timing(answer: dict) -> dict:
+    """An answer's dict without what may differ between two runs of one request: its
+    timings, and whether the NLP's functions were compiled."""
+    answer = {k: v for k, v in answer.items() if k != "timing"}
+    diagnostics = dict(answer["diagnostics"])
+    diagnostics["shooting"] = {k: v for k, v in diagnostics["shooting"].items()
+                               if k != "compiled"}
+    diagnostics["auto"] = {k: v for k, v in diagnostics["auto"].items() if k != "tried"}
+    answer["diagnostics"] = diagnostics
+    return answer
+
+
+def test_an_answer_before_the_library_is_built_is_the_compiled_answer_bit_for_bit(
+        default_cache, monkeypatch):
+    """A worker answers from CasADi's virtual machine until the NLP's library is built (a
+    fresh machine, a new robot shape) and from the library afterwards: the same request
+    must get the same answer either way, bit for bit (the quadrature of the proofs is the
+    compiled kernel in both, as in a worker)."""
+    from optimizer import cascade_kernel
+    native.configure(default_cache)
+    assert cascade_kernel.prepare(wait=True)
+    req = PlanRequest(start=(math.radians(10),) * 3, goal=(math.radians(30),) * 3)
+    with monkeypatch.context() as patched:
+        patched.setattr(nlp.MultipleShootingNLP, "load_native",
+                        lambda self, *args, **kwargs: False)
+        vm = plan(req)
+    assert vm.diagnostics["shooting"]["compiled"] is False
+    nlp._shaped_nlp.cache_clear()
+    assert shooting.prepare(req.robot.gains, req.robot.exponents, wait=True).compiled
+    compiled = plan(req)
+    assert compiled.diagnostics["shooting"]["compiled"] is True
+    a, b = _without_timing(vm.to_dict()), _without_timing(compiled.to_dict())
+    assert a.keys() == b.keys()
+    for key in a:   # field by field, so that a failure names the field (every float in full)
+        assert json.dumps(a[key], default=np.ndarray.tolist) == \
+            json.dumps(b[key], default=np.ndarray.tolist), key
 
 
 def test_the_correction_maps_are_compiled_with_the_nlp(default_cache):
