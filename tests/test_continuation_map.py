@@ -12,9 +12,8 @@ from scipy.integrate import solve_ivp
 from optimizer.errors import NumericalError
 from optimizer.model import Robot
 from optimizer import native
-from optimizer.planner.continuation_map import (CompiledCall, PieceMap,
-                                                correct_pieces,
-                                                correct_signed, halving_correct,
+from optimizer.planner.continuation_map import (CompiledCall, PieceMap, correct_pieces,
+                                                correct_signed, halving_correct, halving_kernel,
                                                 kernel_correct, piece_weights, signed_kernel,
                                                 signed_step)
 from optimizer.planner.piece_proof import integrate_pieces
@@ -231,6 +230,31 @@ def test_the_compiled_kernel_is_the_virtual_machines(pieces, tmp_path, monkeypat
     for a, b in zip(fresh.vm(*args), compiled(*args)):
         assert np.allclose(a, b, rtol=1e-12, atol=1e-14)
     assert emap.P == 8
+
+
+def test_the_compiled_halving_kernel_is_the_virtual_machines(pieces, tmp_path,
+                                                             monkeypatch) -> None:
+    """The any-sign kernel, whose steps and halvings are conditionals (a branch evaluated
+    only when taken), generated as C and compiled, gives the virtual machine's answer: on a
+    goal its full steps reach, and on one where they overshoot and halvings are taken."""
+    monkeypatch.setattr(native, "_config", None)      # (restored after the test)
+    if native.configure(tmp_path / "native") is None:
+        pytest.skip("no C compiler")
+    q0, W = pieces
+    robot = Robot.default(3)
+    call = halving_kernel(tuple(robot.gains), tuple(robot.exponents), 8)
+    fresh = CompiledCall(call.call.function, 5, (0, 1))   # not the cached one: built here
+    compiled = fresh.current(wait=True)
+    assert compiled is not fresh.vm
+    full = np.vstack([np.zeros((1, 2)), W])
+    D2 = piece_weights(full, None)
+    for offset in ([2e-3, -1e-3, 1.5e-3], [0.04, -0.05, 0.06]):
+        goal = scipy_end(q0, W)[1:] + np.array(offset)
+        args = (q0, full, goal, D2, np.asarray(robot.gains))
+        vm, cc = fresh.vm(*args), compiled(*args)
+        assert np.abs(vm[1]).max() < 1e-10            # reached, by either
+        for a, b in zip(vm, cc):
+            assert np.allclose(a, b, rtol=1e-12, atol=1e-14)
 
 
 def test_the_compiled_verification_matches_scipy(pieces) -> None:
