@@ -213,7 +213,8 @@ def _jacobian_map(exponents: tuple[int, ...], P: int) -> CompiledCall:
 
 
 def signed_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int) -> BoundCall:
-    """:data:`KERNEL_STEPS` full sign-keeping Gauss-Newton steps in one call:
+    """Up to :data:`KERNEL_STEPS` full sign-keeping Gauss-Newton steps in one call (they stop
+    once the map's miss is below :data:`TARGET`, or not finite):
     ``(q0, W, goal, D2, signs) -> (W_end, th_end - goal)`` (``W``: ``(2, P)`` as for
     :func:`jacobian_map`; ``D2``, ``signs``: flat like ``vec(W)``).
 
@@ -233,19 +234,39 @@ def _signed_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
     F = _piece_step(exponents)
     K = ca.MX.sym("K", n - 1)
     q0 = ca.MX.sym("q0", n + 1)
-    W = ca.MX.sym("W", 2, P)
     goal = ca.MX.sym("goal", n)
     D2 = ca.MX.sym("D2", 2 * P)
     signs = ca.MX.sym("signs", 2 * P)
-    w = ca.vec(W)
-    for _ in range(KERNEL_STEPS):
-        x, J = _end_and_jacobian(F, q0, w, K, P)
-        w = w - _signed_direction(J[1:, :], x[1:] - goal, w, D2, signs, None, KERNEL_ROUNDS)
-    x = q0
+    w = ca.MX.sym("w", 2 * P)
+    r_in = ca.MX.sym("r", n)
+    x, J = _end_and_jacobian(F, q0, w, K, P)
+    r = x[1:] - goal
+    size = ca.norm_inf(r)
+    converged = size <= TARGET
+    # steps stop at a miss below TARGET, and at one that is not finite (a singular system
+    # before: every later step would carry its NaN); the steps skipped cost nothing (the
+    # conditionals evaluate one branch)
+    step = ca.Function(f"continuation_kernel_step_{P}", [q0, w, goal, D2, signs, K, r_in], [
+        ca.if_else(converged, w, w - _signed_direction(J[1:, :], r, w, D2, signs, None,
+                                                       KERNEL_ROUNDS)),
+        r, ca.logic_or(converged, ca.logic_not(size < ca.inf))])
+    stay = ca.Function(f"continuation_kernel_stay_{P}", [q0, w, goal, D2, signs, K, r_in],
+                       [w, r_in, 1])
+    step_or_stay = ca.Function.if_else(f"continuation_kernel_if_{P}", stay, step)
+    end = q0
     for k in range(P):
-        x = F(x, w[2 * k:2 * k + 2], K)[0]
+        end = F(end, w[2 * k:2 * k + 2], K)[0]
+    miss_at = ca.Function(f"continuation_kernel_miss_{P}", [q0, w, goal, K, r_in],
+                          [end[1:] - goal])
+    keep = ca.Function(f"continuation_kernel_keep_{P}", [q0, w, goal, K, r_in], [r_in])
+    final_miss = ca.Function.if_else(f"continuation_kernel_final_{P}", keep, miss_at)
+    W = ca.MX.sym("W", 2, P)
+    w_k, r_k, done = ca.vec(W), ca.MX(ca.DM.inf(n)), ca.MX(0)
+    for _ in range(KERNEL_STEPS):
+        w_k, r_k, done = step_or_stay.call([done, q0, w_k, goal, D2, signs, K, r_k])
+    r_k = final_miss.call([done, q0, w_k, goal, K, r_k])[0]
     fn = ca.Function(f"continuation_kernel_{P}", [q0, W, goal, D2, signs, K],
-                     [ca.reshape(w, 2, P), x[1:] - goal])
+                     [ca.reshape(w_k, 2, P), r_k])
     return CompiledCall(fn, 6, (0, 1))
 
 
