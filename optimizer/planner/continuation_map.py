@@ -273,6 +273,9 @@ def _signed_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
 #: Steps and halvings of the any-sign kernel (:func:`halving_kernel`).
 HALVING_STEPS = 12
 HALVING_TRIES = 7
+#: Halvings the damped kernel tries at most (:func:`damped_kernel`'s ``halvings``, the first
+#: of :data:`HALVINGS`).
+DAMPED_TRIES = 5
 
 
 def halving_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int
@@ -303,8 +306,9 @@ def _halving_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
     r = x[1:] - goal
     JD = Jt * ca.mtimes(ones, D2.T)
     dx = ca.mtimes(JD.T, ca.solve(ca.mtimes(JD, Jt.T), r))
-    choose = _halving_choice(exponents, P)
-    chosen_w, chosen_r, moved = choose(q0, w, dx, goal, K, ca.sumsqr(r), r)
+    choose = _halving_choice(exponents, P, HALVING_TRIES)
+    chosen_w, chosen_r, moved = choose.call([q0, w, dx, goal, K, ca.sumsqr(r), r,
+                                             HALVING_TRIES])
     # one step, a Function of its own: the generated C holds it once, called in turn
     step = ca.Function(f"continuation_halving_step_{P}", [q0, w, goal, D2, K],
                        [chosen_w, chosen_r, moved])
@@ -328,31 +332,32 @@ def _halving_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
     return CompiledCall(fn, 5, (0, 1))
 
 
-def _halving_choice(exponents: tuple[int, ...], P: int) -> ca.Function:
-    """``(q0, w, dx, goal, K, size, r) -> (w_new, r_new, moved)``: the first of ``w - dx /
-    2^j``, ``j = 0 ..`` :data:`HALVING_TRIES` ``- 1``, whose miss ``th_end - goal`` has a
-    squared norm below ``size`` (the largest such step), with that miss and ``moved = 1``;
-    none: ``(w, r, 0)``. Each trial is a conditional's branch, evaluated only where the
-    larger steps failed (most steps take the first: one map evaluation instead of
-    :data:`HALVING_TRIES`)."""
+@functools.lru_cache(maxsize=128)
+def _halving_choice(exponents: tuple[int, ...], P: int, tries: int) -> ca.Function:
+    """``(q0, w, dx, goal, K, size, r, limit) -> (w_new, r_new, moved)``: the first of ``w -
+    dx / 2^j``, ``j = 0 .. min(tries, limit) - 1``, whose miss ``th_end - goal`` has a squared
+    norm below ``size`` (the largest such step), with that miss and ``moved = 1``; none:
+    ``(w, r, 0)``. Each trial is a conditional's branch, evaluated only where the larger steps
+    failed (most steps take the first: one map evaluation instead of ``tries``)."""
     n = len(exponents) + 1
     forward = piece_function(exponents, SUBSTEPS).mapaccum("forward", P)
     q0, w, dx = ca.MX.sym("q0", n + 1), ca.MX.sym("w", 2 * P), ca.MX.sym("dx", 2 * P)
     goal, K, size, r = (ca.MX.sym("goal", n), ca.MX.sym("K", n - 1), ca.MX.sym("size"),
                         ca.MX.sym("r", n))
-    args = [q0, w, dx, goal, K, size, r]
-    chain = ca.Function(f"continuation_halving_none_{P}", args, [w, r, 0])
+    limit = ca.MX.sym("limit")
+    args = [q0, w, dx, goal, K, size, r, limit]
+    chain = ca.Function(f"continuation_choice_none_{P}", args, [w, r, 0])
     V_in, rV_in = ca.MX.sym("V", 2 * P), ca.MX.sym("rV", n)
-    take = ca.Function(f"continuation_halving_take_{P}", [V_in, rV_in, *args],
+    take = ca.Function(f"continuation_choice_take_{P}", [V_in, rV_in, *args],
                        [V_in, rV_in, 1])
-    for j in reversed(range(HALVING_TRIES)):   # built from the smallest step up
+    for j in reversed(range(tries)):   # built from the smallest step up
         V = w - 0.5 ** j * dx
         rV = forward(q0, ca.reshape(V, 2, P), ca.repmat(K, 1, P))[1:, P - 1] - goal
-        later = ca.Function(f"continuation_halving_after_{j}_{P}", [V_in, rV_in, *args],
-                            chain.call(args))
-        pick = ca.Function.if_else(f"continuation_halving_pick_{j}_{P}", take, later)
-        chain = ca.Function(f"continuation_halving_from_{j}_{P}", args,
-                            pick.call([ca.sumsqr(rV) < size, V, rV, *args]))
+        later = ca.Function(f"continuation_choice_after_{j}_{tries}_{P}",
+                            [V_in, rV_in, *args], chain.call(args))
+        pick = ca.Function.if_else(f"continuation_choice_pick_{j}_{tries}_{P}", take, later)
+        chain = ca.Function(f"continuation_choice_from_{j}_{tries}_{P}", args, pick.call(
+            [ca.logic_and(ca.sumsqr(rV) < size, j < limit), V, rV, *args]))
     return chain
 
 
@@ -403,7 +408,6 @@ def _signed_direction(Jt: ca.MX, r: ca.MX, w: ca.MX, D2: ca.MX, signs: ca.MX,
 def _damped_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
     n = len(exponents) + 1
     F = _piece_step(exponents)
-    forward = piece_function(exponents, SUBSTEPS).mapaccum("forward", P)
     K = ca.MX.sym("K", n - 1)
     q0 = ca.MX.sym("q0", n + 1)
     W = ca.MX.sym("W", 2, P)
@@ -418,14 +422,10 @@ def _damped_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
     r = x[1:] - goal
     size = ca.sumsqr(r)
     dx = _signed_direction(Jt, r, w, D2, signs, ca.fmax(damping, SINGULAR_DAMPING), MAX_ACTIVE)
-    chosen_w, chosen_r, accepted = w, r, ca.MX(0.0)
-    for j in reversed(range(len(HALVINGS[:5]))):
-        V = w - HALVINGS[j] * dx
-        rV = forward(q0, ca.reshape(V, 2, P), ca.repmat(K, 1, P))[1:, P - 1] - goal
-        better = ca.logic_and(ca.sumsqr(rV) < size, j < halvings)
-        chosen_w = ca.if_else(better, V, chosen_w)
-        chosen_r = ca.if_else(better, rV, chosen_r)
-        accepted = ca.if_else(better, 1.0, accepted)
+    # the first of the first `halvings` fractions that shrinks the miss, each tried only where
+    # the larger ones failed (HALVINGS are 2^-j)
+    choose = _halving_choice(exponents, P, DAMPED_TRIES)
+    chosen_w, chosen_r, accepted = choose.call([q0, w, dx, goal, K, size, r, halvings])
     fn = ca.Function(f"continuation_damped_{P}", [q0, W, goal, D2, signs, damping, halvings, K],
                      [r, ca.reshape(chosen_w, 2, P), chosen_r, accepted])
     return CompiledCall(fn, 8, (0, 1, 2, 3))
