@@ -7,6 +7,12 @@ the event loop's own CPU per plan request (80 of about 400 us, interleaved batch
 the app, adding only that ``Vary`` header (to every answer: whether an answer is compressed
 depends on ``Accept-Encoding``); requests that accept gzip go through ``GZipMiddleware`` as
 before, with the same test (``gzip`` in the first ``Accept-Encoding`` header).
+
+The answers of the paths in ``uncompressed`` (the service's ``/v1/replans``) are never
+compressed: a controller replans every few tens of milliseconds and waits for the answer, and
+gzip of a 30-40 KB continuation at level 1 took about 0.5 ms of the event loop's CPU per
+replan (cProfile of the server under ``python -m bench.replan --http``, whose client, httpx,
+accepts gzip by default, as most do), more than sending it uncompressed over a LAN takes.
 """
 
 from __future__ import annotations
@@ -28,15 +34,19 @@ def accepts_gzip(scope: Scope) -> bool:
 
 
 class GZipWhenAccepted:
-    """``GZipMiddleware(app, minimum_size, compresslevel)`` for requests that accept gzip; the
-    others go to ``app`` directly, their answers given ``Vary: Accept-Encoding``."""
+    """``GZipMiddleware(app, minimum_size, compresslevel)`` for requests that accept gzip,
+    but for those of the paths ``uncompressed``; the others go to ``app`` directly, their
+    answers given ``Vary: Accept-Encoding``."""
 
-    def __init__(self, app: ASGIApp, minimum_size: int = 500, compresslevel: int = 9) -> None:
+    def __init__(self, app: ASGIApp, minimum_size: int = 500, compresslevel: int = 9,
+                 uncompressed: frozenset[str] = frozenset()) -> None:
         self.app = app
         self.gzip = GZipMiddleware(app, minimum_size=minimum_size, compresslevel=compresslevel)
+        self.uncompressed = uncompressed
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or accepts_gzip(scope):
+        if scope["type"] != "http" or (accepts_gzip(scope)
+                                       and scope.get("path") not in self.uncompressed):
             await self.gzip(scope, receive, send)
             return
 

@@ -46,6 +46,9 @@ from .workers import WorkerPool
 STATIC_DIR = Path(__file__).parent / "static"
 #: Answers shorter than this are sent as they are (one TCP segment: gzip would not pay).
 GZIP_MINIMUM_BYTES = 1400
+#: Answers never compressed: the continuations a control loop waits for
+#: (:mod:`service.compression`).
+UNCOMPRESSED_PATHS = frozenset({"/v1/replans"})
 TITLE = "Chained-form motion planner"
 DESCRIPTION = """\
 Singularity-free motion planning for an underactuated n-joint manipulator whose kinematics
@@ -142,7 +145,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # too; its answers pass through in the same chunks, each still under send_timeout. Level 1:
     # the event loop compresses, and JSON of floats shrinks almost as much as at level 9.
     # Requests that do not accept gzip skip the middleware (service.compression)
-    app.add_middleware(GZipWhenAccepted, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=1)
+    app.add_middleware(GZipWhenAccepted, minimum_size=GZIP_MINIMUM_BYTES, compresslevel=1,
+                       uncompressed=UNCOMPRESSED_PATHS)
     if settings.cors_origins:  # outermost: its headers are on every answer, a 401 or 413 too
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST"],

@@ -29,6 +29,19 @@ def test_a_plan_is_gzipped_when_the_client_accepts_it_and_not_otherwise(live_ser
             assert len(raw) < 0.6 * len(plain.content)
         small = client.get("/healthz", headers={"Accept-Encoding": "gzip"})
         assert "content-encoding" not in small.headers  # too small to pay
+        # a replan's answer never is (a control loop waits for it: the time to compress it
+        # is more than its transfer's)
+        plan = client.post("/v1/plans", json={"start": WORKED["start"], "goal": WORKED["goal"]},
+                           headers={"Accept-Encoding": "identity"}).json()
+        t = plan["path"]["t"][len(plan["path"]["t"]) // 3]
+        state = plan["path"]["q"][len(plan["path"]["t"]) // 3]
+        with client.stream("POST", "/v1/replans", json={"plan": plan, "time": t,
+                                                        "state": state},
+                           headers={"Accept-Encoding": "gzip"}) as r:
+            raw = b"".join(r.iter_raw())
+        assert r.status_code == 200 and "content-encoding" not in r.headers
+        assert len(raw) > 5000 and json.loads(raw)["status"] == "success"
+        assert "Accept-Encoding" in r.headers.get("vary", "")
 
 
 def _untimed(doc: object) -> object:
@@ -87,3 +100,16 @@ def test_gzip_only_for_clients_that_accept_it_and_vary_on_every_answer():
             assert raw == large and int(r.headers["content-length"]) == len(large)
     small = client.get("/small", headers={"Accept-Encoding": "gzip"})
     assert "content-encoding" not in small.headers and small.content == b'{"ok":true}'
+
+
+def test_the_paths_kept_uncompressed_are_sent_as_they_are():
+    from service.compression import GZipWhenAccepted
+
+    client, large = _gzip_app()
+    app = client.app
+    assert isinstance(app, GZipWhenAccepted)
+    app.uncompressed = frozenset({"/large"})
+    with client.stream("GET", "/large", headers={"Accept-Encoding": "gzip"}) as r:
+        raw = b"".join(r.iter_raw())
+    assert r.status_code == 200 and "content-encoding" not in r.headers and raw == large
+    assert "Accept-Encoding" in r.headers["vary"]
