@@ -209,19 +209,25 @@ def test_a_failed_evaluation_answers_nan() -> None:
     assert np.allclose(call(np.array([[2.0, 0.0], [0.0, 4.0]]), np.ones(2))[0], [0.5, 0.25])
 
 
+def _built_here(call, n_args: int, tmp_path, monkeypatch):
+    """A kernel (a :class:`BoundCall`) as a CompiledCall of its own, compiled into the test's
+    cache (not the cached one: built here), and its compiled call."""
+    monkeypatch.setattr(native, "_config", None)      # (restored after the test)
+    if native.configure(tmp_path / "native") is None:
+        pytest.skip("no C compiler")
+    fresh = CompiledCall(call.call.function, n_args, (0, 1))
+    compiled = fresh.current(wait=True)
+    assert compiled is not fresh.vm
+    return fresh, compiled
+
+
 def test_the_compiled_kernel_is_the_virtual_machines(pieces, tmp_path, monkeypatch) -> None:
     """The kernel generated as C and compiled (optimizer.native) gives the virtual machine's
     answer."""
-    monkeypatch.setattr(native, "_config", None)      # (restored after the test)
-    cfg = native.configure(tmp_path / "native")
-    if cfg is None:
-        pytest.skip("no C compiler")
     q0, W = pieces
     robot = Robot.default(3)
-    call = signed_kernel(tuple(robot.gains), tuple(robot.exponents), 8)
-    fresh = CompiledCall(call.call.function, 6, (0, 1))   # not the cached one: built here
-    compiled = fresh.current(wait=True)
-    assert compiled is not fresh.vm
+    fresh, compiled = _built_here(signed_kernel(tuple(robot.gains), tuple(robot.exponents), 8),
+                                  6, tmp_path, monkeypatch)
     full = np.vstack([np.zeros((1, 2)), W])
     emap = PieceMap(tuple(robot.gains), tuple(robot.exponents), 8)
     goal = scipy_end(q0, W)[1:] + np.array([-1e-3, 1e-3, 1e-3])
@@ -237,15 +243,10 @@ def test_the_compiled_halving_kernel_is_the_virtual_machines(pieces, tmp_path,
     """The any-sign kernel, whose steps and halvings are conditionals (a branch evaluated
     only when taken), generated as C and compiled, gives the virtual machine's answer: on a
     goal its full steps reach, and on one where they overshoot and halvings are taken."""
-    monkeypatch.setattr(native, "_config", None)      # (restored after the test)
-    if native.configure(tmp_path / "native") is None:
-        pytest.skip("no C compiler")
     q0, W = pieces
     robot = Robot.default(3)
-    call = halving_kernel(tuple(robot.gains), tuple(robot.exponents), 8)
-    fresh = CompiledCall(call.call.function, 5, (0, 1))   # not the cached one: built here
-    compiled = fresh.current(wait=True)
-    assert compiled is not fresh.vm
+    fresh, compiled = _built_here(halving_kernel(tuple(robot.gains), tuple(robot.exponents),
+                                                 8), 5, tmp_path, monkeypatch)
     full = np.vstack([np.zeros((1, 2)), W])
     D2 = piece_weights(full, None)
     for offset in ([2e-3, -1e-3, 1.5e-3], [0.04, -0.05, 0.06]):
