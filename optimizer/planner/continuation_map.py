@@ -287,7 +287,7 @@ def halving_kernel(gains: tuple[float, ...], exponents: tuple[int, ...], P: int
     rates stay). Every candidate is the map's end state without its Jacobian (RK4 as
     :func:`jacobian_map`'s), evaluated only where the larger steps failed: conditionals, so
     that the steps and halvings not needed cost nothing (they were all evaluated before:
-    about 1-2 ms a call at 4 and 5 joints, now 0.3-0.7 ms)."""
+    0.5-2 ms a compiled call at 4 and 5 joints, now 0.25-1 ms)."""
     return BoundCall(_halving_kernel(tuple(exponents), P), gains)
 
 
@@ -326,7 +326,7 @@ def _halving_kernel(exponents: tuple[int, ...], P: int) -> CompiledCall:
     w_k, r_k, moved_k = ca.vec(W), ca.MX(ca.DM.inf(n)), ca.MX(1)
     for _ in range(HALVING_STEPS):
         going_on = ca.logic_and(moved_k, ca.norm_inf(r_k) > TARGET)
-        w_k, r_k, moved_k = step_or_stay(going_on, q0, w_k, goal, D2, K, r_k)
+        w_k, r_k, moved_k = step_or_stay.call([going_on, q0, w_k, goal, D2, K, r_k])
     fn = ca.Function(f"continuation_halving_{P}", [q0, W, goal, D2, K],
                      [ca.reshape(w_k, 2, P), r_k])
     return CompiledCall(fn, 5, (0, 1))
