@@ -549,7 +549,7 @@ class MultipleShootingNLP:
         one hard request; in random order, 50 of 237 solves of 3- to 5-joint plans came out
         different, 9 even where only converged solves had used the memory before). Each solve
         therefore takes a fresh memory, so that its answer is a function of its arguments
-        alone: building those objects costs about 0.2-0.5 ms a solve on 3 joints (a third of
+        alone: building those objects costs about 0.7-1 ms a solve on 3 joints (a third of
         a solve). A memory given back would be handed out again, so the spent ones are kept
         until they hold about :data:`SPENT_MEMORY_BYTES` (:func:`~.solvers.memory_bytes`: 1-3
         MB each); then the solver is built anew (the old one frees them, and the next
