@@ -38,7 +38,7 @@ class ScriptedNLP:
         self.lbg = self.ubg = np.zeros(0)
         self.calls: list[str] = []
 
-    def solver_call(self, name: str) -> ScriptedSolver:
+    def solver_call(self, name: str, lbx: np.ndarray, ubx: np.ndarray) -> ScriptedSolver:
         self.calls.append(name)
         return ScriptedSolver(*self.script[name].pop(0))
 

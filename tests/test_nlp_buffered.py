@@ -132,25 +132,39 @@ def _resident_bytes() -> int:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
-def measure_spent_memories() -> dict[str, float]:
-    """In a fresh process (a used heap has room for new memories without growing): the
-    estimate of one fatrop memory, the resident growth per fresh memory, the budget, and the
-    growth over enough solves to pass the budget twice."""
-    from optimizer.planner import solvers
+def _example_problem(start: tuple[float, ...], goal: tuple[float, ...]) -> tuple:
+    """The first rung's NLP of a 3-joint request and one solve's arguments on it."""
     from optimizer.planner.rules import joint_limits
     from optimizer.problem import PlanRequest
 
-    req = PlanRequest(start=(0.17, 0.17, 0.17), goal=(0.52, 0.52, 0.52))
+    req = PlanRequest(start=start, goal=goal)
     tr = nlp_layer.ladder(3)[0]
     nlp = nlp_layer.nlp_for(req, tr)
     lo, hi = nlp_layer.node_bounds(req, joint_limits(req))
     lbx, ubx, _ = nlp_layer.variable_bounds(req, nlp, tr, lo, hi)
     p = nlp_layer.parameters(req, *nlp_layer.objective_weights(req, "shooting"))
     x0 = nlp.guess(np.array(req.start), np.array(req.goal), 0.0, 0.6)
+    return nlp, (x0, p, lbx, ubx, nlp.lbg, nlp.ubg)
+
+
+def measure_spent_memories() -> dict[str, float]:
+    """In a fresh process (a used heap has room for new memories without growing): the
+    estimate of one fatrop memory, the resident growth per new memory, the budget, and the
+    growth over enough solves to pass the budget twice. Each solve has a pattern of bounds of
+    its own (far bounds on another subset of the unbounded variables), so that each takes a
+    new memory."""
+    from optimizer.planner import solvers
+
+    nlp, (x0, p, lbx, ubx, lbg, ubg) = _example_problem((0.17, 0.17, 0.17), (0.52, 0.52, 0.52))
+    free = np.flatnonzero(~np.isfinite(ubx))
+    solves = iter(range(1, 2 ** len(free)))
 
     def solve() -> None:
-        call = nlp.solver_call("fatrop")
-        call(x0, p, lbx, ubx, nlp.lbg, nlp.ubg)
+        ub = ubx.copy()
+        i = next(solves)   # far bounds where i has a bit: never active, another pattern
+        ub[[f for b, f in enumerate(free) if i >> b & 1]] = 1e3
+        call = nlp.solver_call("fatrop", lbx, ub)
+        call(x0, p, lbx, ub, lbg, ubg)
         assert call.stats()["success"]
 
     estimate = solvers.memory_bytes(dict(nlp.solvers)["fatrop"])
@@ -168,13 +182,51 @@ def measure_spent_memories() -> dict[str, float]:
             "growth": _resident_bytes() - before}
 
 
+def test_fatrop_memories_are_reused_per_pattern_of_bounds_and_answer_as_fresh_ones() -> None:
+    """A solve on a reused memory is the solve on a memory no solve has used, bit for bit and
+    in iterations, after a solve of the same pattern of bounds and after one of another (the
+    hard request's th3 is unbounded: fatrop's objects are built anew for it, and a memory
+    that held them answered the README's example differently)."""
+    nlp, example = _example_problem((0.1745, 0.1745, 0.1745), (0.5236, 0.5236, 0.5236))
+    nlp_hard, hard = _example_problem((0.2, 0.2, -6.0), (0.21, 0.21, 6.0))
+    nlp_near, near = _example_problem((0.2, 0.25, 0.3), (0.5, 0.45, 0.4))
+    assert nlp_hard is nlp and nlp_near is nlp
+    assert _pattern(example) != _pattern(hard) and _pattern(example) == _pattern(near)
+
+    def fresh(args: tuple) -> tuple[np.ndarray, int]:
+        call = BufferedCall(nlp.solver("fatrop"), 6)
+        return call(*args)[0], call.stats()["iter_count"]
+
+    def reused(args: tuple) -> tuple[np.ndarray, int]:
+        call = nlp.solver_call("fatrop", args[2], args[3])
+        return call(*args)[0], call.stats()["iter_count"]
+
+    ref, ref_iterations = fresh(example)
+    for before in (hard, near, hard):
+        reused(before)
+        x, iterations = reused(example)
+        np.testing.assert_array_equal(x, ref)
+        assert iterations == ref_iterations
+    # one memory per pattern, reused
+    assert nlp.solver_call("fatrop", example[2], example[3]) is \
+        nlp.solver_call("fatrop", near[2], near[3])
+    assert nlp.solver_call("fatrop", example[2], example[3]) is not \
+        nlp.solver_call("fatrop", hard[2], hard[3])
+
+
+def _pattern(args: tuple) -> bytes:
+    from optimizer.planner.solvers import bound_pattern
+
+    return bound_pattern(args[2], args[3], args[4], args[5])
+
+
 @pytest.mark.skipif(not os.path.exists("/proc/self/statm"),
                     reason="resident memory is read from Linux's /proc")
 def test_spent_solver_memories_are_estimated_from_above_and_stay_within_the_budget() -> None:
-    """Every solve takes a fresh memory (purity), and fatrop builds about 1 MB of objects in
-    it: :func:`memory_bytes` must not underestimate that (it once counted the work vectors
-    alone, 51 KB, and a worker grew by about 1 GB per solver before one was built anew), and
-    the spent memories must stay within :data:`SPENT_MEMORY_BYTES`."""
+    """Every new pattern of bounds takes a new memory (purity), and fatrop builds about 1 MB
+    of objects in it: :func:`memory_bytes` must not underestimate that (it once counted the
+    work vectors alone, 51 KB, and a worker grew by about 1 GB per solver before one was built
+    anew), and the spent memories must stay within :data:`SPENT_MEMORY_BYTES`."""
     root = Path(__file__).resolve().parents[1]
     code = ("import json, test_nlp_buffered as t\n"
             "print(json.dumps(t.measure_spent_memories()))\n")

@@ -289,8 +289,9 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *,
     """Build (and cache) the budget's NLP of a robot and its IPOPT solver ahead of its first
     ``max_reversals`` or ``pareto`` request (building it took 0.3-0.4 s of 3-joint CPU, more
     from 5 joints: otherwise the first such request pays it). The built solver holds nothing
-    of a request: every solve takes a fresh memory (:meth:`~.nlp.MultipleShootingNLP.solver_call`),
-    start, goal, weights and bounds are its parameters."""
+    of a request: every solve takes a memory that answers as a fresh one
+    (:meth:`~.nlp.MultipleShootingNLP.solver_call`), start, goal, weights and bounds are its
+    parameters."""
     nlp = _nlp_of(tuple(float(k) for k in gains), tuple(int(m) for m in exponents),
                   fixed_phi, budget_transcription(len(gains) + 1))
     nlp.solvers  # noqa: B018 - builds them (an NLP builds its solvers at their first use)

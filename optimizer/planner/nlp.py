@@ -61,8 +61,8 @@ from ..dynamics import rk4_step, vector_field
 from ..errors import InvalidRequestError
 from ..problem import PlanRequest
 from . import via
-from .solvers import (SPENT_MEMORY_BYTES, BufferedCall, DeadlineCallback, SolverPace,
-                      fatrop_options, ipopt_options, memory_bytes)
+from .solvers import (REUSED_MEMORIES, SPENT_MEMORY_BYTES, BufferedCall, DeadlineCallback,
+                      SolverPace, bound_pattern, fatrop_options, ipopt_options, memory_bytes)
 
 
 @dataclass(frozen=True)
@@ -420,6 +420,9 @@ class MultipleShootingNLP:
         self._problem = nlp
         self._fingerprints: dict[str, str] = {}
         self._spent: dict[str, list[BufferedCall]] = {key: [] for key in self._factories}
+        self._by_pattern: dict[str, dict[bytes, BufferedCall]] = {
+            key: {} for key in self._factories}
+        self._calling: dict[str, Any] = {}  # the solvers of solver_call
         self._name = name
         self.lbg = np.where(self.equality, 0.0, -np.inf)
         self.ubg = np.zeros(n_g)
@@ -537,32 +540,51 @@ class MultipleShootingNLP:
 
     def _replace(self, name: str, solver: Any) -> None:
         self._built[name] = solver
-        self._spent[name] = []  # their memories go with the solver they belong to
+        # the calls' solver is built anew from the new factory at the next solver_call (its
+        # memories go with it)
+        self._calling.pop(name, None)
+        self._spent[name] = []
+        self._by_pattern[name] = {}
 
-    def solver_call(self, name: str) -> BufferedCall:
+    def solver_call(self, name: str, lbx: np.ndarray, ubx: np.ndarray) -> BufferedCall:
         """Solver ``name`` (see :attr:`solvers`) as a :class:`BufferedCall` of ``(x0, p, lbx,
-        ubx, lbg, ubg) -> x`` on a memory that no solve has used: call it once.
+        ubx, lbg, ubg) -> x`` for a solve under the variable bounds ``lbx``, ``ubx``, on a
+        memory whose solves are functions of their arguments alone.
 
         fatrop builds its solver objects at a memory's first solve and keeps them with the
-        memory, and a later solve on it starts from part of what the previous one left (the
-        README's example needed 12 iterations on a fresh memory and 29, then failing, after
-        one hard request; in random order, 50 of 237 solves of 3- to 5-joint plans came out
-        different, 9 even where only converged solves had used the memory before). Each solve
-        therefore takes a fresh memory, so that its answer is a function of its arguments
-        alone: building those objects costs about 0.7-1 ms a solve on 3 joints (a third of
-        a solve). A memory given back would be handed out again, so the spent ones are kept
-        until they hold about :data:`SPENT_MEMORY_BYTES` (:func:`~.solvers.memory_bytes`: 1-3
-        MB each); then the solver is built anew (the old one frees them, and the next
-        memories reuse that heap).
+        memory; CasADi builds them anew where a solve's bounds have another pattern (which
+        bounds are finite, which are equalities), and a solver built that way answers
+        differently from one built at a memory's first solve (the README's example needed 12
+        iterations on a fresh memory and 29, then failing, after one hard request; on one
+        3-joint NLP, each of 3 problems of one pattern came out different after any of 13 of
+        the other, and each of those 13 after any of the 3). A memory that has only ever
+        solved under one pattern answers every solve as a fresh memory does (0 of 741 solves
+        of 3- to 5-joint plans differed, bit for bit and in iterations, in random orders after
+        the hard request). So fatrop keeps one memory per pattern of bounds
+        (:func:`~.solvers.bound_pattern`) and reuses it, which saves building the objects:
+        0.7-1 ms of a 3-joint solve of about 2 ms. IPOPT takes a fresh memory per solve.
+        A memory given back would go to the next call with what it holds, so these calls run
+        on a solver of their own (not :meth:`solver`, which anyone may call), whose memories
+        are never given back; once they hold about :data:`SPENT_MEMORY_BYTES`
+        (:func:`~.solvers.memory_bytes`: 1-3 MB each), that solver is built anew (the old one
+        frees them, and the next memories reuse that heap): about 1 ms compiled, 27-130 ms on
+        CasADi's virtual machine (3 to 8 joints).
         """
-        solver = self.solver(name)
+        pattern = bound_pattern(lbx, ubx, self.lbg, self.ubg) if name in REUSED_MEMORIES \
+            else None
+        kept = self._by_pattern[name]
+        if pattern is not None and pattern in kept:
+            return kept[pattern]
+        solver = self._calling.get(name)
         spent = self._spent[name]
-        if spent and len(spent) * memory_bytes(solver) > SPENT_MEMORY_BYTES:
-            solver = self._factories[name]()
-            self._replace(name, solver)
-            spent = self._spent[name]
+        if solver is None or (spent and len(spent) * memory_bytes(solver) > SPENT_MEMORY_BYTES):
+            solver = self._calling[name] = self._factories[name]()
+            spent = self._spent[name] = []
+            kept = self._by_pattern[name] = {}
         call = BufferedCall(solver, 6)
         spent.append(call)
+        if pattern is not None:
+            kept[pattern] = call
         return call
 
     def fine_end(self, q0: np.ndarray, rates: np.ndarray, gains: Sequence[float]

@@ -1,6 +1,6 @@
 """The NLP solvers and one call of them: fatrop and IPOPT presets, the deadline, the classes
-of their return statuses, and calls through CasADi's buffers on fresh memories (the bottom of
-the NLP layer: it knows no transcription).
+of their return statuses, and calls through CasADi's buffers on memories that no other
+pattern of bounds has used (the bottom of the NLP layer: it knows no transcription).
 
 fatrop (an interior-point solver for stage-structured problems, bundled with CasADi) and IPOPT
 take the options of :func:`fatrop_options` and :func:`ipopt_options`. IPOPT is stopped at the
@@ -28,8 +28,8 @@ from ..problem import MAX_TIME_LIMIT
 class SolverPace:
     """Seconds per iteration of each solver of one NLP: the slowest of its last
     :data:`PACE_SOLVES` solves of at least :data:`PACE_MIN_ITERATIONS` iterations (the call,
-    with its fresh memory's set-up: the same NLP's solves went at 2.2 and 6.7 ms an iteration
-    one after the other; a solver's build at its first use is not in it).
+    with a new memory's set-up where it takes one: the same NLP's solves went at 2.2 and 6.7
+    ms an iteration one after the other; a solver's build at its first use is not in it).
 
     fatrop calls no iteration callback, so nothing stops it at the deadline: a solve started
     with little time left runs to convergence or to its cap (on 7-joint replans with a 0.5 s
@@ -73,14 +73,15 @@ PACE_SOLVES = 8
 
 
 class SolvableNLP(Protocol):
-    """What :func:`run_solver` needs of an NLP: a fresh call of a solver, the deadline
-    callback and the constraints' bounds (and, optionally, a ``pace``: :class:`SolverPace`)."""
+    """What :func:`run_solver` needs of an NLP: a call of a solver for given variable bounds,
+    the deadline callback and the constraints' bounds (and, optionally, a ``pace``:
+    :class:`SolverPace`)."""
 
     callback: "DeadlineCallback"
     lbg: np.ndarray
     ubg: np.ndarray
 
-    def solver_call(self, name: str) -> "BufferedCall": ...
+    def solver_call(self, name: str, lbx: np.ndarray, ubx: np.ndarray) -> "BufferedCall": ...
 
     def goal_miss(self, x: np.ndarray, p: np.ndarray) -> float:
         """How far a solution ends from the goal (0 where the goal is a hard constraint)."""
@@ -352,6 +353,23 @@ class SolveOutcome:
 #: to 6 joints over and over: resident 321 MB after 240 plans and no more after (96 MB: 414;
 #: when the estimate counted the work vectors alone, 1,036 MB and 3.6 MB more every plan).
 SPENT_MEMORY_BYTES = 48 * 2**20
+#: The solvers whose memories are reused, one per pattern of bounds (see
+#: :meth:`~.nlp.MultipleShootingNLP.solver_call`); the others take a fresh memory per solve.
+REUSED_MEMORIES = frozenset({"fatrop"})
+
+
+def bound_pattern(lbx: np.ndarray, ubx: np.ndarray, lbg: np.ndarray, ubg: np.ndarray
+                  ) -> bytes:
+    """Which of the bounds are finite and which pairs are equalities, variables' then
+    constraints', as bytes: what fatrop's solver objects are built for (two solves of one
+    pattern differ only in the bounds' values)."""
+    parts = []
+    for lo, hi in ((lbx, ubx), (lbg, ubg)):
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        parts += [np.isfinite(lo), np.isfinite(hi), lo == hi]
+    return np.concatenate(parts).tobytes()
+
+
 #: Bytes a memory holds beyond its work vectors, per byte of work vector and fixed: the solver's
 #: own objects, built at the memory's first solve. Measured resident growth per fresh memory:
 #: fatrop 1.0 MB on 3 joints and 12 intervals (51 KB of work vectors), 2.1 MB on 5 joints and
@@ -388,7 +406,7 @@ def run_solver(nlp: "SolvableNLP", name: str, x0: np.ndarray, p: np.ndarray,
             kind, status = "timeout", (f"not started: {pace.caps[name]} iterations at its pace "
                                        "would end after the time limit")
             break
-        solver = nlp.solver_call(name)
+        solver = nlp.solver_call(name, lbx, ubx)
         nlp.callback.stop_at = t0 + seconds
         t_call = time.perf_counter()
         try:
