@@ -147,7 +147,10 @@ class Page:
         self.page = context.new_page()
         self.errors: list[str] = []
         self.api_calls: list[tuple[str, str]] = []  # (method, path) of every /v1 request
+        self.pending: dict[int, str] = {}  # requests sent and not yet answered
         self.page.on("request", self._record)
+        self.page.on("requestfinished", lambda r: self.pending.pop(id(r), None))
+        self.page.on("requestfailed", lambda r: self.pending.pop(id(r), None))
         self.page.on("console", lambda m: self.errors.append(m.text) if m.type == "error"
                      else None)
         self.page.on("pageerror", lambda e: self.errors.append(str(e)))
@@ -160,6 +163,7 @@ class Page:
         path = urlsplit(request.url).path
         if path.startswith("/v1/"):
             self.api_calls.append((request.method, path))
+            self.pending[id(request)] = f"{request.method} {path}"
 
     def calls_to(self, path: str) -> int:
         return sum(1 for method, p in self.api_calls if method == "POST" and p == path)
@@ -179,12 +183,19 @@ class Page:
     def wait_for_figures(self) -> None:
         """Until every figure is drawn, or one has failed (then say which, and why: its status
         line, the page's error and console, instead of waiting out WAIT_MS)."""
-        self.page.wait_for_function(
-            """kinds => kinds.every(k => { const i = document.getElementById('fig-' + k);
-                 return i && i.complete && i.naturalWidth > 0; })
-               || kinds.some(k => { const i = document.getElementById('fig-' + k);
-                 return i && i.closest('figure').classList.contains('failed'); })""",
-            arg=list(FIGURES), timeout=WAIT_MS)
+        try:
+            self.page.wait_for_function(
+                """kinds => kinds.every(k => { const i = document.getElementById('fig-' + k);
+                     return i && i.complete && i.naturalWidth > 0; })
+                   || kinds.some(k => { const i = document.getElementById('fig-' + k);
+                     return i && i.closest('figure').classList.contains('failed'); })""",
+                arg=list(FIGURES), timeout=WAIT_MS)
+        except Exception as exc:  # a figure that never settles: say where the page stands
+            statuses = {k: self.text(f"#fig-status-{k}") for k in FIGURES}
+            raise AssertionError(
+                f"figures not drawn in {WAIT_MS / 1000:.0f} s: statuses {statuses}, page status "
+                f"{self.text('#status')!r}, error {self.text('#error')!r}, requests still "
+                f"open {sorted(self.pending.values())}, console {self.errors}") from exc
         failed = {k: self.text(f"#fig-status-{k}") for k in FIGURES
                   if "failed" in (self.page.get_attribute(f"#fig-{k} >> xpath=ancestor::figure",
                                                           "class") or "")}
