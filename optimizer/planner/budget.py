@@ -45,8 +45,9 @@ fatrop below 5 joints), then one sign-held NLP (30-90 iterations) and one finish
 candidate, and one NLP per failed merge. The NLP and its solvers are built once per robot
 shape (exponents; the gains are parameters) and transcription per process (:func:`prepare`,
 :func:`~.nlp.multiple_shooting_nlp`): start, goal,
-weights, bounds and signs are parameters and bounds, and every solve takes a fresh solver
-memory, so nothing of one request reaches the next (tests/test_budget_purity.py). Measured
+weights, bounds and signs are parameters and bounds, and every solve runs on a memory that
+answers as a fresh one (:meth:`~.nlp.MultipleShootingNLP.solver_call`), so nothing of one
+request reaches the next (tests/test_budget_purity.py). Measured
 (``diagnostics.budget.tried`` records each NLP's and each finishing's CPU seconds;
 :mod:`bench.budget` sums them): the NLPs take about 90 % of the front. Of an IPOPT solve of 3
 joints about 65 % is IPOPT's own work, mostly its sparse solver MUMPS (1.2-1.5 ms per
