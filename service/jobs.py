@@ -77,7 +77,7 @@ def warm_up() -> dict[str, Any]:
     # compiled library is found or built, and with compiled functions off (other robots
     # build theirs at their first solve; a worker that finds their libraries never needs one)
     if "fatrop" in first.solver_names:
-        first.solver("fatrop")
+        first.prepare_solver("fatrop")
     robot = Robot.default(MIN_JOINTS)
     # the replans' continuation maps and kernels (0.5-1 s of CPU): not paid by the first replan
     # (the proof's functions, piece_proof.prepare, about as much again, are built per size at

@@ -237,3 +237,24 @@ def test_spent_solver_memories_are_estimated_from_above_and_stay_within_the_budg
     m = json.loads(out.stdout.strip().splitlines()[-1])
     assert 0.2 * m["estimate"] < m["per_memory"] <= m["estimate"]
     assert m["growth"] <= 1.2 * m["budget"]
+
+
+def test_a_prepared_solver_is_the_one_the_first_solve_runs_on() -> None:
+    """The service's warm-up and the budget's ``prepare`` build the solvers ahead of the first
+    request: ``prepare_solver`` must build the one :meth:`solver_call` runs on (its own, not
+    :meth:`solver`'s), so that the first solve builds nothing."""
+    nlp, (x0, p, lbx, ubx, lbg, ubg) = _example_problem((0.17, 0.17, 0.17), (0.52, 0.52, 0.52))
+    nlp._replace("fatrop", nlp._factories["fatrop"]())   # as built: nothing prepared
+    nlp.prepare_solver("fatrop")
+    factories = dict(nlp._factories)
+
+    def no_build() -> None:
+        raise AssertionError("a solver was built at the first solve")
+
+    nlp._factories["fatrop"] = no_build
+    try:
+        call = nlp.solver_call("fatrop", lbx, ubx)
+        call(x0, p, lbx, ubx, lbg, ubg)
+        assert call.stats()["success"]
+    finally:
+        nlp._factories.update(factories)

@@ -295,7 +295,8 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *,
     parameters."""
     nlp = _nlp_of(tuple(float(k) for k in gains), tuple(int(m) for m in exponents),
                   fixed_phi, budget_transcription(len(gains) + 1))
-    nlp.solvers  # noqa: B018 - builds them (an NLP builds its solvers at their first use)
+    for name in nlp.solver_names:  # (an NLP builds its solvers at their first use)
+        nlp.prepare_solver(name)
     return nlp
 
 
