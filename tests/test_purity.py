@@ -27,7 +27,7 @@ RUN_KEYS = {"timing", "seconds", "compiled", "request_id"}
 
 #: The README's example, a hard request that once left fatrop's memory dirty (the example
 #: after it came back with 2 + 1 reversals instead of 0 + 1), goals whose joints move both
-#: ways, another method and another joint count.
+#: ways, another method, another joint count and joint bounds.
 REQUESTS: list[dict[str, Any]] = [
     {"start": [math.radians(10)] * 3, "goal": [math.radians(30)] * 3, "samples": 31},
     {"start": [0.2, 0.2, -6.0], "goal": [0.21, 0.21, 6.0], "samples": 31},
@@ -37,6 +37,11 @@ REQUESTS: list[dict[str, Any]] = [
      "goal": [math.radians(v) for v in (35, 15, 45)], "samples": 31, "method": "penalty"},
     {"start": [math.radians(v) for v in (20, 30, 40, 35)],
      "goal": [math.radians(v) for v in (30, 38, 47, 41)], "samples": 31, "robot": 4},
+    # joint bounds: the same NLP and memory (the same pattern of bounds: region bounds are
+    # finite anyway) under other bound values (nlp.MultipleShootingNLP.solver_call)
+    {"start": [math.radians(v) for v in (10, 20, 30)],
+     "goal": [math.radians(v) for v in (40, 25, 15)], "samples": 31,
+     "joint_bounds": [[math.radians(5), math.radians(45)], None, None]},
 ]
 
 
