@@ -571,7 +571,8 @@ class MultipleShootingNLP:
         of 3- to 5-joint plans differed, bit for bit and in iterations, in random orders after
         the hard request). So fatrop keeps one memory per pattern of bounds
         (:func:`~.solvers.bound_pattern`) and reuses it, which saves building the objects:
-        0.7-1 ms of a 3-joint solve of about 2 ms. IPOPT takes a fresh memory per solve.
+        0.7-1 ms of a 3-joint solve of about 2 ms. IPOPT takes a fresh memory per solve (at
+        no measurable cost: 12.5 against 12.6 ms on a used one, the same 15 iterations).
         A memory given back would go to the next call with what it holds, so these calls run
         on a solver of their own (not :meth:`solver`, which anyone may call), whose memories
         are never given back; once they hold about :data:`SPENT_MEMORY_BYTES`
