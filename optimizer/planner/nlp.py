@@ -522,8 +522,14 @@ class MultipleShootingNLP:
         machine 27-130 ms, the reversal budget's NLP 0.3-0.4 s; compiled about 1 ms)."""
         self.solver(name)
         if name not in self._calling:
-            self._calling[name] = self._factories[name]()
-            self._spent[name], self._by_pattern[name] = [], {}
+            self._new_calling_solver(name)
+
+    def _new_calling_solver(self, name: str) -> Any:
+        """A new solver ``name`` for :meth:`solver_call`, with no memory yet (the previous
+        one's go with it)."""
+        solver = self._calling[name] = self._factories[name]()
+        self._spent[name], self._by_pattern[name] = [], {}
+        return solver
 
     def fingerprint(self, name: str) -> str:
         """What solver ``name``'s compiled library is generated from, as a string that changes
@@ -588,9 +594,8 @@ class MultipleShootingNLP:
         solver = self._calling.get(name)
         spent = self._spent[name]
         if solver is None or (spent and len(spent) * memory_bytes(solver) > SPENT_MEMORY_BYTES):
-            solver = self._calling[name] = self._factories[name]()
-            spent = self._spent[name] = []
-            kept = self._by_pattern[name] = {}
+            solver = self._new_calling_solver(name)
+            spent, kept = self._spent[name], self._by_pattern[name]
         call = BufferedCall(solver, 6)
         spent.append(call)
         if pattern is not None:
