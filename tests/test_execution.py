@@ -8,6 +8,7 @@ smooth there), under each form's documented rule -- nothing of the planner's int
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -275,6 +276,29 @@ def test_no_correction_step_larger_than_the_rates_is_replayed(monkeypatch):
     end, margin = replay_linear_rk4(p.robot, p.path.t, p.path.u, req.q_start())
     assert float(np.max(np.abs(end[1:] - np.array(req.goal)))) < 1e-6
     assert margin > 0.0
+
+
+def test_a_held_form_that_misses_runs_the_same_path_slower_when_the_duration_is_free():
+    """A 5-joint plan held at 0.02 s on its 1 s law misses the goal by 1.2e-6 rad (the
+    tolerance is 1e-6): the request leaves the duration free, so the same path is handed out
+    on a longer law (each period holds less of it), and the answer says so. scipy's replay of
+    the held rates reaches the goal inside the region. With the duration given, no other
+    duration is handed out."""
+    from optimizer.reachable import generate
+
+    g = generate(5, 3, seed=999)[2]
+    req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(5),
+                      controller_period=0.02, time_limit=30.0)
+    p = plan(req)
+    note = p.diagnostics["duration"]
+    assert note["planned"] == 1.0 and note["handed_out"] == p.duration > 1.0
+    assert p.to_dict()["diagnostics"]["duration"]["handed_out"] == p.duration
+    t = p.path.t
+    assert np.allclose(np.diff(t)[:-1], 0.02) and t[-1] == p.duration
+    qf, margin = replay_zoh(p.robot, t, p.path.u, req.q_start())
+    assert float(np.max(np.abs(qf[1:] - np.array(req.goal)))) < 1e-6 and margin > 0.0
+    fixed = plan(dataclasses.replace(req, duration=1.0))
+    assert fixed.duration == 1.0 and "duration" not in fixed.diagnostics
 
 
 def _linear_states(robot, t, u, q0, t_eval):
