@@ -558,3 +558,34 @@ def test_a_failed_fast_path_names_the_miss_of_its_steps_with_any_sign(
     with pytest.raises(PlannerError) as info:
         replan(four_joints, t, q, fallback=False)
     assert "miss 0.0123 rad" in info.value.diagnostics["fast_path_failed"][0]
+
+
+def test_a_continuation_too_coarse_for_its_rates_is_sampled_more_densely() -> None:
+    """A 6-joint plan under jerk limits (found by a sweep of generated goals on a robot whose
+    gains are off the default) is handed out with 1601 samples over 6.9 s. Its continuation
+    from the handed-out state at 18 % of the way, sampled as a continuation is by default
+    (about 100 samples), missed the goal by 7e-4 rad when executed by linear interpolation,
+    and the replan was refused. Sampled more densely, as the planner does its own path, it is
+    handed out and reaches the goal under RK4 of its handed-out rates."""
+    from optimizer.model import Robot
+    from replay_support import replay_linear_rk4
+
+    req = PlanRequest(
+        start=(0.09022211246132794, 0.4427543189736883, 1.2777047427831703,
+               1.2979256606969911, 0.8420183118606726, 1.0259765566201433),
+        goal=(1.4256337648537185, 0.6334976541767335, 1.361040138280494,
+              1.305936819833793, 0.8495143153052945, 1.0503487472277189),
+        robot=Robot(gains=(0.7568179390634548, 0.7567386265264985, 0.9408480620507144,
+                           0.8016956414006002, 0.6293492403279566),
+                    exponents=(2, 2, 2, 2, 3)),
+        max_u1=1.0, max_u2=1.0, max_du1=4.0, max_du2=4.0, max_ddu1=31.43340352764829,
+        max_ddu2=33.386145471436336, time_limit=30.0)
+    answer = plan(req).to_dict()
+    t, q = np.asarray(answer["path"]["t"]), np.asarray(answer["path"]["q"])
+    k = int(np.searchsorted(t, 0.18 * t[-1]))
+    cont = replan(answer, float(t[k]), q[k])
+    ct, cu = np.asarray(cont["path"]["t"]), np.asarray(cont["path"]["u"])
+    assert ct[0] == t[k] and ct.size > 200
+    end, margin = replay_linear_rk4(req.robot, ct - ct[0], cu, q[k])
+    assert float(np.max(np.abs(end[1:] - np.array(req.goal)))) < 1e-6
+    assert margin > 0.0

@@ -93,6 +93,7 @@ from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
 from .continuation_map import (HALVING_STEPS, KERNEL_STEPS, WEIGHT_FLOOR, PieceMap,
                                correct_pieces, damped_correct, halving_correct,
                                kernel_correct, piece_end, piece_weights, weighted_step)
+from .finish import DENSIFY_SAMPLES
 from .nlp import MARGIN
 from .piece_proof import integrate_pieces
 from .warm_continuation import warm_nlp_pieces
@@ -775,6 +776,12 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         exe_initial, corrections = check.initial_terminal_error, check.corrections
         if not check.terminal_error <= EXECUTION_TOLERANCE or check.singular or \
                 not check.margin > 0.0:
+            if ps.samples < DENSIFY_SAMPLES:
+                # too coarse for these rates (a plan under a jerk limit is handed out with
+                # hundreds of samples a second): the same continuation, twice as densely
+                # sampled, as the planner makes its own path denser
+                denser = replace(ps, samples=min(2 * ps.samples - 1, DENSIFY_SAMPLES))
+                return _finish(denser, req, t, q_m, u_c, cont, timing, limits)
             raise NumericalError(
                 f"the handed-out path of {times.size} samples misses the goal by "
                 f"{check.terminal_error:.3g} rad when executed (margin {check.margin:.3g} rad)",
