@@ -293,3 +293,25 @@ def test_prepare_builds_the_budgets_solvers_ahead_of_the_first_request():
     # (a shape no other test plans: its NLP is built here, not taken from the cache)
     nlp = budget.prepare((0.9, 0.8), (3, 2), fixed_phi=True)
     assert set(nlp._built) == set(nlp.solver_names) == {"fatrop", "ipopt"}
+
+
+def test_a_budget_below_the_ladders_fewest_is_refused_before_any_budget_nlp(monkeypatch) -> None:
+    """The front ends at the default plan's reversal count (the ladder's fewest): a budget
+    below it is refused at once, naming that count, without solving the budget's NLPs (a
+    5-joint ``max_reversals = 0`` took 6 s to be refused this way)."""
+    from optimizer.planner import budget
+
+    default = plan(request(*OPPOSED)).to_dict()
+    counted = measured(default, *OPPOSED)[0]  # re-integrated and counted here
+    k = default["indicators"]["reversals"]["phi"] + default["indicators"]["reversals"]["th1"]
+    assert counted == k >= 1
+
+    def no_nlp(*args, **kwargs):
+        raise AssertionError("a budget NLP was solved")
+
+    monkeypatch.setattr(budget, "_solve", no_nlp)
+    with pytest.raises(InfeasibleError) as info:
+        plan(request(*OPPOSED, max_reversals=k - 1))
+    assert info.value.field == "max_reversals"
+    assert info.value.diagnostics["fewest_reversals"] == k
+    assert f"at least {k}" in info.value.message

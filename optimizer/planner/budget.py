@@ -38,7 +38,9 @@ Each candidate is kept only when it is verified; the front is the candidates sor
 reversals, each kept when its deviation is smaller than every one with fewer reversals (by more
 than :data:`DEVIATION_TOLERANCE`). ``max_reversals = k`` answers the front's member with the
 most reversals ``<= k`` (the straightest); none: :class:`~optimizer.errors.InfeasibleError`
-naming ``max_reversals`` and the fewest reversals found.
+naming ``max_reversals`` and the fewest reversals found. A ``k`` below the first candidates'
+fewest reversals (the ladder's plan: the fewest the planner finds) is refused so before any
+of the budget's NLPs runs: the merging stops at that count.
 
 Cost: one plan for the first candidate, two free NLPs (IPOPT, 40-200 iterations; the second
 fatrop below 5 joints), then one sign-held NLP (30-90 iterations) and one finishing per other
@@ -508,8 +510,21 @@ def plan_with_budget(req: PlanRequest, ctx: PlanContext, first: Plan | None,
     """The answer of a request with ``max_reversals`` or ``pareto`` (see the module docstring):
     ``first`` is the plan the objective picked (None, with ``first_error``, when none was);
     ``fewest``, under another objective, the default objective's plan (:func:`build_front`)."""
-    front = build_front(req, ctx, first, fewest)
     k = req.max_reversals
+    floor = min((p.indicators.reversals for p in (first, fewest) if p is not None),
+                default=None)
+    if k is not None and floor is not None and k < floor:
+        # the front goes down to these plans' fewest reversals and no further (build_front):
+        # a budget below them is refused before its NLPs run (a 5-joint max_reversals = 0
+        # took 6 s to be refused, the default plan with 2 reversals 0.1 s)
+        raise InfeasibleError(
+            f"no verified path with at most max_reversals = {k} direction changes of phi "
+            f"and th1 was found: the fewest found is {floor}; allow at least {floor}",
+            field="max_reversals",
+            diagnostics={"fewest_reversals": floor, "max_reversals": k,
+                         "budget": {"tried": [], "why": "below the fewest reversals of the "
+                                    "ladder's plan, where the front ends"}})
+    front = build_front(req, ctx, first, fewest)
     main: Plan | None
     if k is not None:
         pick = within_budget(front, k)
