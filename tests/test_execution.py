@@ -531,3 +531,37 @@ def test_the_kinks_are_samples_check_is_exact_membership():
             kinks = np.append(kinks, rng.choice([-1.0, 3.0]))
         kinks = np.sort(kinks)
         assert _all_samples(kinks, times) == all(float(k) in set(times.tolist()) for k in kinks)
+
+
+@pytest.mark.parametrize("n", [3, 5, 7])
+@pytest.mark.parametrize("form", ["limits", "jerk", "period"])
+def test_motor_forms_on_a_robot_off_the_default(n, form):
+    """Generated goals (a seed the benchmark does not use) of a robot whose gains are 12 %
+    above and below the default's in turn, under rate and slope limits, a jerk limit, or a
+    controller period: the default request plans, and the handed-out rates, replayed here by
+    their rule on the original model, reach the goal inside the region within the limits."""
+    from optimizer.reachable import generate
+
+    base = Robot.default(n)
+    robot = Robot(gains=tuple(k * (1.12 if i % 2 else 0.88) for i, k in enumerate(base.gains)),
+                  exponents=base.exponents)
+    g = generate(n, 1, seed=2211, robot=robot)[0]
+    extra = {"limits": dict(max_u1=0.8, max_u2=0.8, max_du1=3.0, max_du2=3.0),
+             "jerk": dict(max_u1=1.0, max_u2=1.0, max_du1=4.0, max_du2=4.0, max_ddu1=20.0,
+                          max_ddu2=20.0),
+             "period": dict(controller_period=0.02)}[form]
+    req = PlanRequest(start=g.start, goal=g.goal, robot=robot, time_limit=60.0, **extra)
+    p = plan(req)
+    t, u = p.path.t, p.path.u
+    if form == "period":
+        end, margin = replay_zoh(robot, t, u, req.q_start())
+    else:
+        end, margin = replay_linear_rk4(robot, t, u, req.q_start())
+        limit = 1.0 + 1e-6
+        assert np.all(np.abs(u[:, 0]) <= req.max_u1 * limit)
+        assert np.all(np.abs(u[:, 1]) <= req.max_u2 * limit)
+        slope = np.abs(np.diff(u, axis=0)) / np.diff(t)[:, None]
+        assert np.all(slope[:, 0] <= req.max_du1 * limit)
+        assert np.all(slope[:, 1] <= req.max_du2 * limit)
+    assert float(np.max(np.abs(end[1:] - np.array(req.goal)))) < 1e-6
+    assert margin > 0.0
