@@ -467,3 +467,40 @@ def test_ipopt_is_compiled_only_where_it_answers(tmp_path):
     native.configure(tmp_path)
     m = shooting.prepare(Robot().gains, Robot().exponents, wait=True)
     assert m.compiled and not m.ipopt_compiled and m.native_ipopt is None
+
+
+def test_the_chained_forms_compiled_maps_give_the_virtual_machines_bits(tmp_path):
+    """4 to 8 joints: the chained form's maps (forward, input coefficients, inverse, u from
+    (z, v)) compiled give the same bits as CasADi's virtual machine on the same points, a
+    count that is not a multiple of the compiled block among them: a worker answers the same
+    before and after its libraries are built."""
+    from optimizer.chained_form import chained_form
+
+    rng = np.random.default_rng(3)
+    for n in range(4, 9):
+        cf = chained_form(Robot.default(n))
+        q = np.column_stack([rng.uniform(-1, 1, 130), rng.uniform(0.1, 1.45, (130, n))])
+        u = rng.uniform(-1, 1, (130, 2))
+
+        def maps() -> list[np.ndarray]:
+            z = cf.to_chained(q)
+            al, be = cf.input_coefficients(q)
+            v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
+            return [z, al, be, cf.from_chained(z).q, cf.u_from_zv(z, v)]
+
+        native.configure(None)
+        vm = maps()
+        native.configure(tmp_path)
+        maps()  # starts the builds
+        deadline = time.monotonic() + 240.0
+        from optimizer import chained_form as module
+        while time.monotonic() < deadline:
+            entries = [e for e in module._COMPILED.values() if e._cfg is native.config()]
+            if entries and all(e.current() is not None for e in entries):
+                break
+            time.sleep(0.2)
+        else:
+            raise AssertionError("the chained form's maps were not compiled in time")
+        compiled = maps()
+        for a, b in zip(vm, compiled):
+            assert np.array_equal(a, b, equal_nan=True), n
