@@ -380,9 +380,9 @@ class _CompiledMap:
         self._name = ""
         self._call: Any = None
 
-    def current(self) -> Any:
+    def current(self, wait: bool = False) -> Any:
         """A callable ``(gains, args) -> rows`` on the compiled library, or None while it is
-        not ready (or compiled functions are off)."""
+        not ready (or compiled functions are off); ``wait``: build it now when missing."""
         cfg = native.config()
         if cfg is None:
             return None
@@ -393,12 +393,13 @@ class _CompiledMap:
                                 mapped.call(mapped.mx_in()))
             cg = ca.CodeGenerator(f"{named.name()}.c", {"with_header": False})
             cg.add(named)
-            self._name, self._library = named.name(), native.library_for(str(cg.dump()))
+            self._name = named.name()
+            self._library = native.library_for(str(cg.dump()), wait=wait)
         if self._call is not None:
             return self._call
         if self._library is None:
             return None
-        path = self._library.ready(1.0)
+        path = self._library.ready(0.0 if wait else 1.0)
         if path is None:
             return None
         try:
@@ -442,6 +443,17 @@ class _RowsCall:
 #: The compiled map of each symbolic function in use (by ``id``; the function is kept in
 #: the entry, so that an id is not taken by another while its entry lives).
 _COMPILED: dict[int, _CompiledMap] = {}
+
+
+def prepare_maps(exponents: tuple[int, ...], wait: bool = False) -> bool:
+    """Ask for the compiled libraries of the chained form's maps of robots with these
+    exponents (``wait``: build the missing ones now; the image build does); True when all are
+    in use. With compiled functions off, False."""
+    sym = symbolic_form(tuple(exponents))
+    maps = [(sym.forward, 1), (sym.alpha_beta, 1), (sym.u_w_from_zv, 2),
+            *((f, 1) for f in sym.ab.values())]
+    ready = [_compiled_map(f, k).current(wait) is not None for f, k in maps]
+    return all(ready)
 
 
 def _compiled_map(f: ca.Function, n_args: int) -> _CompiledMap:
