@@ -341,7 +341,7 @@ def test_the_fallback_keeps_to_the_time_limit(answer: dict, monkeypatch) -> None
     from optimizer.planner import replan as rp
 
     def no_fast_path(*args, **kwargs):
-        raise NumericalError("the fast path is not asked here")
+        raise NumericalError("the fast path and the warm NLP are not asked here")
 
     given: list[tuple[str, float]] = []
 
@@ -351,6 +351,7 @@ def test_the_fallback_keeps_to_the_time_limit(answer: dict, monkeypatch) -> None
         raise SolverTimeoutError("found nothing", field="time_limit")
 
     monkeypatch.setattr(rp, "_fast", no_fast_path)
+    monkeypatch.setattr(rp, "_warm", no_fast_path)
     monkeypatch.setattr(rp, "full_plan", slow_planner)
     i = len(answer["path"]["t"]) // 3
     t, state = float(answer["path"]["t"][i]), np.array(answer["path"]["q"][i])
@@ -407,6 +408,34 @@ def test_where_gauss_newton_fails_one_warm_started_nlp_continues(four_joints: di
         k = ps.piece_at(ps.law.at(t)[0])
         rates = np.array([s["u"] for s in out["coefficients"]["segments"]])
         assert sign_changes(rates) <= sign_changes(ps.rates[k:])
+
+
+# A 3-joint goal with th2 near pi/2 (th3 barely follows th2: the end map's third singular
+# value is 1e-4 of the first on the plan's rest); a state 0.05 deg off the plan's, th3 too
+# high, is one that no Gauss-Newton correction of the rest reaches.
+WEAK_START = (0.5743794314462364, 1.4182192902057063, 1.175093552869607)
+WEAK_GOAL = (0.8112087585945215, 1.5198626936778183, 1.175436380808428)
+
+
+@pytest.mark.parametrize("sample", [12, 40])
+def test_three_joints_where_gauss_newton_fails_the_warm_nlp_continues(sample: int) -> None:
+    """At 3 joints too the warm-started NLP comes before the full planner: its
+    continuation, integrated by scipy from the measured state, reaches the goal inside the
+    region and starts at the commanded rates."""
+    from optimizer.model import Robot
+    robot = Robot.default(3)
+    answer = plan(PlanRequest(start=WEAK_START, goal=WEAK_GOAL, robot=robot)).to_dict()
+    t = float(answer["path"]["t"][sample])
+    q = np.array(answer["path"]["q"][sample]) + np.r_[0.0, np.radians(0.05) * np.ones(3)]
+    out = replan(answer, t, q)
+    info = out["diagnostics"]["replan"]
+    assert info["route"] == "warm_nlp"
+    assert any("Gauss-Newton" in f for f in info["fast_path_failed"])
+    assert rates_of(out, t + 1e-9) == pytest.approx(rates_of(answer, t), rel=1e-6, abs=1e-9)
+    end = run_plant(out, q, t, out["duration"], robot.gains, robot.exponents)
+    assert np.max(np.abs(end[1:] - np.array(WEAK_GOAL))) < 1e-7
+    th = np.array(out["path"]["q"])[:, 1:]
+    assert np.all((th > 0.0) & (th < math.pi / 2))
 
 
 def test_a_plant_off_the_model_stays_inside_in_closed_loop_near_the_edge() -> None:
