@@ -438,6 +438,29 @@ def test_three_joints_where_gauss_newton_fails_the_warm_nlp_continues(sample: in
     assert np.all((th > 0.0) & (th < math.pi / 2))
 
 
+def test_a_three_joint_warm_replan_changes_no_later_answer() -> None:
+    """The warm NLP runs on the 3-joint plans' own NLP (its solver memories): a plan asked
+    before and after it, and the replan asked twice, get the same answers."""
+    from optimizer.model import Robot
+
+    def strip(obj):
+        if isinstance(obj, dict):
+            return {k: strip(v) for k, v in obj.items() if k not in ("timing", "seconds")}
+        if isinstance(obj, list):
+            return [strip(v) for v in obj]
+        return obj
+
+    example = PlanRequest(start=(math.radians(10),) * 3, goal=(math.radians(30),) * 3)
+    before = strip(plan(example).to_dict())
+    answer = plan(PlanRequest(start=WEAK_START, goal=WEAK_GOAL, robot=Robot.default(3))).to_dict()
+    t = float(answer["path"]["t"][40])
+    q = np.array(answer["path"]["q"][40]) + np.r_[0.0, np.radians(0.05) * np.ones(3)]
+    first = replan(answer, t, q)
+    assert first["diagnostics"]["replan"]["route"] == "warm_nlp"
+    assert strip(plan(example).to_dict()) == before
+    assert strip(replan(answer, t, q)) == strip(first)
+
+
 def test_a_plant_off_the_model_stays_inside_in_closed_loop_near_the_edge() -> None:
     """A 4-joint goal whose path passes 0.6 deg from pi/2 (th2), the plant's gains off by up
     to 4 %, reversals kept: a correction that ran the model's path 1e-4 rad from the edge
