@@ -15,7 +15,7 @@ from optimizer.planner.plan import plan
 from optimizer.planner.replan import replan
 from optimizer.problem import PlanRequest
 
-from reference import PROTOTYPE_K, PROTOTYPE_M, model_rhs
+from reference import PROTOTYPE_K, PROTOTYPE_M, model_rhs, turns
 
 START, GOAL = (0.3, 0.4, 0.5), (0.9, 1.0, 0.8)
 
@@ -459,6 +459,46 @@ def test_a_three_joint_warm_replan_changes_no_later_answer() -> None:
     assert first["diagnostics"]["replan"]["route"] == "warm_nlp"
     assert strip(plan(example).to_dict()) == before
     assert strip(replan(answer, t, q)) == strip(first)
+
+
+def plant_reversals(ans: dict, q0: np.ndarray, t0: float, K: tuple) -> int:
+    """Direction changes of phi and th1 on the tests' model run under the answer's rates
+    from ``q0`` (scipy, knot to knot, 40 samples a knot interval; counted by the tests' own
+    rule)."""
+    edges = sorted({t0, ans["duration"], *(k for k in knots_of(ans) if t0 < k < ans["duration"])})
+    q, path = np.asarray(q0, float), [np.asarray(q0, float)]
+    for a, b in zip(edges[:-1], edges[1:]):
+        sol = solve_ivp(lambda t, x: model_rhs(x, rates_of(ans, t), K, PROTOTYPE_M), (a, b), q,
+                        method="DOP853", rtol=1e-12, atol=1e-13,
+                        t_eval=np.linspace(a, b, 41)[1:])
+        assert sol.success
+        path.extend(sol.y.T)
+        q = sol.y[:, -1]
+    P = np.array(path)
+    return turns(P[:, 0]) + turns(P[:, 1])
+
+
+def test_at_the_start_at_rest_a_fresh_plan_answers_where_the_correction_reverses_more() -> None:
+    """A replan at the plan's start, nothing under way: the corrected plan (the fast path)
+    reverses th1 where the plan does not, and a fresh plan from the measured state does not;
+    the fresh plan is answered, and it reaches the goal from the measured state."""
+    start = (0.6434654828334896, 1.5170547623646518, 0.36430823242705435)
+    goal = (1.4689850314167412, 1.495037628413974, 0.3644757153507433)
+    measured = (0.6460015892918167, 1.5148684064280735, 0.3593362475532423)
+    answer = plan(PlanRequest(start=start, goal=goal)).to_dict()
+    q = np.r_[answer["path"]["q"][0][0], measured]
+    nominal = plant_reversals(answer, np.r_[answer["path"]["q"][0][0], start], 0.0, PROTOTYPE_K)
+    corrected = replan(answer, 0.0, q, fallback=False)      # the fast path alone
+    fresh = replan(answer, 0.0, q)
+    assert fresh["diagnostics"]["replan"]["route"] == "full_planner"
+    assert plant_reversals(corrected, q, 0.0, PROTOTYPE_K) > nominal
+    assert plant_reversals(fresh, q, 0.0, PROTOTYPE_K) <= nominal
+    end = run_plant(fresh, q, 0.0, fresh["duration"], PROTOTYPE_K)
+    assert np.max(np.abs(end[1:] - np.array(goal))) < 1e-7
+    # mid-motion (something under way) the correction is answered as before
+    i = len(answer["path"]["t"]) // 4
+    mid = replan(answer, answer["path"]["t"][i], np.array(answer["path"]["q"][i]))
+    assert mid["diagnostics"]["replan"]["route"] == "gauss_newton"
 
 
 def test_a_plant_off_the_model_stays_inside_in_closed_loop_near_the_edge() -> None:
