@@ -355,6 +355,8 @@ def closed_loop_run(plan: Plan | dict[str, Any], start: Sequence[float] | np.nda
                 cont = replan(current, t, measured, rates=rates_now, plain=False,
                               keep_reversals=keep_reversals, gains=gains)
                 current = read_plan(cont)
+                # (a plan with rate limits: a continuation may need longer than the plan)
+                T = current.end_time
                 replans += 1
             except PlannerError:
                 failures += 1

@@ -5,11 +5,13 @@ rates stay continuous in every case; what follows the stop is the replanner's to
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import NumericalError
+from .continuation_law import braking_time, piece_bounds
 from .plan_state import REST, PlanState, TimeLaw
 
 #: Seconds within which the motion under way is braked to rest (:func:`brake_now`; a chained
@@ -92,6 +94,9 @@ def to_piece_end(ps: PlanState, t: float, s_t: float, v: float, k: int, u_c: np.
     sg = ps.law.evaluate(grid)[0]
     D_plan = float(np.interp(s_end, sg, grid)) - t if sg[-1] >= s_end else ps.law.end - t
     D = min(max(D_plan, 1e-6), 3.5 * ell / v)
+    if ps.limits.any:
+        Vb, Ab, _ = piece_bounds((np.asarray(u_c, float) / v)[None, :], ps.limits)
+        D = _within_bounds(D, ell, v, float(Vb[0]), float(Ab[0]))
     h = 0.5 * D
     peak = 0.5 * (4.0 * ell / D - v)
     s_mid = s_t + 0.5 * (v + peak) * h
@@ -99,6 +104,25 @@ def to_piece_end(ps: PlanState, t: float, s_t: float, v: float, k: int, u_c: np.
                     [t + h, h, s_mid, peak, -peak / h, 0.0]])
     rates = (np.asarray(u_c, float) / v)[None, :]
     return Kept(k + 1, np.array([s_t, s_end]), rates, TimeLaw(law), own=False)
+
+
+def _within_bounds(D: float, ell: float, v: float, V: float, A: float) -> float:
+    """The duration nearest ``D`` of :func:`to_piece_end`'s law (``sigma'`` linear from
+    ``v`` to a peak ``(4 ell / D - v) / 2`` at ``D / 2`` and down to 0; the peak >= 0 needs
+    ``D <= 4 ell / v``) whose peak stays within ``V`` and slopes within ``A``; the one that
+    exceeds them least where none does (the piece's end nearer than the bounds can stop at).
+    """
+    def excess(d: np.ndarray) -> np.ndarray:
+        peak = 0.5 * (4.0 * ell / d - v)
+        slope = np.maximum(np.abs(4.0 * ell / d - 3.0 * v), np.abs(4.0 * ell / d - v)) / d
+        return np.maximum(peak / V, slope / A)
+
+    if float(excess(np.array([D]))[0]) <= 1.0:
+        return D
+    grid = np.linspace(1e-3, 1.0, 400) * 4.0 * ell / v
+    e = excess(grid)
+    ok = grid[e <= 1.0]
+    return float(ok[np.argmin(np.abs(ok - D))]) if ok.size else float(grid[np.argmin(e)])
 
 
 def brake_now(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
@@ -113,7 +137,10 @@ def brake_now(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
         return run_on(ps, t, u_c)
     k = ps.piece_at(s_t)
     room = float(ps.breaks[k + 1]) - s_t
-    D = min(BRAKE_TIME, 0.25 * (T_end - t), room / v)   # travels v D / 2 <= room / 2
+    # travels v D / 2 <= room / 2; under the plan's acceleration bounds no faster than they
+    # allow (where the piece leaves room for it)
+    D = min(max(min(BRAKE_TIME, 0.25 * (T_end - t)),
+                braking_time(v, np.asarray(u_c, float) / v, ps.limits)), room / v)
     if D <= 0.0:
         raise NumericalError("no room left to brake the current motion")
     s_b = s_t + 0.5 * v * D

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import bisect
 import functools
+import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 
@@ -22,7 +23,7 @@ import numpy as np
 from ..errors import InvalidRequestError, PlannerError
 from ..model import Robot
 from ..results import Plan, json_safe
-from ..timing import RAMP, ramp_profile
+from ..timing import RAMP, Limits, ramp_profile
 
 #: Samples of the handed-out continuation (fewer when less time is left, at least 2 per piece).
 DEFAULT_SAMPLES = 101
@@ -112,17 +113,20 @@ class TimeLaw:
         _, s, s0, v0, a0, j = self.phases[-1].tolist()
         return s0 + v0 * s + 0.5 * a0 * s * s + j * s ** 3 / 6.0
 
-    def as_dict(self, plan_duration: float, breaks: np.ndarray) -> dict[str, Any]:
+    def as_dict(self, plan_duration: float, breaks: np.ndarray,
+                limits: Limits | None = None) -> dict[str, Any]:
         """The answer's ``time_law`` in the shape of :meth:`optimizer.timing.TimeLaw.as_dict`
         (here ``lam = sigma``: knots of slope 1 at the pieces' ``breaks``); ``stops`` are the
-        phase starts at rest and the end."""
+        phase starts at rest and the end; ``limits`` the rate bounds it keeps to (carried
+        from the plan: a continuation of this answer keeps to them too)."""
         P = self.phases
         stops = P[np.abs(P[:, 3]) <= REST, 0].tolist() + [self.end]
         return {"rule": LAW_RULE, "plan_duration": plan_duration, "stops": stops,
                 "knots": {"lam": breaks, "sigma": breaks, "slope": np.ones(breaks.size - 1)},
                 "phases": {"start": P[:, 0], "length": P[:, 1], "lam0": P[:, 2],
                            "v0": P[:, 3], "a0": P[:, 4], "jerk": P[:, 5]},
-                "shortest_duration": None, "binding_limit": None, "limits": {}}
+                "shortest_duration": None, "binding_limit": None,
+                "limits": {} if limits is None else limits_dict(limits)}
 
     @classmethod
     def from_answer(cls, law: Mapping[str, Any]) -> tuple["TimeLaw", np.ndarray, np.ndarray,
@@ -169,6 +173,46 @@ class TimeLaw:
         """No jerk phase: constant-direction rates are linear between the phase starts, and
         the linear form with samples there holds them exactly."""
         return not bool((self.phases[:, 5] != 0.0).any())
+
+
+def limits_dict(limits: Limits) -> dict[str, float]:
+    """The bounds by their request names (``max_u1``, ...), those that are set."""
+    return {name: float(value) for names, values in zip(
+        Limits.NAMES, (limits.rate, limits.accel, limits.jerk))
+        for name, value in zip(names, values) if value is not None}
+
+
+def read_limits(given: Any) -> Limits:
+    """An answer's ``time_law.limits`` (``{"max_u1": ..., ...}``) as :class:`Limits`.
+
+    Raises
+    ------
+    InvalidRequestError
+        Not such a mapping of positive finite numbers (``plan.time_law.limits``).
+    """
+    if given is None:
+        return Limits()
+    if not isinstance(given, Mapping):
+        raise invalid("plan.time_law.limits must map max_u1, ... to numbers",
+                      "plan.time_law.limits")
+    known = {name for names in Limits.NAMES for name in names}
+    values: dict[str, float] = {}
+    for name, value in given.items():
+        if name not in known:
+            raise invalid(f"plan.time_law.limits has an unknown bound {name!r} (known: "
+                          f"{', '.join(sorted(known))})", "plan.time_law.limits")
+        if value is None:
+            continue
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            v = math.nan
+        if not (math.isfinite(v) and v > 0.0):
+            raise invalid(f"plan.time_law.limits.{name} must be a positive number",
+                          "plan.time_law.limits")
+        values[name] = v
+    pairs = [tuple(values.get(name) for name in names) for names in Limits.NAMES]
+    return Limits(*pairs)  # type: ignore[arg-type]
 
 
 def rest_to_rest(t0: float, D: float, sigma0: float, L: float) -> np.ndarray:
@@ -218,6 +262,8 @@ class PlanState:
         The handed-out path (chained plans: their commanded rates are read from it).
     jumps : bool
         No time law: the rates jump at the breaks (``sigma = t``).
+    limits : Limits
+        The rate bounds the plan keeps to (its ``time_law.limits``).
     """
 
     robot: Robot
@@ -231,6 +277,7 @@ class PlanState:
     path_t: np.ndarray | None = None
     path_u: np.ndarray | None = None
     jumps: bool = False
+    limits: Limits = Limits()
 
     @property
     def start_time(self) -> float:
@@ -256,7 +303,7 @@ class PlanState:
                 {"t_start": float(a), "t_end": float(b), "u": [float(x) for x in r]}
                 for a, b, r in zip(self.breaks[:-1], self.breaks[1:],
                                    self.rates if self.rates is not None else [])]},
-            "time_law": self.law.as_dict(self.plan_duration, self.breaks),
+            "time_law": self.law.as_dict(self.plan_duration, self.breaks, self.limits),
         }
         if self.joint_bounds is not None:
             out["joint_bounds"] = [None if b is None else list(b) for b in self.joint_bounds]
@@ -381,10 +428,11 @@ def _read(plan: Any) -> PlanState:
     given_t = path.get("t")
     samples = int(plan.get("samples") or (0 if given_t is None else len(given_t))
                   or DEFAULT_SAMPLES)
+    limits = read_limits(law_d.get("limits")) if isinstance(law_d, Mapping) else Limits()
     return PlanState(robot=robot, goal=goal, breaks=breaks, rates=rates, law=law,
                      plan_duration=T0, joint_bounds=bounds,
                      samples=min(max(samples, 11), DEFAULT_SAMPLES), path_t=pt, path_u=pu,
-                     jumps=law_d is None)
+                     jumps=law_d is None, limits=limits)
 
 
 
@@ -417,5 +465,6 @@ def law_after_stop(t_stop: float, T_end: float, breaks: np.ndarray,
 
 
 __all__ = ["DEFAULT_SAMPLES", "LAW_RULE", "MAX_SEGMENT_TRAVEL", "PlanState", "REST", "TimeLaw",
-           "braking", "finite_array", "invalid", "law_after_stop", "read_plan",
+           "braking", "finite_array", "invalid", "law_after_stop", "limits_dict", "read_limits",
+           "read_plan",
            "rest_to_rest", "stop_and_go"]

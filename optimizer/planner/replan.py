@@ -38,7 +38,9 @@ geometry and the timing are corrected separately.
    :func:`~.continuation_map.damped_correct`). Unless ``keep_reversals``, any sign when that fails (halved steps, one compiled
    call, :func:`~.continuation_map.halving_kernel`). The
    remaining law is kept when nothing was split or stopped early; otherwise every piece runs
-   rest to rest in equal times (:func:`~.plan_state.law_after_stop`).
+   rest to rest in equal times (:func:`~.plan_state.law_after_stop`), within the plan's rate
+   limits where it has them (:mod:`.continuation_law`: later than the plan's end where the
+   time left is too short for them).
 3. **Proof.** The continuation's pieces are integrated on the original model by compiled
    RK4 at two step sizes (:func:`~.piece_proof.integrate_pieces`; Richardson's estimate
    of the error at most 1e-11 rad, else by cascade quadrature); a miss above 1e-9 rad gets
@@ -90,17 +92,19 @@ from ..chained_form import chained_form
 from ..execution import even_times
 from ..errors import (InvalidRequestError, InfeasibleError, NumericalError, PlannerError,
                       SolverTimeoutError)
-from ..forms import EXECUTION_TOLERANCE, REPLAY_NODES, correct, linear_form
+from ..forms import EXECUTION_TOLERANCE, LIMIT_TOLERANCE, REPLAY_NODES, correct, linear_form
 from ..indicators import compute_indicators
 from ..model import Robot
 from ..problem import PlanRequest
 from ..region import Region
 from ..results import Plan, json_safe
+from ..timing import Limits
 from ..verify import integrate_cascade
 from .plan import plan as full_plan
-from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array,
-                         invalid, law_after_stop, read_plan)
+from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array, limits_dict,
+                         invalid, read_plan)
 from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
+from .continuation_law import law_within_limits, measured_limits
 from .continuation_map import (HALVING_STEPS, KERNEL_STEPS, WEIGHT_FLOOR, PieceMap,
                                correct_pieces, damped_correct, halving_correct,
                                kernel_correct, piece_end, piece_weights, weighted_step)
@@ -296,6 +300,14 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
         if keep_reversals:
             _refuse_added_reversals(ps, t, cont, errors)
         result = _finish(ps, req, t, q_m, u_c, cont, timing, (lo, hi))
+    if duration is not None and result["duration"] > T_end + 1e-9 * max(1.0, T_end):
+        # the bounds need longer than the duration asked for (without one the continuation
+        # ends as early as they allow)
+        raise InfeasibleError(
+            f"the plan's rate limits need the continuation to end at {result['duration']:.6g} s, "
+            f"after duration = {T_end:.6g} s: give a later duration (or none)",
+            field="duration", diagnostics={"shortest_end": result["duration"],
+                                           "limits": limits_dict(ps.limits)})
     result["timing"]["total"] = time.perf_counter() - t_start
     if errors:
         result["diagnostics"]["replan"]["fast_path_failed"] = errors
@@ -483,7 +495,7 @@ def _corrected(ps: PlanState, t: float, T_end: float, kept: Kept, free: np.ndarr
     if plain_law:
         later = ps.law.after(t_stop).phases
     else:
-        later = law_after_stop(t_stop, T_end, free, equal=True)
+        later = law_within_limits(t_stop, T_end, free, new_rates, ps.limits, equal=True)
 
     def refine(exact_end: np.ndarray, current: np.ndarray) -> np.ndarray:
         # the quadrature's end missed: one step aimed where the map must end for the exact
@@ -675,7 +687,7 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
     # it ends in a geometric tail too: little is left for the plant's error after the last
     # replan (a fresh plan's last piece is 1/12 to 1/20 of its path)
     breaks, rates, tailed = _tail(breaks, rates)
-    later = law_after_stop(t_stop, T_end, breaks, equal=tailed)
+    later = law_within_limits(t_stop, T_end, breaks, rates, ps.limits, equal=tailed)
     return _assemble(kept, breaks, rates, later, kept.s_stop + float(sched.breaks[-1]),
                      "full_planner", 0)
 
@@ -709,6 +721,25 @@ def _replay(robot: Robot, q_m: np.ndarray, cont: Continuation, rates: np.ndarray
     return integrate_cascade(robot, lambda s: rates[_piece(sb, s)], q_m, L,
                              np.clip(np.concatenate([sb, s_eval]), 0.0, L), sb,
                              nodes=REPLAY_NODES, initial_panels=1, constant_pieces=True)
+
+
+def _form_peaks(times: np.ndarray, u: np.ndarray) -> dict[str, float]:
+    """The largest ``|u_i|`` of the samples and ``|u_i'|`` of their linear interpolant."""
+    dt = np.diff(times)
+    ok = dt > 1e-12
+    slope = np.abs(np.diff(u, axis=0))[ok] / dt[ok, None]
+    peaks = np.abs(u).max(axis=0), slope.max(axis=0, initial=0.0)
+    return {name: float(value) for names, values in zip(Limits.NAMES, peaks)
+            for name, value in zip(names, values)}
+
+
+def _form_beyond(ps: PlanState, times: np.ndarray, u: np.ndarray) -> bool:
+    """The handed-out linear form exceeds one of the plan's bounds on ``|u|`` or ``|u'|``."""
+    if not ps.limits.any:
+        return False
+    peaks = _form_peaks(times, u)
+    return any(peaks[name] > value * (1.0 + LIMIT_TOLERANCE)
+               for name, value in limits_dict(ps.limits).items() if name in peaks)
 
 
 def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
@@ -810,22 +841,26 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         # held
         form = linear_form(times - t, held=np.array([0, times.size - 1]))
         target = np.concatenate([[rep.final[0]], goal])
-        u, q, check = correct(robot, form, u, q_m, target, limits_region(req), times - t)
+        u, q, check = correct(robot, form, u, q_m, target, limits_region(req), times - t,
+                              ps.limits.rate)
         exe_final = np.asarray(check.final)
         exe_integrator = check.integrator
         exe_initial, corrections = check.initial_terminal_error, check.corrections
         if not check.terminal_error <= EXECUTION_TOLERANCE or check.singular or \
-                not check.margin > 0.0:
+                not check.margin > 0.0 or _form_beyond(ps, times, u):
             if ps.samples < DENSIFY_SAMPLES:
                 # too coarse for these rates (a plan under a jerk limit is handed out with
                 # hundreds of samples a second): the same continuation, twice as densely
                 # sampled, as the planner makes its own path denser
                 denser = replace(ps, samples=min(2 * ps.samples - 1, DENSIFY_SAMPLES))
                 return _finish(denser, req, t, q_m, u_c, cont, timing, limits)
-            raise NumericalError(
-                f"the handed-out path of {times.size} samples misses the goal by "
-                f"{check.terminal_error:.3g} rad when executed (margin {check.margin:.3g} rad)",
-                diagnostics={"execution": check.as_dict()})
+            executed = (check.terminal_error <= EXECUTION_TOLERANCE and not check.singular
+                        and check.margin > 0.0)
+            if not executed:    # (beyond a limit only: reported, diagnostics.replan.limits)
+                raise NumericalError(
+                    f"the handed-out path of {times.size} samples misses the goal by "
+                    f"{check.terminal_error:.3g} rad when executed (margin "
+                    f"{check.margin:.3g} rad)", diagnostics={"execution": check.as_dict()})
         al, be = cf.input_coefficients(q)
         v = np.column_stack([u[:, 0], al * u[:, 0] + be * u[:, 1]])
     else:
@@ -850,7 +885,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
             "segments": [{"t_start": float(a), "t_end": float(b), "v1": [float(r[0])],
                           "v2": [], "u": [float(r[0]), float(r[1])]}
                          for a, b, r in zip(cont.breaks[:-1], cont.breaks[1:], rates)]},
-        "time_law": law.as_dict(cont.plan_duration, cont.breaks),
+        "time_law": law.as_dict(cont.plan_duration, cont.breaks, ps.limits),
         "indicators": {
             "d_a": ind.d_a, "d_a_per_joint": list(ind.d_a_per_joint),
             "d_a_joint_space": ind.d_a_joint_space, "t_p": ind.t_p,
@@ -877,6 +912,18 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
             "commanded_rates": [float(x) for x in u_c],
             "start_state": q_m.tolist()}},
     }
+    if ps.limits.any:
+        # the bounds the plan keeps to, and the continuation's rates measured against them
+        # (the motion under way, run on or braked from its commanded rates, may need more)
+        bounds = limits_dict(ps.limits)
+        # the rates and slopes of the handed-out linear form (what a drive runs), the
+        # rates' second derivative of the law
+        measured = {**measured_limits(law, cont.breaks, rates), **_form_peaks(times, u)}
+        out["diagnostics"]["replan"]["limits"] = {
+            "bounds": bounds, "measured": {k: measured[k] for k in bounds},
+            "within": all(measured[k] <= v * (1.0 + LIMIT_TOLERANCE)
+                          for k, v in bounds.items()),
+            "later_than_asked": max(T_end - (t + float(req.duration or 0.0)), 0.0)}
     if ps.joint_bounds is not None:
         out["joint_bounds"] = [None if b is None else list(b) for b in ps.joint_bounds]
     return out

@@ -1,0 +1,90 @@
+"""A continuation of a plan asked with rate limits keeps to them (checked on the handed-out
+samples by finite differences, independently of the library's own measurement), reaches the
+goal on the tests' model (scipy), carries the limits on to the next replan, and ends later
+than the plan only as the limits need; a duration too short for them is refused, naming it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from optimizer.errors import InfeasibleError
+from optimizer.planner.plan import plan
+from optimizer.planner.replan import replan
+from optimizer.problem import PlanRequest
+
+from reference import PROTOTYPE_K
+from test_replan import run_plant
+
+START = (math.radians(10),) * 3
+GOAL = (math.radians(30),) * 3
+LIMITS = [
+    {"max_u1": 1.0, "max_u2": 1.0, "max_du1": 5.0, "max_du2": 5.0},
+    {"max_u1": 0.8, "max_u2": 0.8, "max_du1": 4.0, "max_du2": 4.0, "max_ddu1": 40.0,
+     "max_ddu2": 40.0},
+    {"max_u1": 0.5, "max_u2": 0.5},
+]
+
+
+def peaks(ans: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Largest |u_i| of the samples and |u_i'| of their linear interpolant."""
+    t = np.asarray(ans["path"]["t"])
+    u = np.asarray(ans["path"]["u"])
+    dt = np.diff(t)
+    ok = dt > 1e-12
+    return np.abs(u).max(axis=0), (np.abs(np.diff(u, axis=0))[ok] / dt[ok, None]).max(axis=0)
+
+
+def within(ans: dict, lim: dict) -> bool:
+    u, du = peaks(ans)
+    tol = 1.0 + 1e-6
+    return all(u[i] <= lim.get(f"max_u{i + 1}", math.inf) * tol
+               and du[i] <= lim.get(f"max_du{i + 1}", math.inf) * tol for i in range(2))
+
+
+@pytest.mark.parametrize("lim", LIMITS, ids=["u_du", "u_du_ddu", "u"])
+def test_continuations_keep_to_the_plans_rate_limits(lim: dict) -> None:
+    answer = plan(PlanRequest(start=START, goal=GOAL, **lim)).to_dict()
+    assert within(answer, lim)
+    n = len(answer["path"]["t"])
+    offsets = np.radians([0.05, -0.05, 0.05])
+    for i in (0, n // 5, n // 2, (4 * n) // 5):
+        t = float(answer["path"]["t"][i])
+        q = np.array(answer["path"]["q"][i]) + np.r_[0.0, offsets]
+        out = replan(answer, t, q)
+        assert within(out, lim), (i, peaks(out))
+        info = out["diagnostics"]["replan"]["limits"]
+        assert info["within"] and info["bounds"] == lim
+        assert out["time_law"]["limits"] == lim           # carried on
+        end = run_plant(out, q, t, out["duration"], PROTOTYPE_K)
+        assert np.max(np.abs(end[1:] - np.array(GOAL))) < 1e-7
+        # later than the plan only by what the report says
+        assert out["duration"] == pytest.approx(
+            answer["duration"] + info["later_than_asked"], abs=1e-9)
+        # a continuation of the continuation keeps to them too
+        k = len(out["path"]["t"]) // 2
+        again = replan(out, float(out["path"]["t"][k]), np.array(out["path"]["q"][k]))
+        assert within(again, lim)
+
+
+def test_a_duration_too_short_for_the_limits_is_refused_naming_it() -> None:
+    lim = LIMITS[0]
+    answer = plan(PlanRequest(start=START, goal=GOAL, **lim)).to_dict()
+    i = len(answer["path"]["t"]) // 2
+    t = float(answer["path"]["t"][i])
+    q = np.array(answer["path"]["q"][i])
+    with pytest.raises(InfeasibleError) as err:
+        replan(answer, t, q, duration=t + 0.01)
+    assert err.value.field == "duration"
+    assert err.value.diagnostics["shortest_end"] > t + 0.01
+
+
+def test_a_plan_without_limits_hands_out_none() -> None:
+    answer = plan(PlanRequest(start=START, goal=GOAL)).to_dict()
+    i = len(answer["path"]["t"]) // 2
+    out = replan(answer, float(answer["path"]["t"][i]), np.array(answer["path"]["q"][i]))
+    assert "limits" not in out["diagnostics"]["replan"]
+    assert out["time_law"]["limits"] == {}
+    assert out["duration"] == pytest.approx(answer["duration"])
