@@ -88,3 +88,37 @@ def test_a_plan_without_limits_hands_out_none() -> None:
     assert "limits" not in out["diagnostics"]["replan"]
     assert out["time_law"]["limits"] == {}
     assert out["duration"] == pytest.approx(answer["duration"])
+
+
+def test_the_laws_peaks_and_slope_jumps_against_closed_forms() -> None:
+    """One piece of plan time 2 at geometric rates (0.5, -0.25) within |u| <= 0.2,
+    |u'| <= 0.1: sigma' is bounded by 0.2 / 0.5 = 0.4 and sigma'' by 0.2, so the trapezoid
+    accelerates for 2 s, cruises 3 s and brakes 2 s (7 s: L / V + V / A); u1 peaks at 0.2 and
+    its slope at 0.1, and the slope jumps by 0.1 at each of the four kinks. Under a jerk bound
+    the S-curve's slopes are continuous."""
+    from optimizer.planner.continuation_law import (LIMIT_MARGIN, law_within_limits,
+                                                    measured_limits, slope_jump)
+    from optimizer.planner.plan_state import TimeLaw
+    from optimizer.timing import Limits
+
+    breaks = np.array([0.0, 2.0])
+    rates = np.array([[0.5, -0.25]])
+    lim = Limits(rate=(0.2, None), accel=(0.1, None))
+    law = TimeLaw(law_within_limits(1.0, 1.5, breaks, rates, lim))
+    f = 1.0 - LIMIT_MARGIN
+    V, A = 0.4 * f, 0.2 * f
+    assert law.end - 1.0 == pytest.approx(2.0 / V + V / A, rel=1e-12)   # later than 1.5
+    peaks = measured_limits(law, breaks, rates)
+    assert peaks["max_u1"] == pytest.approx(0.2 * f, rel=1e-9)
+    assert peaks["max_du1"] == pytest.approx(0.1 * f, rel=1e-9)
+    assert peaks["max_u2"] == pytest.approx(0.1 * f, rel=1e-9)
+    assert slope_jump(law, breaks, rates) == pytest.approx(0.1 * f, rel=1e-9)
+    # time to spare: stretched by T / T_min, the peaks fall by it and its square
+    T_min = law.end - 1.0
+    slow = TimeLaw(law_within_limits(1.0, 1.0 + 2.0 * T_min, breaks, rates, lim))
+    assert slow.end == pytest.approx(1.0 + 2.0 * T_min, rel=1e-12)
+    assert measured_limits(slow, breaks, rates)["max_du1"] == pytest.approx(0.025 * f, rel=1e-9)
+    jerk = Limits(rate=(0.2, None), accel=(0.1, None), jerk=(0.05, None))
+    smooth = TimeLaw(law_within_limits(1.0, 1.5, breaks, rates, jerk))
+    assert slope_jump(smooth, breaks, rates) < 1e-12
+    assert measured_limits(smooth, breaks, rates)["max_ddu1"] <= 0.05 * (1 + 1e-9)

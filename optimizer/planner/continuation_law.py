@@ -127,5 +127,20 @@ def measured_limits(law: TimeLaw, breaks: np.ndarray, rates: np.ndarray
             for name, value in zip(names, values)}
 
 
+def slope_jump(law: TimeLaw, breaks: np.ndarray, rates: np.ndarray) -> float:
+    """The largest jump of ``|u_i'|`` from one phase of ``law`` to the next (rad/s^2): 0
+    where the rates' slopes are continuous, as a jerk bound needs them."""
+    P = law.phases
+    if P.shape[0] < 2:
+        return 0.0
+    mid = law.evaluate(P[:, 0] + 0.5 * P[:, 1])[0]
+    k = np.minimum(np.maximum(np.searchsorted(breaks, mid, side="right") - 1, 0),
+                   rates.shape[0] - 1)
+    g = rates[k]
+    end = g[:-1] * (P[:-1, 4] + P[:-1, 5] * P[:-1, 1])[:, None]
+    start = g[1:] * P[1:, 4, None]
+    return float(np.abs(start - end).max())
+
+
 __all__ = ["LIMIT_MARGIN", "braking_time", "law_within_limits", "measured_limits",
-           "piece_bounds"]
+           "piece_bounds", "slope_jump"]

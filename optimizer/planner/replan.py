@@ -104,7 +104,7 @@ from .plan import plan as full_plan
 from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array, limits_dict,
                          invalid, read_plan)
 from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
-from .continuation_law import law_within_limits, measured_limits
+from .continuation_law import law_within_limits, measured_limits, slope_jump
 from .continuation_map import (HALVING_STEPS, KERNEL_STEPS, WEIGHT_FLOOR, PieceMap,
                                correct_pieces, damped_correct, halving_correct,
                                kernel_correct, piece_end, piece_weights, weighted_step)
@@ -919,10 +919,17 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
         # the rates and slopes of the handed-out linear form (what a drive runs), the
         # rates' second derivative of the law
         measured = {**measured_limits(law, cont.breaks, rates), **_form_peaks(times, u)}
+        jump = slope_jump(law, cont.breaks, rates)
+        jerk_bounded = any(b is not None for b in ps.limits.jerk)
         out["diagnostics"]["replan"]["limits"] = {
             "bounds": bounds, "measured": {k: measured[k] for k in bounds},
+            # under a jerk bound the rates' slopes must be continuous: a jump (the motion
+            # under way braked at a constant rate) is an unbounded jerk
+            "slope_jump": jump,
             "within": all(measured[k] <= v * (1.0 + LIMIT_TOLERANCE)
-                          for k, v in bounds.items()),
+                          for k, v in bounds.items())
+            and not (jerk_bounded and jump > 1e-6 * max(1.0, measured["max_du1"],
+                                                        measured["max_du2"])),
             "later_than_asked": max(T_end - (t + float(req.duration or 0.0)), 0.0)}
     if ps.joint_bounds is not None:
         out["joint_bounds"] = [None if b is None else list(b) for b in ps.joint_bounds]
