@@ -47,6 +47,35 @@ def test_replan_continues_the_answer_to_the_goal(client: TestClient, answer: dic
     assert r2.json()["validation"]["terminal_error"] < 1e-6
 
 
+def test_a_plan_with_rate_limits_is_continued_within_them(client: TestClient) -> None:
+    """Over HTTP too: the limits travel in the answer's time_law, the continuation's samples
+    keep to them (finite differences), and a compact form sent back keeps them as well."""
+    lim = {"max_u1": 1.0, "max_u2": 1.0, "max_du1": 5.0, "max_du2": 5.0}
+    r = client.post("/v1/plans", json={**PLAN, **lim})
+    assert r.status_code == 200, r.text
+    plan = r.json()
+    assert plan["time_law"]["limits"] == lim
+    i = len(plan["path"]["t"]) // 2
+    t = plan["path"]["t"][i]
+    r = client.post("/v1/replans", json={"plan": plan, "time": t,
+                                          "state": _state_at(plan, t, math.radians(0.05))})
+    assert r.status_code == 200, r.text
+    body = r.json()
+    tt, u = np.array(body["path"]["t"]), np.array(body["path"]["u"])
+    dt = np.diff(tt)
+    ok = dt > 1e-12
+    assert np.abs(u).max() <= 1.0 * (1 + 1e-6)
+    assert (np.abs(np.diff(u, axis=0))[ok] / dt[ok, None]).max() <= 5.0 * (1 + 1e-6)
+    assert body["time_law"]["limits"] == lim
+    assert body["diagnostics"]["replan"]["limits"]["within"] is True
+    compact = {**{k: plan[k] for k in ("robot", "coefficients", "time_law")},
+               "goal": plan["validation"]["final"][1:]}
+    r = client.post("/v1/replans", json={"plan": compact, "time": t,
+                                          "state": _state_at(plan, t, math.radians(0.05))})
+    assert r.status_code == 200, r.text
+    assert r.json()["diagnostics"]["replan"]["limits"]["bounds"] == lim
+
+
 def test_same_request_same_answer(client: TestClient, answer: dict) -> None:
     req = {"plan": answer, "time": 0.5, "state": _state_at(answer, 0.5, 0.004)}
     a, b = (client.post("/v1/replans", json=req).json() for _ in range(2))
