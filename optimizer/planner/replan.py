@@ -58,8 +58,8 @@ geometry and the timing are corrected separately.
    first): the full planner (method ``shooting``, then ``penalty``) plans from the stop; its
    last piece is split into the same geometric tail, and its pieces run rest to rest until
    the end.
-6. **At the start, at rest.** At the plan's start with nothing under way (the commanded
-   rates 0) no motion needs continuing: where the corrected plan reverses ``phi`` or ``th1``
+6. **At the start, at rest** (up to :data:`FRESH_PLAN_UP_TO_JOINTS` joints). At the plan's
+   start with nothing under way (the commanded rates 0) no motion needs continuing: where the corrected plan reverses ``phi`` or ``th1``
    more often than the plan, the full planner plans afresh from the measured state (its
    ranking: fewest reversals first), and its plan is answered when it reverses them less
    often. (The first replan of a closed loop corrects the start error: in the benchmark's
@@ -140,6 +140,11 @@ DAMPED_SINGULAR_BELOW_JOINTS = 4
 #: Distance (rad) from the limits that a continuation's corrected part keeps (half the
 #: planner's node margin, :data:`~.nlp.MARGIN`), or half the room its stop or goal leaves.
 REPLAN_MARGIN = 0.5 * MARGIN
+#: Up to this many joints a replan at the plan's start at rest tries a fresh plan where the
+#: correction adds reversals (step 6 of the module): from 6 joints the full planner takes
+#: seconds on such goals, or finds nothing within the time limit, where the correction has
+#: answered in milliseconds.
+FRESH_PLAN_UP_TO_JOINTS = 5
 # ------------------------------------------------------------------ the replanner
 @dataclass(frozen=True)
 class Continuation:
@@ -284,7 +289,8 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
         except (ArithmeticError, ValueError, IndexError, np.linalg.LinAlgError) as exc:
             errors.append(f"warm NLP: {type(exc).__name__}: {exc}")
     if (result is not None and cont is not None and fallback and not keep_reversals
-            and _at_rest_at_start(ps, t, u_c) and cont.route != "full_planner"):
+            and n <= FRESH_PLAN_UP_TO_JOINTS and _at_rest_at_start(ps, t, u_c)
+            and cont.route != "full_planner"):
         result = _fresh_when_fewer_reversals(ps, req, t, q_m, u_c, T_end, cont, result,
                                              timing, (lo, hi), t_start, errors)
     if result is None:
