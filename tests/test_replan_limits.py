@@ -122,3 +122,19 @@ def test_the_laws_peaks_and_slope_jumps_against_closed_forms() -> None:
     smooth = TimeLaw(law_within_limits(1.0, 1.5, breaks, rates, jerk))
     assert slope_jump(smooth, breaks, rates) < 1e-12
     assert measured_limits(smooth, breaks, rates)["max_ddu1"] <= 0.05 * (1 + 1e-9)
+
+
+def test_a_chained_plan_with_limits_is_braked_and_continued_within_them() -> None:
+    """A plan of chained inputs (the paper's polynomial method) is braked, then planned
+    afresh: its braking too keeps to the acceleration bounds."""
+    lim = LIMITS[0]
+    answer = plan(PlanRequest(start=START, goal=GOAL, method="polynomial", **lim)).to_dict()
+    for f in (0.2, 0.5):
+        i = int(f * (len(answer["path"]["t"]) - 1))
+        t = float(answer["path"]["t"][i])
+        q = np.array(answer["path"]["q"][i]) + np.r_[0.0, 1e-3, 1e-3, 1e-3]
+        out = replan(answer, t, q)
+        assert out["diagnostics"]["replan"]["route"] == "full_planner"
+        assert within(out, lim), peaks(out)
+        end = run_plant(out, q, t, out["duration"], PROTOTYPE_K)
+        assert np.max(np.abs(end[1:] - np.array(GOAL))) < 1e-7

@@ -104,7 +104,7 @@ from .plan import plan as full_plan
 from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array, limits_dict,
                          invalid, read_plan)
 from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
-from .continuation_law import law_within_limits, measured_limits, slope_jump
+from .continuation_law import braking_time, law_within_limits, measured_limits, slope_jump
 from .continuation_map import (HALVING_STEPS, KERNEL_STEPS, WEIGHT_FLOOR, PieceMap,
                                correct_pieces, damped_correct, halving_correct,
                                kernel_correct, piece_end, piece_weights, weighted_step)
@@ -653,7 +653,9 @@ def _fallback(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: n
         if kept.k >= ps.rates.shape[0]:
             kept = brake_now(ps, t, u_c, T_end)
     elif float(np.abs(u_c).max()) > REST:
-        Db = min(BRAKE_TIME, 0.5 * (T_end - t))
+        # (within the plan's acceleration bounds: sigma' falls from 1 to 0, u' = u_c / Db)
+        Db = max(min(BRAKE_TIME, 0.5 * (T_end - t)),
+                 braking_time(1.0, np.asarray(u_c, float), ps.limits))
         kept = Kept(0, np.array([0.0, 0.5 * Db]), np.asarray(u_c, float)[None, :],
                     TimeLaw(braking(t, Db, 0.0)))
     else:
