@@ -138,3 +138,34 @@ def test_a_chained_plan_with_limits_is_braked_and_continued_within_them() -> Non
         assert within(out, lim), peaks(out)
         end = run_plant(out, q, t, out["duration"], PROTOTYPE_K)
         assert np.max(np.abs(end[1:] - np.array(GOAL))) < 1e-7
+
+
+def test_under_a_jerk_bound_the_motion_under_way_stops_on_an_s_curve() -> None:
+    """Near the end (the plan's last piece) the motion under way is braked now: under a jerk
+    bound on an S-curve from its speed and acceleration, so the rates' slope does not jump."""
+    lim = LIMITS[1]
+    answer = plan(PlanRequest(start=START, goal=GOAL, **lim)).to_dict()
+    i = int(0.85 * (len(answer["path"]["t"]) - 1))
+    t = float(answer["path"]["t"][i])
+    q = np.array(answer["path"]["q"][i]) + np.r_[0.0, np.radians(0.05) * np.ones(3)]
+    out = replan(answer, t, q)
+    info = out["diagnostics"]["replan"]
+    assert info["braked"]
+    assert info["limits"]["slope_jump"] < 1e-9 and info["limits"]["within"]
+    assert within(out, lim)
+    end = run_plant(out, q, t, out["duration"], PROTOTYPE_K)
+    assert np.max(np.abs(end[1:] - np.array(GOAL))) < 1e-7
+
+
+def test_the_s_curve_stop_against_its_closed_form() -> None:
+    """From speed 1 at rest acceleration, |a| <= 2, |jerk| <= 10: 0.2 s of jerk, 0.3 s held at
+    -2, 0.2 s of jerk; 0.35 of distance (average speed 1/2); ends at rest with no
+    acceleration."""
+    from optimizer.planner.kept_motion import scurve_stop
+    rows = scurve_stop(1.0, 0.0, 2.0, 10.0)
+    assert rows is not None
+    assert rows[:, 1] == pytest.approx([0.2, 0.3, 0.2], rel=1e-12)
+    h, x, v, a, j = rows[-1, 1:].tolist()
+    assert x + h * (v + h * (a / 2 + h * j / 6)) == pytest.approx(0.35, rel=1e-12)
+    assert v + h * (a + h * j / 2) == pytest.approx(0.0, abs=1e-12)
+    assert a + h * j == pytest.approx(0.0, abs=1e-12)

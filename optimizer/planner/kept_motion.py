@@ -14,6 +14,9 @@ from ..errors import NumericalError
 from .continuation_law import braking_time, piece_bounds
 from .plan_state import REST, PlanState, TimeLaw
 
+#: Under a jerk bound the S-curve stop of :func:`brake_now` may take at most this share of
+#: what is left of the current piece.
+STOP_SHARE = 0.9
 #: Seconds within which the motion under way is braked to rest (:func:`brake_now`; a chained
 #: plan's commanded rates too, in the replanner's fallback).
 BRAKE_TIME = 0.05
@@ -132,22 +135,65 @@ def brake_now(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
     when no piece is left after the next stop (the plan's last segment), and when the rates
     cannot keep their signs with the motion under way run to its piece's end."""
     assert ps.rates is not None
-    s_t, v, _ = ps.law.at(t)
+    s_t, v, a0 = ps.law.at(t)
     if v <= REST:
         return run_on(ps, t, u_c)
     k = ps.piece_at(s_t)
     room = float(ps.breaks[k + 1]) - s_t
+    rates = (np.asarray(u_c, float) / v)[None, :]
+    if any(b is not None for b in ps.limits.jerk):
+        # under a jerk bound the rates' slope may not jump: an S-curve stop from the current
+        # speed and acceleration, where the piece leaves room for it
+        V_b, A_b, J_b = piece_bounds(rates, ps.limits)
+        stop = scurve_stop(v, a0, float(A_b[0]), float(J_b[0]))
+        if stop is not None:
+            law = np.column_stack([t + stop[:, 0], stop[:, 1], s_t + stop[:, 2], stop[:, 3:]])
+            s_b = s_t + float(_rows_end(stop))
+            # (a longer stop than the constant braking's half of the piece: what is left of
+            # it after the stop is still corrected with the later pieces)
+            if s_b - s_t <= STOP_SHARE * room:
+                return Kept(k, np.array([s_t, s_b]), rates, TimeLaw(law))
     # travels v D / 2 <= room / 2; under the plan's acceleration bounds no faster than they
     # allow (where the piece leaves room for it)
     D = min(max(min(BRAKE_TIME, 0.25 * (T_end - t)),
-                braking_time(v, np.asarray(u_c, float) / v, ps.limits)), room / v)
+                braking_time(v, rates[0], ps.limits)), room / v)
     if D <= 0.0:
         raise NumericalError("no room left to brake the current motion")
     s_b = s_t + 0.5 * v * D
     law = np.array([[t, D, s_t, v, -v / D, 0.0]])
-    rates = (np.asarray(u_c, float) / v)[None, :]
     # the rest of the current piece is free: ps.breaks[k + 1:] follow s_b
     return Kept(k, np.array([s_t, s_b]), rates, TimeLaw(law))
 
 
-__all__ = ["BRAKE_TIME", "Kept", "brake_now", "run_on", "to_piece_end"]
+def scurve_stop(v: float, a0: float, A: float, J: float) -> np.ndarray | None:
+    """Rows ``(t0, dt, x0, v0, a0, jerk)`` (times and positions from 0) that bring a speed
+    ``v > 0`` with acceleration ``a0`` to rest with the acceleration back at 0: jerk ``-J``
+    down to ``-Ap``, ``-Ap`` held, jerk ``+J`` up to 0, ``Ap <= A`` (the shortest such stop).
+    None where ``J`` is not finite or the motion already decelerates harder than that."""
+    if not (math.isfinite(J) and J > 0.0):
+        return None
+    Ap = A if math.isfinite(A) else math.inf
+    hold = (v + a0 * a0 / (2.0 * J) - Ap * Ap / J) / Ap if math.isfinite(Ap) else -1.0
+    if hold < 0.0:              # no held deceleration: the peak is below A
+        Ap, hold = math.sqrt(J * v + 0.5 * a0 * a0), 0.0
+    t1 = (a0 + Ap) / J
+    if t1 < 0.0:
+        return None
+    rows, t, x, s, a = [], 0.0, 0.0, v, a0
+    for h, j in ((t1, -J), (hold, 0.0), (Ap / J, J)):
+        if h > 0.0:
+            rows.append([t, h, x, s, a, j])
+            x += h * (s + h * (a / 2.0 + h * j / 6.0))
+            s += h * (a + h * j / 2.0)
+            a += h * j
+            t += h
+    return np.array(rows)
+
+
+def _rows_end(rows: np.ndarray) -> float:
+    """The position at the end of the last of ``rows``."""
+    _, h, x, s, a, j = rows[-1].tolist()
+    return x + h * (s + h * (a / 2.0 + h * j / 6.0))
+
+
+__all__ = ["BRAKE_TIME", "Kept", "brake_now", "run_on", "scurve_stop", "to_piece_end"]
