@@ -169,3 +169,47 @@ def test_the_s_curve_stop_against_its_closed_form() -> None:
     assert x + h * (v + h * (a / 2 + h * j / 6)) == pytest.approx(0.35, rel=1e-12)
     assert v + h * (a + h * j / 2) == pytest.approx(0.0, abs=1e-12)
     assert a + h * j == pytest.approx(0.0, abs=1e-12)
+
+
+def test_where_the_motion_under_way_cannot_stop_within_the_limits_nothing_is_handed_out() -> None:
+    """Near the plan's end the motion under way is braked in what is left of its last piece;
+    where the acceleration bounds need more room than that, no continuation beyond them is
+    handed out: a typed refusal naming the state and the limits (the loop runs on)."""
+    from optimizer.errors import NumericalError
+    lim = LIMITS[0]
+    answer = plan(PlanRequest(start=START, goal=GOAL, **lim)).to_dict()
+    n = len(answer["path"]["t"])
+    i = int(0.97 * (n - 1))
+    t = float(answer["path"]["t"][i])
+    q = np.array(answer["path"]["q"][i]) + np.r_[0.0, np.radians(0.05) * np.ones(3)]
+    with pytest.raises(NumericalError) as err:
+        replan(answer, t, q)
+    assert err.value.field == "state" and "max_du1 = 5" in err.value.message
+    # with room to stop (earlier in the same piece) the braked continuation keeps to them
+    j = int(0.94 * (n - 1))
+    tj = float(answer["path"]["t"][j])
+    qj = np.array(answer["path"]["q"][j]) + np.r_[0.0, np.radians(0.05) * np.ones(3)]
+    out = replan(answer, tj, qj)
+    assert out["diagnostics"]["replan"]["braked"] and within(out, lim)
+
+
+def test_a_piece_no_bound_binds_keeps_a_share_of_the_time() -> None:
+    """Bounds on u1 only; the second piece moves th1 alone (u1 = 0): no bound binds it, so
+    it has no shortest duration, and where the first piece alone needs more than the time
+    left it still gets its share (the law stays finite, its rates too)."""
+    from optimizer.planner.continuation_law import law_within_limits
+    from optimizer.planner.plan_state import TimeLaw
+    from optimizer.timing import Limits
+
+    breaks = np.array([0.0, 1.0, 2.0])
+    rates = np.array([[1.0, 0.5], [0.0, 0.5]])
+    lim = Limits(rate=(0.1, None), accel=(0.1, None))
+    law = TimeLaw(law_within_limits(0.0, 1.0, breaks, rates, lim))
+    P = law.phases
+    assert np.isfinite(P).all() and (P[:, 1] >= 0.0).all()
+    assert law.last_sigma() == pytest.approx(2.0, rel=1e-12)
+    # the first piece at |u1| <= 0.1, |u1'| <= 0.1 needs 1 / 0.1 + 0.1 / 0.1 = 11 s (less the
+    # margin); the second keeps a positive share
+    first = P[P[:, 2] < 1.0 - 1e-12]
+    assert first[-1, 0] + first[-1, 1] == pytest.approx(11.0, rel=2e-3)
+    assert law.end > first[-1, 0] + first[-1, 1] + 1.0

@@ -65,7 +65,10 @@ def law_within_limits(t_stop: float, T_end: float, breaks: np.ndarray, rates: np
                for ell, v, a, j in zip(L, V, A, J)]
     D_min = np.array([0.0 if p is None else p.duration for p in fastest])
     share = np.full(L.size, 1.0 / L.size) if equal else L / L.sum()
-    D = _durations(R * share, D_min, R)
+    # (a piece on which no bound binds has no shortest duration: it keeps its share of the
+    # time, of the bounded pieces' time where that is longer than what is left)
+    base = max(R, float(D_min.sum()), 1e-3)
+    D = _durations(base * share, D_min, R)
     rows = []
     t0 = t_stop
     for ell, d, p, s0 in zip(L, D, fastest, breaks[:-1]):
@@ -81,9 +84,10 @@ def law_within_limits(t_stop: float, T_end: float, breaks: np.ndarray, rates: np
 
 def _durations(default: np.ndarray, shortest: np.ndarray, total: float) -> np.ndarray:
     """``max(c default, shortest)`` with the largest ``c <= 1`` whose sum is at most
-    ``total``; ``shortest`` itself where its sum exceeds ``total``."""
+    ``total``; ``shortest`` itself where its sum exceeds ``total`` (``default`` where that is
+    0: no bound binds the piece)."""
     if shortest.sum() >= total:
-        return shortest.copy()
+        return np.where(shortest > 0.0, shortest, default)
     if np.all(default >= shortest):
         return default.copy()
     lo, hi = 0.0, 1.0           # the sum is increasing in c; at c = 1 above total

@@ -12,10 +12,11 @@ import numpy as np
 
 from ..errors import NumericalError
 from .continuation_law import braking_time, piece_bounds
-from .plan_state import REST, PlanState, TimeLaw
+from .plan_state import REST, PlanState, TimeLaw, limits_dict
 
-#: Under a jerk bound the S-curve stop of :func:`brake_now` may take at most this share of
-#: what is left of the current piece.
+#: Where the plan's bounds need it, the stop of :func:`brake_now` (an S-curve under a jerk
+#: bound, else a constant braking) may take at most this share of what is left of the
+#: current piece (else half of it).
 STOP_SHARE = 0.9
 #: Seconds within which the motion under way is braked to rest (:func:`brake_now`; a chained
 #: plan's commanded rates too, in the replanner's fallback).
@@ -73,7 +74,11 @@ def run_on(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
     if j <= k:      # the stop lies within rounding ahead of t, at the start of piece k
         k = j - 1
     if j > k + 1:
-        return to_piece_end(ps, t, s_t, v, k, u_c)
+        stopped = to_piece_end(ps, t, s_t, v, k, u_c)
+        if stopped is not None:
+            return stopped
+        # (the end of the piece is nearer than the plan's bounds can stop at: the plan's
+        # own law, within them, runs on to its next stop)
     inner = ps.breaks[k + 1:j]
     kb = np.concatenate([[s_t], inner, [ps.breaks[j]]])
     kr = ps.rates[k:j].copy()
@@ -84,11 +89,13 @@ def run_on(ps: PlanState, t: float, u_c: np.ndarray) -> Kept:
 
 
 def to_piece_end(ps: PlanState, t: float, s_t: float, v: float, k: int, u_c: np.ndarray
-                  ) -> Kept:
+                  ) -> Kept | None:
     """The commanded motion brought to rest at the end of its piece (where the plan's law runs
     on to a later stop): ``sigma'`` linear from ``v`` to a peak and down to 0, in about the
     time the plan takes to that break (at most ``3.5 l / v``, so the peak stays above
-    ``v / 14``). The rates stay continuous; every later piece becomes correctable."""
+    ``v / 14``). The rates stay continuous; every later piece becomes correctable. None
+    where the plan's rate bounds cannot be kept so (the break is too near to stop at), or
+    where a jerk bound forbids the law's kinks."""
     assert ps.rates is not None
     s_end = float(ps.breaks[k + 1])
     ell = s_end - s_t
@@ -98,8 +105,13 @@ def to_piece_end(ps: PlanState, t: float, s_t: float, v: float, k: int, u_c: np.
     D_plan = float(np.interp(s_end, sg, grid)) - t if sg[-1] >= s_end else ps.law.end - t
     D = min(max(D_plan, 1e-6), 3.5 * ell / v)
     if ps.limits.any:
+        if any(b is not None for b in ps.limits.jerk):
+            return None
         Vb, Ab, _ = piece_bounds((np.asarray(u_c, float) / v)[None, :], ps.limits)
-        D = _within_bounds(D, ell, v, float(Vb[0]), float(Ab[0]))
+        D_b = _within_bounds(D, ell, v, float(Vb[0]), float(Ab[0]))
+        if D_b is None:
+            return None
+        D = D_b
     h = 0.5 * D
     peak = 0.5 * (4.0 * ell / D - v)
     s_mid = s_t + 0.5 * (v + peak) * h
@@ -109,11 +121,11 @@ def to_piece_end(ps: PlanState, t: float, s_t: float, v: float, k: int, u_c: np.
     return Kept(k + 1, np.array([s_t, s_end]), rates, TimeLaw(law), own=False)
 
 
-def _within_bounds(D: float, ell: float, v: float, V: float, A: float) -> float:
+def _within_bounds(D: float, ell: float, v: float, V: float, A: float) -> float | None:
     """The duration nearest ``D`` of :func:`to_piece_end`'s law (``sigma'`` linear from
     ``v`` to a peak ``(4 ell / D - v) / 2`` at ``D / 2`` and down to 0; the peak >= 0 needs
-    ``D <= 4 ell / v``) whose peak stays within ``V`` and slopes within ``A``; the one that
-    exceeds them least where none does (the piece's end nearer than the bounds can stop at).
+    ``D <= 4 ell / v``) whose peak stays within ``V`` and slopes within ``A``; None where
+    none does (the piece's end nearer than the bounds can stop at).
     """
     def excess(d: np.ndarray) -> np.ndarray:
         peak = 0.5 * (4.0 * ell / d - v)
@@ -125,7 +137,7 @@ def _within_bounds(D: float, ell: float, v: float, V: float, A: float) -> float:
     grid = np.linspace(1e-3, 1.0, 400) * 4.0 * ell / v
     e = excess(grid)
     ok = grid[e <= 1.0]
-    return float(ok[np.argmin(np.abs(ok - D))]) if ok.size else float(grid[np.argmin(e)])
+    return float(ok[np.argmin(np.abs(ok - D))]) if ok.size else None
 
 
 def brake_now(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
@@ -153,16 +165,29 @@ def brake_now(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
             # it after the stop is still corrected with the later pieces)
             if s_b - s_t <= STOP_SHARE * room:
                 return Kept(k, np.array([s_t, s_b]), rates, TimeLaw(law))
+        raise _no_stop_within(ps)
     # travels v D / 2 <= room / 2; under the plan's acceleration bounds no faster than they
-    # allow (where the piece leaves room for it)
-    D = min(max(min(BRAKE_TIME, 0.25 * (T_end - t)),
-                braking_time(v, rates[0], ps.limits)), room / v)
+    # allow (up to STOP_SHARE of the piece where they need more than its half)
+    D_need = braking_time(v, rates[0], ps.limits)
+    if D_need > 2.0 * STOP_SHARE * room / v:
+        raise _no_stop_within(ps)
+    cap = room / v if D_need <= room / v else 2.0 * STOP_SHARE * room / v
+    D = min(max(min(BRAKE_TIME, 0.25 * (T_end - t)), D_need), cap)
     if D <= 0.0:
         raise NumericalError("no room left to brake the current motion")
     s_b = s_t + 0.5 * v * D
     law = np.array([[t, D, s_t, v, -v / D, 0.0]])
     # the rest of the current piece is free: ps.breaks[k + 1:] follow s_b
     return Kept(k, np.array([s_t, s_b]), rates, TimeLaw(law))
+
+
+def _no_stop_within(ps: PlanState) -> NumericalError:
+    # a drive cannot follow rates beyond its bounds: none are handed out; the caller runs on
+    # the current plan (or a later replan, from a state where there is room, corrects)
+    return NumericalError(
+        "the motion under way cannot be brought to rest within the plan's rate limits "
+        f"({', '.join(f'{k} = {v:g}' for k, v in limits_dict(ps.limits).items())}) before the "
+        "end of its piece: run on the current plan", field="state")
 
 
 def scurve_stop(v: float, a0: float, A: float, J: float) -> np.ndarray | None:
