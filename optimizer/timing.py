@@ -83,6 +83,16 @@ class Limits:
     def any(self) -> bool:
         return any(x is not None for x in self.rate + self.accel + self.jerk)
 
+    @property
+    def jerk_bounded(self) -> bool:
+        return any(x is not None for x in self.jerk)
+
+    def as_dict(self) -> dict[str, float]:
+        """The bounds that are set, by their request names (``max_u1``, ...)."""
+        return {name: float(value) for names, values in zip(
+            self.NAMES, (self.rate, self.accel, self.jerk))
+            for name, value in zip(names, values) if value is not None}
+
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The three bounds as arrays (2,), ``inf`` where there is none."""
         def arr(v: tuple[float | None, float | None]) -> np.ndarray:
@@ -412,9 +422,7 @@ class TimeLaw:
                        "a0": p.a0, "jerk": p.jerk},
             "shortest_duration": self.shortest,
             "binding_limit": self.binding,
-            "limits": {name: value for names, values in zip(
-                Limits.NAMES, (self.limits.rate, self.limits.accel, self.limits.jerk))
-                for name, value in zip(names, values) if value is not None},
+            "limits": self.limits.as_dict(),
         }
 
 

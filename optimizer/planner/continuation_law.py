@@ -109,11 +109,21 @@ def braking_time(speed: float, direction: np.ndarray, limits: Limits) -> float:
     return 0.0 if not math.isfinite(float(A[0])) else speed / float(A[0])
 
 
+def _phase_rates(law: TimeLaw, breaks: np.ndarray, rates: np.ndarray) -> np.ndarray:
+    """``(phases, 2)``: the geometric rates of the piece each phase of ``law`` runs (a phase
+    lies within one piece: the one that holds its middle)."""
+    P = law.phases
+    mid = law.evaluate(P[:, 0] + 0.5 * P[:, 1])[0]
+    k = np.minimum(np.maximum(np.searchsorted(breaks, mid, side="right") - 1, 0),
+                   rates.shape[0] - 1)
+    return np.asarray(rates, float)[k]
+
+
 def measured_limits(law: TimeLaw, breaks: np.ndarray, rates: np.ndarray
                     ) -> dict[str, float]:
     """The largest ``|u_i|``, ``|u_i'|``, ``|u_i''|`` of the rates ``rates[piece(sigma(t))]
     sigma'(t)`` along ``law``, named as the limits are: each phase's own cubic at
-    :data:`MEASURE_POINTS` points of it (a phase lies within one piece)."""
+    :data:`MEASURE_POINTS` points of it."""
     P = law.phases
     if P.shape[0] == 0:
         return {}
@@ -122,10 +132,7 @@ def measured_limits(law: TimeLaw, breaks: np.ndarray, rates: np.ndarray
     ds = v0 + r * (a0 + 0.5 * j * r)
     dds = a0 + j * r
     ddds = np.broadcast_to(j, r.shape)
-    mid = law.evaluate(P[:, 0] + 0.5 * P[:, 1])[0]
-    k = np.minimum(np.maximum(np.searchsorted(breaks, mid, side="right") - 1, 0),
-                   rates.shape[0] - 1)
-    g = np.abs(rates[k])                                   # (phases, 2)
+    g = np.abs(_phase_rates(law, breaks, rates))
     peaks = [(g * np.abs(x).max(axis=1)[:, None]).max(axis=0) for x in (ds, dds, ddds)]
     return {name: float(value) for names, values in zip(Limits.NAMES, peaks)
             for name, value in zip(names, values)}
@@ -137,10 +144,7 @@ def slope_jump(law: TimeLaw, breaks: np.ndarray, rates: np.ndarray) -> float:
     P = law.phases
     if P.shape[0] < 2:
         return 0.0
-    mid = law.evaluate(P[:, 0] + 0.5 * P[:, 1])[0]
-    k = np.minimum(np.maximum(np.searchsorted(breaks, mid, side="right") - 1, 0),
-                   rates.shape[0] - 1)
-    g = rates[k]
+    g = _phase_rates(law, breaks, rates)
     end = g[:-1] * (P[:-1, 4] + P[:-1, 5] * P[:-1, 1])[:, None]
     start = g[1:] * P[1:, 4, None]
     return float(np.abs(start - end).max())

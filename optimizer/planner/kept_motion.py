@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import NumericalError
 from .continuation_law import braking_time, piece_bounds
-from .plan_state import REST, PlanState, TimeLaw, limits_dict
+from .plan_state import REST, PlanState, TimeLaw
 
 #: Where the plan's bounds need it, the stop of :func:`brake_now` (an S-curve under a jerk
 #: bound, else a constant braking) may take at most this share of what is left of the
@@ -105,7 +105,7 @@ def to_piece_end(ps: PlanState, t: float, s_t: float, v: float, k: int, u_c: np.
     D_plan = float(np.interp(s_end, sg, grid)) - t if sg[-1] >= s_end else ps.law.end - t
     D = min(max(D_plan, 1e-6), 3.5 * ell / v)
     if ps.limits.any:
-        if any(b is not None for b in ps.limits.jerk):
+        if ps.limits.jerk_bounded:
             return None
         Vb, Ab, _ = piece_bounds((np.asarray(u_c, float) / v)[None, :], ps.limits)
         D_b = _within_bounds(D, ell, v, float(Vb[0]), float(Ab[0]))
@@ -153,10 +153,10 @@ def brake_now(ps: PlanState, t: float, u_c: np.ndarray, T_end: float) -> Kept:
     k = ps.piece_at(s_t)
     room = float(ps.breaks[k + 1]) - s_t
     rates = (np.asarray(u_c, float) / v)[None, :]
-    if any(b is not None for b in ps.limits.jerk):
+    if ps.limits.jerk_bounded:
         # under a jerk bound the rates' slope may not jump: an S-curve stop from the current
         # speed and acceleration, where the piece leaves room for it
-        V_b, A_b, J_b = piece_bounds(rates, ps.limits)
+        _, A_b, J_b = piece_bounds(rates, ps.limits)
         stop = scurve_stop(v, a0, float(A_b[0]), float(J_b[0]))
         if stop is not None:
             law = np.column_stack([t + stop[:, 0], stop[:, 1], s_t + stop[:, 2], stop[:, 3:]])
@@ -186,7 +186,7 @@ def _no_stop_within(ps: PlanState) -> NumericalError:
     # the current plan (or a later replan, from a state where there is room, corrects)
     return NumericalError(
         "the motion under way cannot be brought to rest within the plan's rate limits "
-        f"({', '.join(f'{k} = {v:g}' for k, v in limits_dict(ps.limits).items())}) before the "
+        f"({', '.join(f'{k} = {v:g}' for k, v in ps.limits.as_dict().items())}) before the "
         "end of its piece: run on the current plan", field="state")
 
 

@@ -126,7 +126,7 @@ class TimeLaw:
                 "phases": {"start": P[:, 0], "length": P[:, 1], "lam0": P[:, 2],
                            "v0": P[:, 3], "a0": P[:, 4], "jerk": P[:, 5]},
                 "shortest_duration": None, "binding_limit": None,
-                "limits": {} if limits is None else limits_dict(limits)}
+                "limits": {} if limits is None else limits.as_dict()}
 
     @classmethod
     def from_answer(cls, law: Mapping[str, Any]) -> tuple["TimeLaw", np.ndarray, np.ndarray,
@@ -173,13 +173,6 @@ class TimeLaw:
         """No jerk phase: constant-direction rates are linear between the phase starts, and
         the linear form with samples there holds them exactly."""
         return not bool((self.phases[:, 5] != 0.0).any())
-
-
-def limits_dict(limits: Limits) -> dict[str, float]:
-    """The bounds by their request names (``max_u1``, ...), those that are set."""
-    return {name: float(value) for names, values in zip(
-        Limits.NAMES, (limits.rate, limits.accel, limits.jerk))
-        for name, value in zip(names, values) if value is not None}
 
 
 def read_limits(given: Any) -> Limits:
@@ -465,6 +458,6 @@ def law_after_stop(t_stop: float, T_end: float, breaks: np.ndarray,
 
 
 __all__ = ["DEFAULT_SAMPLES", "LAW_RULE", "MAX_SEGMENT_TRAVEL", "PlanState", "REST", "TimeLaw",
-           "braking", "finite_array", "invalid", "law_after_stop", "limits_dict", "read_limits",
+           "braking", "finite_array", "invalid", "law_after_stop", "read_limits",
            "read_plan",
            "rest_to_rest", "stop_and_go"]

@@ -101,8 +101,8 @@ from ..results import Plan, json_safe
 from ..timing import Limits
 from ..verify import integrate_cascade
 from .plan import plan as full_plan
-from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array, limits_dict,
-                         invalid, read_plan)
+from .plan_state import (REST, PlanState, TimeLaw, braking, finite_array, invalid,
+                         read_plan)
 from .kept_motion import BRAKE_TIME, Kept, brake_now, run_on
 from .continuation_law import braking_time, law_within_limits, measured_limits, slope_jump
 from .continuation_map import (HALVING_STEPS, KERNEL_STEPS, WEIGHT_FLOOR, PieceMap,
@@ -313,7 +313,7 @@ def replan(plan: Plan | PlanState | Mapping[str, Any], time_: float, state: Any,
             f"the plan's rate limits need the continuation to end at {result['duration']:.6g} s, "
             f"after duration = {T_end:.6g} s: give a later duration (or none)",
             field="duration", diagnostics={"shortest_end": result["duration"],
-                                           "limits": limits_dict(ps.limits)})
+                                           "limits": ps.limits.as_dict()})
     result["timing"]["total"] = time.perf_counter() - t_start
     if errors:
         result["diagnostics"]["replan"]["fast_path_failed"] = errors
@@ -747,7 +747,7 @@ def _form_beyond(ps: PlanState, times: np.ndarray, u: np.ndarray) -> bool:
         return False
     peaks = _form_peaks(times, u)
     return any(peaks[name] > value * (1.0 + LIMIT_TOLERANCE)
-               for name, value in limits_dict(ps.limits).items() if name in peaks)
+               for name, value in ps.limits.as_dict().items() if name in peaks)
 
 
 def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.ndarray,
@@ -923,12 +923,11 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
     if ps.limits.any:
         # the bounds the plan keeps to, and the continuation's rates measured against them
         # (the motion under way, run on or braked from its commanded rates, may need more)
-        bounds = limits_dict(ps.limits)
+        bounds = ps.limits.as_dict()
         # the rates and slopes of the handed-out linear form (what a drive runs), the
         # rates' second derivative of the law
         measured = {**measured_limits(law, cont.breaks, rates), **_form_peaks(times, u)}
         jump = slope_jump(law, cont.breaks, rates)
-        jerk_bounded = any(b is not None for b in ps.limits.jerk)
         out["diagnostics"]["replan"]["limits"] = {
             "bounds": bounds, "measured": {k: measured[k] for k in bounds},
             # under a jerk bound the rates' slopes must be continuous: a jump (the motion
@@ -936,7 +935,7 @@ def _finish(ps: PlanState, req: PlanRequest, t: float, q_m: np.ndarray, u_c: np.
             "slope_jump": jump,
             "within": all(measured[k] <= v * (1.0 + LIMIT_TOLERANCE)
                           for k, v in bounds.items())
-            and not (jerk_bounded and jump > 1e-6 * max(1.0, measured["max_du1"],
+            and not (ps.limits.jerk_bounded and jump > 1e-6 * max(1.0, measured["max_du1"],
                                                         measured["max_du2"])),
             "later_than_asked": max(T_end - (t + float(req.duration or 0.0)), 0.0)}
     if ps.joint_bounds is not None:
