@@ -310,9 +310,9 @@ def test_a_continuation_that_leaves_the_region_is_named_as_such(answer: dict,
     """A verified continuation whose joint reaches the region's edge is refused as leaving
     its limits, naming the joint (it was once reported as a failed re-integration, with the
     quadrature's message)."""
-    from optimizer.planner import replan as rp
+    from optimizer.planner import continuation_proof as proof_module
 
-    real = rp._replay
+    real = proof_module._replay
 
     def reaching_the_edge(*args, **kwargs):
         proof = real(*args, **kwargs)
@@ -320,7 +320,7 @@ def test_a_continuation_that_leaves_the_region_is_named_as_such(answer: dict,
         q[1, 2] = 0.5 * math.pi     # th2 at pi/2 at the first break
         return type(proof)(q, proof.final, proof.error_estimate, True)
 
-    monkeypatch.setattr(rp, "_replay", reaching_the_edge)
+    monkeypatch.setattr(proof_module, "_replay", reaching_the_edge)
     t = 0.3 * answer["duration"]
     state = np.array(answer["path"]["q"][int(np.searchsorted(answer["path"]["t"], t))])
     t = float(answer["path"]["t"][int(np.searchsorted(answer["path"]["t"], t))])
