@@ -24,7 +24,7 @@ from optimizer import analysis
 from optimizer.chained_form import chained_form
 from optimizer.errors import InvalidRequestError, PlannerError
 from optimizer.model import Robot
-from optimizer.planner import budget, continuation_map
+from optimizer.planner import budget, continuation_map, warm_continuation
 from optimizer.planner.context import Deadline
 from optimizer.planner.plan import plan
 from optimizer.planner.replan import replan
@@ -83,6 +83,9 @@ def warm_up() -> dict[str, Any]:
     # (the proof's functions, piece_proof.prepare, about as much again, are built per size at
     # the first replan that needs them: every server start in the tests would pay them)
     continuation_map.prepare(robot.gains, robot.exponents)
+    # the warm-started NLP of the replans' middle route (its own fatrop cap: another NLP object,
+    # the same compiled functions)
+    warm_continuation.prepare(robot.gains, robot.exponents)
     # the reversal budget's NLP and solvers (0.3-0.4 s): not paid by the first
     # max_reversals or pareto request
     budget.prepare(robot.gains, robot.exponents)

@@ -410,6 +410,57 @@ def test_where_gauss_newton_fails_one_warm_started_nlp_continues(four_joints: di
         assert sign_changes(rates) <= sign_changes(ps.rates[k:])
 
 
+# A 5-joint benchmark goal (r5_000) and a state 0.05 deg off its handed-out path at t = 0.105 s
+# (the replan benchmark's): the Gauss-Newton correction fails, and the warm NLP converges in
+# 82 fatrop iterations, past a plan's cap of 60.
+LONG_START = (0.8515717023649964, 1.4373103098882467, 1.5070077878992296, 0.48589760304936314,
+              1.1711319426238491)
+LONG_GOAL = (1.2877058594724977, 1.3561836572221437, 1.4910218704514557, 0.48359069885665934,
+             0.9159653880698625)
+LONG_STATE = (-0.04619740080028006, 0.9135625807020645, 1.4207626795513975, 1.5065959170193017,
+              0.48539034301768175, 1.1481328708604215)
+
+
+def test_the_warm_nlp_iterates_past_a_plans_cap_before_the_full_planner() -> None:
+    """The warm NLP makes way for the full planner, not for another cheap attempt: fatrop may
+    iterate past a plan's cap there (on this state 82 iterations), and the continuation,
+    integrated by scipy from the measured state, reaches the goal inside the region from the
+    commanded rates."""
+    from optimizer.model import Robot
+    from optimizer.planner import solvers
+    from optimizer.planner.warm_continuation import WARM_MAX_ITER
+    assert WARM_MAX_ITER > solvers.FATROP_MAX_ITER
+    robot = Robot.default(5)
+    answer = plan(PlanRequest(start=LONG_START, goal=LONG_GOAL, robot=robot)).to_dict()
+    t, q = 0.105, np.array(LONG_STATE)
+    out = replan(answer, t, q)
+    info = out["diagnostics"]["replan"]
+    assert info["route"] == "warm_nlp"
+    assert rates_of(out, t + 1e-9) == pytest.approx(rates_of(answer, t), rel=1e-6, abs=1e-9)
+    end = run_plant(out, q, t, out["duration"], robot.gains, robot.exponents)
+    assert np.max(np.abs(end[1:] - np.array(LONG_GOAL))) < 1e-7
+    th = np.array(out["path"]["q"])[:, 1:-1]
+    assert np.all((th > 0.0) & (th < math.pi / 2))
+
+
+def test_an_nlp_that_iterates_longer_shares_the_compiled_functions() -> None:
+    """The iteration cap is fatrop's, not its functions': the warm NLP's variant of the first
+    rung is generated from the same functions and finds the same compiled library (other
+    functions, other libraries: tests/test_native.py)."""
+    from optimizer.model import Robot
+    from optimizer.planner.nlp import ladder, nlp_for
+    req = PlanRequest(start=LONG_START, goal=LONG_GOAL, robot=Robot.default(5))
+    tr = ladder(5)[0]
+    plain = nlp_for(req, tr, free=False)
+    longer = nlp_for(req, tr, free=False, fatrop_settings=(("max_iter", 150),))
+    assert longer is not plain
+    assert longer.fingerprint("fatrop") == plain.fingerprint("fatrop")
+    # what the service builds at start-up is the NLP the warm route solves
+    from optimizer.planner.warm_continuation import WARM_SETTINGS, prepare
+    assert prepare(req.robot.gains, req.robot.exponents) is nlp_for(
+        req, tr, free=False, fatrop_settings=WARM_SETTINGS)
+
+
 # A 3-joint goal with th2 near pi/2 (th3 barely follows th2: the end map's third singular
 # value is 1e-4 of the first on the plan's rest); a state 0.05 deg off the plan's, th3 too
 # high, is one that no Gauss-Newton correction of the rest reaches.

@@ -535,13 +535,18 @@ class MultipleShootingNLP:
         """What solver ``name``'s compiled library is generated from, as a string that changes
         whenever its C source would (:func:`optimizer.native.library_for_fingerprint`): the
         serialised problem ``(x, p) -> (f, g)``, the solver's plugin and options (those that
-        are data), and for fatrop the correction's maps compiled with it."""
+        are data, but fatrop's own, which its solver reads at run time), and for fatrop the
+        correction's maps compiled with it."""
         found = self._fingerprints.get(name)
         if found is None:
             # (the options the source is generated under: the virtual machine's solver's)
             opts = self._fatrop_opts if name == "fatrop" else self._ipopt_opts
             data = {k: v for k, v in opts.items()
                     if isinstance(v, (str, int, float, bool, list, tuple, dict))}
+            # fatrop's own options (its cap, tolerances, barrier) are the solver's at run
+            # time, not the functions the library holds: an NLP whose fatrop may iterate
+            # longer (the replanner's warm NLP) shares the library
+            data.pop("fatrop", None)
             parts = [name, repr(sorted(data.items())), self._serialised_problem]
             if name == "fatrop":
                 parts += [f.serialize() for f in self._correction_maps]
@@ -762,17 +767,19 @@ def _shaped_nlp(exponents: tuple[int, ...], fixed_phi: bool, intervals: int, sub
 
 def nlp_for(req: PlanRequest, tr: Transcription, region: str = "hard",
             deviation: str = "line", deviation_points: int = 0,
-            soft_signs: bool = False, free: bool = False) -> MultipleShootingNLP:
+            soft_signs: bool = False, free: bool = False,
+            fatrop_settings: tuple[tuple[str, float], ...] = ()) -> MultipleShootingNLP:
     """The cached NLP of ``req``'s robot under transcription ``tr`` (``deviation_points``:
     inner points per interval that the deviation epigraph bounds too, besides the nodes;
     ``soft_signs``: the rates' signs as penalised rows, see :data:`SIGN_PENALTY`; ``free``:
-    of a free rung, its terminal mode :func:`default_terminal`'s for free rungs)."""
+    of a free rung, its terminal mode :func:`default_terminal`'s for free rungs;
+    ``fatrop_settings``: see :class:`MultipleShootingNLP`)."""
     n = len(req.robot.exponents) + 1
     return multiple_shooting_nlp(tuple(float(k) for k in req.robot.gains),
                                  tuple(int(m) for m in req.robot.exponents),
                                  req.phi_change is not None, tr.intervals, tr.substeps, region,
                                  deviation, deviation_points, default_terminal(n, free),
-                                 soft_signs)
+                                 soft_signs, fatrop_settings)
 
 
 def node_bounds(req: PlanRequest, limits: tuple[np.ndarray, np.ndarray],

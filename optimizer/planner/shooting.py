@@ -160,8 +160,8 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
 
 def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = None,
                    monotone: tuple[float, float] | np.ndarray | None = None,
-                   start_nodes: np.ndarray | None = None, light: bool = False
-                   ) -> ShootingSolution:
+                   start_nodes: np.ndarray | None = None, light: bool = False,
+                   fatrop_settings: tuple[tuple[str, float], ...] = ()) -> ShootingSolution:
     """Solve the NLP of transcription ``tr`` (default: the first rung of
     :func:`~.nlp.ladder`) for ``req`` (normalised time); raise a typed error when it fails.
 
@@ -169,14 +169,16 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
     the initial guess; fatrop, then IPOPT from each); the first converged solution is
     returned. Rates of fixed signs (``monotone``: one sign per actuator, or per interval and
     actuator): fatrop alone, one guess, from ``start_nodes`` (node states, ``(N+1, n+1)``)
-    when given, else the straight line.
+    when given, else the straight line. ``fatrop_settings``: fatrop's options on this solve
+    (an NLP of its own, sharing the compiled functions; the replanner's longer cap).
     """
     if tr is None:
         tr = ladder(req.n)[0]
     # rates held to signs from a cold start: the signs as penalised rows (nlp.SIGN_PENALTY)
     soft = (SOFT_SIGNS and req.n in SOFT_SIGNS_JOINTS and monotone is not None
             and start_nodes is None)
-    nlp = nlp_for(req, tr, soft_signs=soft, free=monotone is None)
+    nlp = nlp_for(req, tr, soft_signs=soft, free=monotone is None,
+                  fatrop_settings=fatrop_settings)
     a, b = np.array(req.start), np.array(req.goal)
     lo, hi = node_bounds(req, joint_limits(req))
     lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi,

@@ -15,6 +15,10 @@ signs of the plan's rates over that interval (an interval that holds a change of
 in that actuator): the continuation then reverses ``phi`` and ``th1`` no more often than the
 plan's rest. The caller (:mod:`.replan`) runs its Gauss-Newton correction from this NLP's
 rates onto the original model's goal and proves the result like any continuation.
+
+fatrop may iterate longer here than in a plan (:data:`WARM_MAX_ITER`): a plan's rung that
+stops at the cap makes way for the next attempt, a few milliseconds; this NLP makes way for
+the full planner, tens of milliseconds to seconds.
 """
 
 from __future__ import annotations
@@ -27,12 +31,42 @@ from ..errors import NumericalError
 from ..problem import PlanRequest
 from .context import Deadline
 from .continuation_map import piece_end
-from .nlp import ladder
+from .nlp import MultipleShootingNLP, default_terminal, ladder, multiple_shooting_nlp
 from .plan_state import PlanState
 from .shooting import solve_shooting
 
 #: Fewer plan time than this (s) after the stop leaves nothing to plan.
 MIN_SPAN = 1e-9
+
+#: fatrop's iteration cap on this NLP (a plan's: :data:`~.solvers.FATROP_MAX_ITER`, 60). On
+#: the replan benchmark's 5-joint states 0.05 deg off their plans, half of the warm NLPs that
+#: failed stopped at 60 iterations, still converging: with 150, of 120 states each of the
+#: benchmark's goals and of a seed it does not use (5 and 6 goals), the full planner answered
+#: 3 and 24 where it had answered 29 and 56 (p99 75 -> 39 ms and 185 -> 170 ms, p50 about
+#: the same); at 4 joints 1 where 2 (p99 31 -> 14 ms). What the full planner would have
+#: answered instead reverses ``phi`` and ``th1`` less often (6.1 against 8.0 times, mean of
+#: the states that changed route): the middle route's trade, as before.
+WARM_MAX_ITER = 150
+
+
+#: fatrop's options on this NLP (a variant of the first rung's, :func:`prepare`).
+WARM_SETTINGS: tuple[tuple[str, float], ...] = (("max_iter", WARM_MAX_ITER),)
+
+
+def prepare(gains: tuple[float, ...], exponents: tuple[int, ...]) -> MultipleShootingNLP:
+    """Build (and cache) this NLP for a robot ahead of its first replan, as
+    :func:`~.shooting.prepare` does a plan's: the first rung with the plan's signs held (its
+    goal as the sign-held rungs'), fatrop capped at :data:`WARM_MAX_ITER`; the iteration cap
+    is not part of the compiled functions, so it finds the first rung's library."""
+    n = len(gains) + 1
+    tr = ladder(n)[0]
+    nlp = multiple_shooting_nlp(tuple(float(k) for k in gains),
+                                tuple(int(m) for m in exponents), False, tr.intervals,
+                                tr.substeps, terminal=default_terminal(n),
+                                fatrop_settings=WARM_SETTINGS)
+    if nlp.native_ok and "fatrop" in nlp.solver_names:
+        nlp.fingerprint("fatrop")
+    return nlp
 
 
 def rest_of_plan(ps: PlanState, s_stop: float) -> tuple[np.ndarray, np.ndarray]:
@@ -103,6 +137,7 @@ def warm_nlp_pieces(ps: PlanState, req: PlanRequest, s_stop: float, q_stop: np.n
     sub = replace(req, start=tuple(float(x) for x in q_stop[1:]), phi_start=float(q_stop[0]),
                   duration=None, method="shooting", time_limit=seconds)
     # signs given (0: either) means one fatrop attempt from the nodes, no second guess
-    sol = solve_shooting(sub, Deadline(seconds), tr, signs, nodes)
+    sol = solve_shooting(sub, Deadline(seconds), tr, signs, nodes,
+                         fatrop_settings=WARM_SETTINGS)
     # the NLP's rates are per unit of its normalised time: per unit of the plan's parameter
     return grid, np.asarray(sol.rates, float) / span
