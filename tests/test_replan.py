@@ -443,6 +443,32 @@ def test_the_warm_nlp_iterates_past_a_plans_cap_before_the_full_planner() -> Non
     assert np.all((th > 0.0) & (th < math.pi / 2))
 
 
+# ... and a later state of the same plan whose warm NLP takes 111 iterations (t = 0.83 s).
+LATER_STATE = (-0.3946337533419238, 1.2631846559260225, 1.3656558218096317, 1.4953593859676206,
+               0.48359619006850596, 0.9759204460290515)
+
+
+def test_a_long_warm_nlp_changes_no_later_answer() -> None:
+    """The warm NLP's own solver (its memories per pattern of bounds) keeps nothing from one
+    replan to the next: a replan asked before and after another that iterated longer gets
+    the same answer."""
+    from optimizer.model import Robot
+
+    def strip(obj):
+        if isinstance(obj, dict):
+            return {k: strip(v) for k, v in obj.items() if k not in ("timing", "seconds")}
+        if isinstance(obj, list):
+            return [strip(v) for v in obj]
+        return obj
+
+    answer = plan(PlanRequest(start=LONG_START, goal=LONG_GOAL,
+                              robot=Robot.default(5))).to_dict()
+    first = strip(replan(answer, 0.105, np.array(LONG_STATE)))
+    other = replan(answer, 0.83, np.array(LATER_STATE))
+    assert other["diagnostics"]["replan"]["route"] == "warm_nlp"
+    assert strip(replan(answer, 0.105, np.array(LONG_STATE))) == first
+
+
 def test_an_nlp_that_iterates_longer_shares_the_compiled_functions() -> None:
     """The iteration cap is fatrop's, not its functions': the warm NLP's variant of the first
     rung is generated from the same functions and finds the same compiled library (other
