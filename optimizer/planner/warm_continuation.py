@@ -40,8 +40,8 @@ MIN_SPAN = 1e-9
 
 #: fatrop's iteration cap on this NLP (a plan's: :data:`~.solvers.FATROP_MAX_ITER`, 60). On
 #: the replan benchmark's 5-joint states 0.05 deg off their plans, half of the warm NLPs that
-#: failed stopped at 60 iterations, still converging: with 150, of 120 states each of the
-#: benchmark's goals and of a seed it does not use (5 and 6 goals), the full planner answered
+#: failed stopped at 60 iterations, still converging: with 150, of 120 states each (6 goals)
+#: of the benchmark's goals and of a seed it does not use, the full planner answered
 #: 3 and 24 where it had answered 29 and 56 (p99 75 -> 39 ms and 185 -> 170 ms, p50 about
 #: the same); at 4 joints 1 where 2 (p99 31 -> 14 ms). What the full planner would have
 #: answered instead reverses ``phi`` and ``th1`` less often (6.1 against 8.0 times, mean of
