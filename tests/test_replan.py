@@ -20,6 +20,15 @@ from reference import PROTOTYPE_K, PROTOTYPE_M, model_rhs, turns
 START, GOAL = (0.3, 0.4, 0.5), (0.9, 1.0, 0.8)
 
 
+
+def strip(obj):
+    """An answer without its timings (what differs between two runs of the same request)."""
+    if isinstance(obj, dict):
+        return {k: strip(v) for k, v in obj.items() if k not in ("timing", "seconds")}
+    if isinstance(obj, list):
+        return [strip(v) for v in obj]
+    return obj
+
 @pytest.fixture(scope="module")
 def answer() -> dict:
     return plan(PlanRequest(start=START, goal=GOAL)).to_dict()
@@ -454,13 +463,6 @@ def test_a_long_warm_nlp_changes_no_later_answer() -> None:
     the same answer."""
     from optimizer.model import Robot
 
-    def strip(obj):
-        if isinstance(obj, dict):
-            return {k: strip(v) for k, v in obj.items() if k not in ("timing", "seconds")}
-        if isinstance(obj, list):
-            return [strip(v) for v in obj]
-        return obj
-
     answer = plan(PlanRequest(start=LONG_START, goal=LONG_GOAL,
                               robot=Robot.default(5))).to_dict()
     first = strip(replan(answer, 0.105, np.array(LONG_STATE)))
@@ -519,13 +521,6 @@ def test_a_three_joint_warm_replan_changes_no_later_answer() -> None:
     """The warm NLP runs on the 3-joint plans' own NLP (its solver memories): a plan asked
     before and after it, and the replan asked twice, get the same answers."""
     from optimizer.model import Robot
-
-    def strip(obj):
-        if isinstance(obj, dict):
-            return {k: strip(v) for k, v in obj.items() if k not in ("timing", "seconds")}
-        if isinstance(obj, list):
-            return [strip(v) for v in obj]
-        return obj
 
     example = PlanRequest(start=(math.radians(10),) * 3, goal=(math.radians(30),) * 3)
     before = strip(plan(example).to_dict())
