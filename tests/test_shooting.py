@@ -725,3 +725,33 @@ def test_a_shooting_plan_from_the_finer_rung_is_ranked_against_the_family(monkey
     assert np.max(np.abs(sol.y[1:, -1] - np.array(g.goal))) < 1e-6
     assert np.all((sol.y[1:4] > 0) & (sol.y[1:4] < np.pi / 2))
     assert _direction_changes(sol.y[0]) + _direction_changes(sol.y[1]) == total
+
+
+def test_a_soft_sign_rung_past_a_plans_cap_gives_the_fewest_reversals():
+    """shooting.SOFT_SIGNS_MAX_ITER: a 4-joint goal of a seed no benchmark uses whose rung
+    with both signs held (soft) converges after fatrop's cap of the other rungs (60; with it
+    the plan reversed phi and th1 five times). Counted here on the handed-out linear rates:
+    phi and th1 are their integrals, exact quadratics on every interval, and the original
+    model under them (scipy) ends on the goal inside the region."""
+    from optimizer.indicators import ACTUATOR_DEAD_BAND
+    from reference import turns
+    from replay_support import replay_linear
+
+    g = generate(4, 9, seed=9001)[8]
+    robot = Robot.default(4)
+    p = plan(PlanRequest(start=g.start, goal=g.goal, robot=robot))
+    t, u = np.asarray(p.path.t, float), np.asarray(p.path.u, float)
+    q0 = np.array((0.0,) + tuple(g.start))
+    final, margin = replay_linear(robot, t, u, q0)
+    assert np.max(np.abs(final[1:] - np.array(g.goal))) < 1e-6 and margin > 0.0
+    s = np.linspace(0.0, 1.0, 9)[None, :-1]
+    h = np.diff(t)[:, None]
+    counted = 0
+    for c, x0 in ((0, q0[0]), (1, q0[1])):
+        a, b = u[:-1, c][:, None], u[1:, c][:, None]
+        at_knots = x0 + np.concatenate([[0.0], np.cumsum(np.diff(t) * (u[1:, c] + u[:-1, c])
+                                                          / 2.0)])
+        inner = at_knots[:-1, None] + h * (a * s + (b - a) * s * s / 2.0)
+        x = np.append(inner.ravel(), at_knots[-1])
+        counted += turns(x, ACTUATOR_DEAD_BAND)
+    assert counted <= 2
