@@ -438,7 +438,7 @@ def test_the_warm_nlp_iterates_past_a_plans_cap_before_the_full_planner() -> Non
     from optimizer.model import Robot
     from optimizer.planner import solvers
     from optimizer.planner.warm_continuation import WARM_MAX_ITER
-    assert WARM_MAX_ITER > solvers.FATROP_MAX_ITER
+    assert WARM_MAX_ITER > solvers.fatrop_max_iter(5)
     robot = Robot.default(5)
     answer = plan(PlanRequest(start=LONG_START, goal=LONG_GOAL, robot=robot)).to_dict()
     t, q = 0.105, np.array(LONG_STATE)

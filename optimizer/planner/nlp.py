@@ -62,7 +62,8 @@ from ..errors import InvalidRequestError
 from ..problem import PlanRequest
 from . import via
 from .solvers import (REUSED_MEMORIES, SPENT_MEMORY_BYTES, BufferedCall, DeadlineCallback,
-                      SolverPace, bound_pattern, fatrop_options, ipopt_options, memory_bytes)
+                      SolverPace, bound_pattern, fatrop_max_iter, fatrop_options, ipopt_options,
+                      memory_bytes)
 
 
 @dataclass(frozen=True)
@@ -399,7 +400,8 @@ class MultipleShootingNLP:
         # how each solver is built, kept so that it can be built anew (see solver_call)
         self._factories: dict[str, Callable[[], Any]] = {}
         if ca.has_nlpsol("fatrop"):
-            fatrop_opts = fatrop_options([nx] * (N + 1), [nu] * N + [0], ng, eq)
+            fatrop_opts = fatrop_options([nx] * (N + 1), [nu] * N + [0], ng, eq,
+                                         max_iter=fatrop_max_iter(n))
             fatrop_opts["fatrop"].update(dict(fatrop_settings))
             self._factories["fatrop"] = functools.partial(
                 ca.nlpsol, f"{name}_fatrop", "fatrop", nlp, fatrop_opts)

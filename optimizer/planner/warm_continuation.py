@@ -38,7 +38,8 @@ from .shooting import solve_shooting
 #: Fewer plan time than this (s) after the stop leaves nothing to plan.
 MIN_SPAN = 1e-9
 
-#: fatrop's iteration cap on this NLP (a plan's: :data:`~.solvers.FATROP_MAX_ITER`, 60). On
+#: fatrop's iteration cap on this NLP (a plan's: 60, from 5 joints 120,
+#: :func:`~.solvers.fatrop_max_iter`; these measurements were made with 60). On
 #: the replan benchmark's 5-joint states 0.05 deg off their plans, half of the warm NLPs that
 #: failed stopped at 60 iterations, still converging: with 150, of 120 states each (6 goals)
 #: of the benchmark's goals and of a seed it does not use, the full planner answered
