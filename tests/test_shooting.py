@@ -15,7 +15,7 @@ import pytest
 from optimizer.analysis import robustness
 from optimizer.errors import InfeasibleError, InvalidRequestError, SolverTimeoutError
 from optimizer.model import Robot
-from optimizer.reachable import generate
+from optimizer.reachable import Goal, generate
 from optimizer.planner.context import Deadline
 from optimizer.planner.nlp import ladder
 from optimizer.planner.plan import plan
@@ -743,7 +743,7 @@ def test_a_rung_past_the_cap_of_four_joints_gives_the_fewest_reversals_from_five
     assert handed_out_reversals(generate(8, 8, seed=777)[7]) <= 1
 
 
-def handed_out_reversals(g) -> int:
+def handed_out_reversals(g: Goal) -> int:
     """The default plan of goal ``g``: the original model under its handed-out linear rates
     (scipy) ends on the goal inside the region; the reversals of phi and th1 counted here on
     those rates, whose integrals are exact quadratics on every interval."""

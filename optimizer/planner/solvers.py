@@ -104,9 +104,8 @@ class SolvableNLP(Protocol):
 #: in 20 of the 35 second rounds logged on 100 held-out 4- to 8-joint goals (seeds 777 and
 #: 9001), even from first rounds that missed by 3.1e-7 (likely the scaling: the other
 #: weights divided by 100 against the goal's 1e5); the rung failed and the ladder went on.
-#: With 10, on the same
-#: goals: 15 plans better by (reversals, deviation), none worse, 5-6 % less time in all,
-#: the 5-joint goals' slowest 34 -> 19 and 33 -> 24 ms.
+#: With 10, on the same goals: 15 plans better by (reversals, deviation), none worse, 5-6 %
+#: less time in all, the 5-joint goals' slowest 34 -> 19 and 33 -> 24 ms.
 ELASTIC_MISS = 3e-7
 ELASTIC_STEP = 10.0
 ELASTIC_ROUNDS = 2
@@ -121,12 +120,11 @@ ELASTIC_ACCEPT = 3e-7
 #: Iteration cap of fatrop (it converged in 15-38 iterations on the bench's goals; a failing run
 #: ends early and the next attempt starts)...
 FATROP_MAX_ITER = 60
-#: ... and from this many joints. Of the solves that stopped at 60 on 20 held-out 5-joint goals
-#: (seeds 777 and 9001), half converged given more, in 70-110 iterations (rungs whose signs
-#: are held by bounds, polishes among them). With 120 from 5 joints, on 10 goals per n = 5..8
-#: of each of those seeds and 12 of the benchmark's: 8 plans better by the default rule (four
-#: with fewer reversals: 2 -> 1 three times, 4 -> 2), none worse beyond 1e-9 rad, 1-5 % more
-#: time per n in sum. Below 5 joints the same raise cost 7 % (failing rungs are common there)
+#: ... and from this many joints. Of the 8 solves that stopped at 60 on 40 held-out 5-joint
+#: goals (20 of each of seeds 777 and 9001), 4 converged given more, in 70-110 iterations.
+#: With 120 from 5 joints, on 10 goals per n = 5..8 of each of those seeds and 12 of the
+#: benchmark's: 8 plans better by the default rule (four with fewer reversals: 2 -> 1 three
+#: times, 4 -> 2), none worse beyond 1e-9 rad, 1-5 % more time per n in sum. Below 5 joints the same raise cost 7 % (failing rungs are common there)
 #: and gave one better plan in 80.
 FATROP_LONG_FROM_JOINTS = 5
 FATROP_LONG_MAX_ITER = 120
