@@ -124,8 +124,9 @@ FATROP_MAX_ITER = 60
 #: goals (20 of each of seeds 777 and 9001), 4 converged given more, in 70-110 iterations.
 #: With 120 from 5 joints, on 10 goals per n = 5..8 of each of those seeds and 12 of the
 #: benchmark's: 8 plans better by the default rule (four with fewer reversals: 2 -> 1 three
-#: times, 4 -> 2), none worse beyond 1e-9 rad, 1-5 % more time per n in sum. Below 5 joints the same raise cost 7 % (failing rungs are common there)
-#: and gave one better plan in 80.
+#: times, 4 -> 2), none worse beyond 1e-9 rad, 1-5 % more time per n in sum. Below 5 joints
+#: the same raise cost 10 % (rungs that fail are common there, and each then ran to 120) and
+#: gave one better plan in 64.
 FATROP_LONG_FROM_JOINTS = 5
 FATROP_LONG_MAX_ITER = 120
 
