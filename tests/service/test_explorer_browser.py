@@ -372,3 +372,29 @@ def test_api_key_field(browser_context, keyed_server):
     assert number(tab.text("#ind-d_a")) == pytest.approx(21.6, abs=0.05)
     assert not p.is_visible("#error")
     tab.close()
+
+
+def test_a_click_at_human_speed_after_typing_the_key_plans(browser_context, keyed_server):
+    """Typing the key and then pressing Plan, the button held down a moment as a hand does:
+    the field's change (fired as the press takes the focus) loads the defaults again with the
+    key, and the note they replace must not move the button from under the pointer before it
+    is released (the click would land elsewhere and nothing be planned)."""
+    tab = Page(browser_context, keyed_server)
+    p = tab.page
+    assert p.get_attribute("#plan-form", "data-defaults") == "failed"  # the note is shown
+    tab.fill_worked_example()
+    p.fill("#api-key", API_KEY)
+    box = p.locator("#plan-button").bounding_box()
+    assert box is not None
+    p.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    p.mouse.down()
+    # held long enough for the defaults' answer to arrive meanwhile (on loopback:
+    # milliseconds), had their reload started with the press
+    p.wait_for_timeout(300)
+    p.mouse.up()
+    tab.wait_for_figures()
+    p.wait_for_selector("#plan-form[data-defaults=loaded]", timeout=WAIT_MS)  # with the key
+    assert tab.calls_to("/v1/plans") == 1
+    assert number(tab.text("#ind-d_a")) == pytest.approx(21.6, abs=0.05)
+    assert not p.is_visible("#error")
+    tab.close()

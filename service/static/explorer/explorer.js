@@ -24,6 +24,22 @@
     figures: {},        // figure kind -> {path, body}: the answer it is drawn from
     urls: [],           // object URLs to revoke on the next run
   };
+  // whether a pointer (mouse button, finger) is down now: see the API key's change handler
+  let pointerHeld = false;
+  document.addEventListener("pointerdown", () => { pointerHeld = true; }, true);
+  document.addEventListener("pointerup", () => { pointerHeld = false; }, true);
+  document.addEventListener("pointercancel", () => { pointerHeld = false; }, true);
+  /** Run ``fn`` once the pointer held now is released (after the click that release
+   *  dispatches) or its press cancelled. */
+  function afterPress(fn) {
+    const go = () => {
+      document.removeEventListener("pointerup", go, true);
+      document.removeEventListener("pointercancel", go, true);
+      setTimeout(fn, 0);
+    };
+    document.addEventListener("pointerup", go, true);
+    document.addEventListener("pointercancel", go, true);
+  }
 
   // ------------------------------------------------------------------ API calls
   class ApiError extends Error {
@@ -566,7 +582,12 @@
     });
     $("objective").addEventListener("change", syncWeights);
     $("api-key").addEventListener("change", () => {
-      if ($("plan-form").dataset.defaults === "failed") loadDefaults();  // now with the key
+      if ($("plan-form").dataset.defaults !== "failed") return;
+      // now with the key. The change fires when a press elsewhere (Plan, say) takes the
+      // focus: the defaults' answer replaces the note above the button within milliseconds,
+      // which would move the button from under a pointer still held down and lose the
+      // click. So the reload starts once the press is over and its click dispatched.
+      if (pointerHeld) afterPress(loadDefaults); else loadDefaults();
     });
     document.querySelectorAll("button[data-svg]").forEach((b) =>
       b.addEventListener("click", () => downloadSVG(b.dataset.svg)));
