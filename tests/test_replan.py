@@ -20,7 +20,6 @@ from reference import PROTOTYPE_K, PROTOTYPE_M, model_rhs, turns
 START, GOAL = (0.3, 0.4, 0.5), (0.9, 1.0, 0.8)
 
 
-
 def strip(obj):
     """An answer without its timings (what differs between two runs of the same request)."""
     if isinstance(obj, dict):
@@ -28,6 +27,7 @@ def strip(obj):
     if isinstance(obj, list):
         return [strip(v) for v in obj]
     return obj
+
 
 @pytest.fixture(scope="module")
 def answer() -> dict:

@@ -728,7 +728,7 @@ def test_a_shooting_plan_from_the_finer_rung_is_ranked_against_the_family(monkey
 
 
 def test_a_soft_sign_rung_past_a_plans_cap_gives_the_fewest_reversals():
-    """shooting.SOFT_SIGNS_MAX_ITER: a 4-joint goal of a seed no benchmark uses whose rung
+    """nlp.SOFT_SIGNS_MAX_ITER: a 4-joint goal of a seed no benchmark uses whose rung
     with both signs held (soft) converges after fatrop's cap of the other rungs (60; with it
     the plan reversed phi and th1 five times). Counted here on the handed-out linear rates:
     phi and th1 are their integrals, exact quadratics on every interval, and the original
@@ -741,6 +741,14 @@ def test_a_rung_past_the_cap_of_four_joints_gives_the_fewest_reversals_from_five
     goal of a seed no benchmark uses whose plan reversed phi and th1 twice at the cap of 60
     (a solve that converges past it had failed there) reverses them once."""
     assert handed_out_reversals(generate(8, 8, seed=777)[7]) <= 1
+
+
+def test_the_elastic_goal_tightened_tenfold_gives_the_fewest_reversals():
+    """solvers.ELASTIC_STEP: an elastic goal's next round weighs the goal 10 times more, not
+    100 (fatrop then stopped at its cap on most second rounds, and the rung failed). An 8-joint
+    goal of a seed no benchmark uses whose plan reversed phi and th1 four times with the
+    hundredfold step reverses them twice."""
+    assert handed_out_reversals(generate(8, 8, seed=9001)[7]) <= 2
 
 
 def handed_out_reversals(g: Goal) -> int:

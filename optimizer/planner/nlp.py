@@ -170,6 +170,15 @@ SIGN_PENALTY = 1e3
 #: A soft-sign solution whose largest slack is above this (rad per unit of normalised time)
 #: does not keep its signs: the rung is infeasible.
 SIGN_SLACK_TOL = 1e-6
+#: fatrop's iteration cap on the soft-sign NLPs (the others': :func:`~.solvers.fatrop_max_iter`).
+#: At the other rungs' cap (60) 8 soft-sign NLPs of 40 held-out 4-joint goals (seeds 777 and
+#: 9001) stopped unconverged; given 300 iterations, 3 of them found plans that keep the signs (79, 123 and
+#: 135 iterations), 3 certified the signs out of reach (a slack, after 66, 68 and 176) and 2
+#: did not converge. With 150 two of those goals' plans reverse less (5 -> 2, 2 -> 1), the
+#: other 38 are the same (one 1e-4 rad straighter before) and so are the benchmark's 25
+#: four-joint goals; the time in sum +3 % on one seed and +30 % on the other, where one plan
+#: went from 66 to 150 ms (its sign-held answer is then refined on the 50-interval rung).
+SOFT_SIGNS_MAX_ITER = 150
 #: Distance (rad) kept from the region's bounds at the nodes (0.5 deg).
 MARGIN = math.radians(0.5)
 #: RK4 steps of the correction's end map per RK4 step of the NLP. On the bench's goals (rates
@@ -400,8 +409,9 @@ class MultipleShootingNLP:
         # how each solver is built, kept so that it can be built anew (see solver_call)
         self._factories: dict[str, Callable[[], Any]] = {}
         if ca.has_nlpsol("fatrop"):
-            fatrop_opts = fatrop_options([nx] * (N + 1), [nu] * N + [0], ng, eq,
-                                         max_iter=fatrop_max_iter(n))
+            fatrop_opts = fatrop_options(
+                [nx] * (N + 1), [nu] * N + [0], ng, eq,
+                max_iter=SOFT_SIGNS_MAX_ITER if soft_signs else fatrop_max_iter(n))
             fatrop_opts["fatrop"].update(dict(fatrop_settings))
             self._factories["fatrop"] = functools.partial(
                 ca.nlpsol, f"{name}_fatrop", "fatrop", nlp, fatrop_opts)

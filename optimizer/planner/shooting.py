@@ -107,17 +107,6 @@ ATTEMPTS: tuple[tuple[str, float], ...] = (("fatrop", 1.0), ("ipopt", 1.0), ("fa
 #: such rungs (no gain measured).
 SOFT_SIGNS = True
 SOFT_SIGNS_JOINTS = frozenset({4})
-#: fatrop's iteration cap on the soft-sign NLPs (an NLP object of its own that shares the
-#: first rung's compiled functions: fatrop's options are not in them). At the other rungs'
-#: cap (60) 8 soft-sign NLPs of 40 held-out 4-joint goals (seeds 777 and 9001) stopped
-#: unconverged; given 300 iterations, 3 of them found plans that keep the signs (79, 123 and
-#: 135 iterations), 3 certified the signs out of reach (a slack, after 66, 68 and 176) and 2
-#: did not converge. With 150 two of those goals' plans reverse less (5 -> 2, 2 -> 1), the
-#: other 38 are the same (one 1e-4 rad straighter before) and so are the benchmark's 25
-#: four-joint goals; the time in sum +3 % on one seed and +30 % on the other, where one plan
-#: went from 66 to 150 ms (its sign-held answer is then refined on the 50-interval rung).
-SOFT_SIGNS_MAX_ITER = 150
-SOFT_SIGNS_SETTINGS: tuple[tuple[str, float], ...] = (("max_iter", SOFT_SIGNS_MAX_ITER),)
 
 #: Net travel of phi (rad) of the initial guesses (both signs, see :data:`ATTEMPTS`).
 GUESS_PHI_TRAVEL = 0.6
@@ -156,8 +145,7 @@ def prepare(gains: tuple[float, ...], exponents: tuple[int, ...], *, fixed_phi: 
     for terminal, soft in kinds:
         nlp = multiple_shooting_nlp(tuple(float(k) for k in gains),
                                     tuple(int(m) for m in exponents), fixed_phi, tr.intervals,
-                                    tr.substeps, terminal=terminal, soft_signs=soft,
-                                    fatrop_settings=SOFT_SIGNS_SETTINGS if soft else ())
+                                    tr.substeps, terminal=terminal, soft_signs=soft)
         if nlp not in nlps:
             nlps.append(nlp)
     for nlp in nlps:
@@ -190,7 +178,7 @@ def solve_shooting(req: PlanRequest, deadline: Any, tr: Transcription | None = N
     soft = (SOFT_SIGNS and req.n in SOFT_SIGNS_JOINTS and monotone is not None
             and start_nodes is None)
     nlp = nlp_for(req, tr, soft_signs=soft, free=monotone is None,
-                  fatrop_settings=fatrop_settings or (SOFT_SIGNS_SETTINGS if soft else ()))
+                  fatrop_settings=fatrop_settings)
     a, b = np.array(req.start), np.array(req.goal)
     lo, hi = node_bounds(req, joint_limits(req))
     lbw, ubw, (lo_phi, hi_phi) = nlp_layer.variable_bounds(req, nlp, tr, lo, hi,
