@@ -268,3 +268,51 @@ def test_when_the_searches_find_nothing_auto_does_not_call_it_a_proof(monkeypatc
     assert "polynomial" not in searched and set(searched) <= {"shooting", "penalty"}
     assert "shooting" in searched
     assert f"({', '.join(searched)}: a search that found none, not a proof" in err.message
+
+
+def _handed_out_th1_extrema(p, req) -> int:
+    """``t_p`` counted here: the original model under the answer's handed-out linear rates
+    (scipy) ends on the goal inside the region, and ``th1`` (the integral of ``u2``, an exact
+    quadratic on every interval) is sampled densely and its turns counted."""
+    from optimizer.indicators import REVERSAL_DEAD_BAND
+    from reference import turns
+    from replay_support import replay_linear
+
+    t, u = np.asarray(p.path.t, float), np.asarray(p.path.u, float)
+    final, margin = replay_linear(req.robot, t, u, req.q_start())
+    assert np.max(np.abs(final[1:] - np.array(req.goal))) < 1e-6 and margin > 0.0
+    h = np.diff(t)[:, None]
+    s = np.linspace(0.0, 1.0, 9)[None, :-1]
+    a, b = u[:-1, 1][:, None], u[1:, 1][:, None]
+    knots = req.start[0] + np.concatenate([[0.0], np.cumsum(np.diff(t) * (a + b)[:, 0] / 2.0)])
+    th1 = np.append((knots[:-1, None] + h * (a * s + (b - a) * s * s / 2.0)).ravel(), knots[-1])
+    return turns(th1, REVERSAL_DEAD_BAND)
+
+
+def test_under_the_papers_rule_auto_keeps_shootings_plan_when_it_has_fewer_extrema():
+    """Under ``tp_then_da`` auto runs ``shooting`` beside the paper's family and ranks them by
+    the paper's rule: on this 5-joint goal the family's best turns th1 three times or more,
+    shooting's plan not at all (counted here on the handed-out rates)."""
+    from optimizer.reachable import generate
+
+    g = generate(5, 4, seed=77)[3]
+    req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(5), objective="tp_then_da")
+    p = plan(req)
+    assert [t["method"] for t in p.diagnostics["auto"]["tried"]] == ["polynomial", "retimed",
+                                                                     "shooting"]
+    family = plan(PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(5),
+                              objective="tp_then_da", method="polynomial"))
+    assert _handed_out_th1_extrema(p, req) < _handed_out_th1_extrema(family, req)
+
+
+def test_under_the_papers_rule_a_goal_the_family_misses_goes_to_shooting_at_once():
+    """A 5-joint goal the family cannot reach: ``shooting`` plans it before the constraint-point
+    search (which found no path on such goals, in 0.4-3 s each) and that search is skipped."""
+    from optimizer.reachable import generate
+
+    g = generate(5, 10, seed=77)[9]
+    req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(5), objective="tp_then_da")
+    p = plan(req)
+    assert [t["method"] for t in p.diagnostics["auto"]["tried"]] == ["polynomial", "shooting"]
+    assert p.method == "shooting"
+    _handed_out_th1_extrema(p, req)  # the handed-out path reaches the goal inside the region

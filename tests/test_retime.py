@@ -149,16 +149,17 @@ def test_retimed_opposite_motion_is_infeasible_with_reason():
     assert exc.value.diagnostics["blocking"] == "opposite_joint_motion"
 
 
-def test_auto_under_the_papers_rule_returns_the_best_of_the_family():
-    """Under tp_then_da a goal the family reaches is answered by the family: the polynomial
-    optimum and its retimed path, the better by (t_p, d_a)."""
+def test_auto_under_the_papers_rule_returns_the_best_of_the_family_and_shooting():
+    """Under tp_then_da a goal the family reaches is answered by the best by (t_p, d_a) of the
+    polynomial optimum, its retimed path and the shooting plan."""
     p = plan(_request([1, 1, 1], [30, 30, 30], method="auto"))
     r = plan(_request([1, 1, 1], [30, 30, 30]))
     poly = plan(_request([1, 1, 1], [30, 30, 30], method="polynomial"))
+    shot = plan(_request([1, 1, 1], [30, 30, 30], method="shooting"))
     auto = p.diagnostics["auto"]
-    assert [t["method"] for t in auto["tried"]] == ["polynomial", "retimed"]
+    assert [t["method"] for t in auto["tried"]] == ["polynomial", "retimed", "shooting"]
     assert auto["chosen"] == p.method
-    best = min((x.plan_indicators.t_p, x.plan_indicators.d_a) for x in (r, poly))
+    best = min((x.plan_indicators.t_p, x.plan_indicators.d_a) for x in (r, poly, shot))
     assert (p.plan_indicators.t_p, p.plan_indicators.d_a) == best
 
 
