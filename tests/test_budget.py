@@ -315,3 +315,28 @@ def test_a_budget_below_the_ladders_fewest_is_refused_before_any_budget_nlp(monk
     assert info.value.field == "max_reversals"
     assert info.value.diagnostics["fewest_reversals"] == k
     assert f"at least {k}" in info.value.message
+
+
+def test_six_joints_the_front_trades_reversals_for_straightness() -> None:
+    """A generated 6-joint goal (seed 606 of ``optimizer.reachable.generate``): with the goal
+    elastic and the budget's objective at full weight against its penalty, the straightest
+    NLPs ended off the goal and the front was 2 members; with the objective divided by
+    ``budget.ELASTIC_OBJECTIVE_DIVISOR`` it has 5. Every member is re-integrated here, its
+    reversals counted here, and each is straighter than those with fewer reversals."""
+    from optimizer.model import Robot
+    from optimizer.reachable import generate
+
+    robot = Robot.default(6)
+    g = generate(6, 4, seed=606)[3]
+    members = plan(request(g.start, g.goal, robot=robot, pareto=True)).to_dict()["pareto"]
+    assert len(members) >= 4
+    keys = []
+    for m in members:
+        reversals, deviation, terminal, margin = measured(m, g.start, g.goal, K=robot.gains,
+                                                          m=robot.exponents)
+        assert terminal <= TERMINAL and margin > 0.0
+        assert reversals == m["max_reversals"]
+        keys.append((reversals, deviation))
+    for (r0, d0), (r1, d1) in zip(keys, keys[1:]):
+        assert r1 > r0 and d1 < d0 + 2e-4
+    assert keys[-1][1] < keys[0][1] - 1.0 * DEG

@@ -15,7 +15,7 @@ from typing import Any, Iterable, Protocol
 import numpy as np
 
 from ..errors import InfeasibleError, SolverTimeoutError
-from .solvers import SolvableNLP, run_solver
+from .solvers import ELASTIC_ACCEPT, SolvableNLP, run_solver
 
 class AttemptableNLP(SolvableNLP, Protocol):
     """What :func:`first_converged` needs of an NLP: :class:`~.solvers.SolvableNLP` and the
@@ -66,7 +66,7 @@ class Converged:
 
 def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndarray,
                     lbx: np.ndarray, ubx: np.ndarray, deadline: Any, what: str,
-                    stage: str) -> Converged:
+                    stage: str, *, accept_miss: float = ELASTIC_ACCEPT) -> Converged:
     """Run ``attempts`` in order (lazily: an iterable's guesses are built only when tried)
     until one converges.
 
@@ -82,6 +82,9 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
         ``remaining`` and ``seconds`` (:class:`~optimizer.deadline.Deadline`).
     what, stage : str
         The NLP's name in the messages (``"the shooting NLP"``) and the diagnostics' stage.
+    accept_miss : float
+        How far from an elastic goal a converged answer may end (rad,
+        :func:`~.solvers.run_solver`).
 
     Raises
     ------
@@ -108,7 +111,8 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
             continue
         if deadline.remaining <= MIN_ATTEMPT_TIME:
             break
-        out = run_solver(nlp, at.solver, at.x0, p, lbx, ubx, deadline.remaining)
+        out = run_solver(nlp, at.solver, at.x0, p, lbx, ubx, deadline.remaining,
+                         accept_miss=accept_miss)
         tried.append({"solver": at.solver, "guess": at.guess, "status": out.status,
                       "iterations": out.iterations})
         if out.success and out.x is not None:
