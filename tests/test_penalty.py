@@ -289,3 +289,31 @@ def test_status_classes_map_to_typed_errors(status, success, kind, error):
     assert solvers.classify(status, success) == kind
     if error is not None:
         assert type(solvers.error_for(kind, "x")) is error
+
+
+#: A 5-joint robot with gains off the default's (a generated study's) and a goal whose joints
+#: move both ways: under ``weighted`` (deviation alone) the first rung's answer chatters
+#: (about 50 reversals), and its model ends off the goal where the Newton correction cannot
+#: reach (4.7e-6 to 5.7e-6 rad after it).
+CHATTER_ROBOT = Robot(gains=(1.0373144131676837, 0.9791494445477504, 0.8872014883250741,
+                             0.5456569646140477), exponents=(2, 2, 2, 3))
+CHATTER = ((0.5841348926043703, 0.18554478558502518, 0.6124656018127511, 0.2985838665296416,
+            0.7566113176999479),
+           (0.2048510671315485, 0.18914027569336186, 0.5821118674525504, 0.2795028467631045,
+            0.7414803682809198))
+
+
+def test_a_rung_whose_answer_misses_after_its_correction_goes_on_to_the_finer_rung():
+    """As ``shooting`` does: where the first rung's answer cannot be corrected onto the goal,
+    the finer rung is solved from its path and that plan is handed out (it was a
+    ``numerical_failure``)."""
+    from replay_support import replay_linear
+
+    req = PlanRequest(start=CHATTER[0], goal=CHATTER[1], robot=CHATTER_ROBOT, method="penalty",
+                      objective="weighted", time_limit=120.0)
+    p = plan(req)
+    assert p.diagnostics["penalty"]["refined_from_intervals"] == nlp_layer.ladder(5)[0].intervals
+    assert_verified(p, req)
+    final, margin = replay_linear(req.robot, np.asarray(p.path.t), np.asarray(p.path.u),
+                                  req.q_start())
+    assert np.max(np.abs(final[1:] - np.array(req.goal))) < 1e-6 and margin > 0.0

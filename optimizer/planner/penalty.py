@@ -66,7 +66,7 @@ from ..verify import integrate_cascade
 from . import nlp as nlp_layer
 from .correction import finish_solution
 from .nlp import MultipleShootingNLP, Transcription, nlp_for, node_bounds
-from .rungs import LIGHT_SHARE, solve_rungs
+from .rungs import LIGHT_SHARE, finish_or_refine, solve_rungs
 from .solvers import run_solver
 from .base import Capabilities, Method
 from .context import PlanContext
@@ -317,13 +317,26 @@ def plan_penalty(req: PlanRequest, deadline: Any, *,
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the penalty NLP")
     region = penalised_region(req)
-    th = sol.nodes[:, 1:]
-    distance = float(np.min(np.minimum(th - region.lower, region.upper - th)))
-    return finish_solution(
-        req, "penalty", nlp_for(req, tr, "penalty"), sol, tr, signs, tried, timing,
-        {"penalty_weight": sol.rho,
-         "boundary_distance": distance if math.isfinite(distance) else None,
-         "violation": sol.violation, "start_reason": sol.reason})
+
+    def finish(tr: Transcription, sol: PenaltySolution, signs: Any,
+               tried: list[dict[str, Any]], diagnostics: dict[str, Any]) -> Plan:
+        th = sol.nodes[:, 1:]
+        distance = float(np.min(np.minimum(th - region.lower, region.upper - th)))
+        return finish_solution(
+            req, "penalty", nlp_for(req, tr, "penalty"), sol, tr, signs, tried, timing,
+            {"penalty_weight": sol.rho,
+             "boundary_distance": distance if math.isfinite(distance) else None,
+             "violation": sol.violation, "start_reason": sol.reason, **diagnostics})
+
+    def solve_finer(tr: Transcription, signs: Any, nodes: np.ndarray) -> PenaltySolution:
+        t1 = time.perf_counter()
+        try:
+            return solve_penalty(req, deadline, tr, rate_signs=signs, start_nodes=nodes)
+        finally:
+            timing["nlp"] += time.perf_counter() - t1
+
+    return finish_or_refine(req, tr, sol, signs, tried, finish, solve_finer,
+                            lambda: deadline.check("the penalty NLP"))
 
 
 class PenaltyMethod(Method):

@@ -14,7 +14,7 @@ from typing import Any, Callable, Protocol, TypeVar
 
 import numpy as np
 
-from ..errors import InfeasibleError, SolverTimeoutError
+from ..errors import InfeasibleError, NumericalError, SolverTimeoutError
 from ..indicators import ACTUATOR_DEAD_BAND, count_reversals, segment_distance
 from ..problem import PlanRequest
 from .attempts import MissedGoal
@@ -34,6 +34,7 @@ class NodeSolution(Protocol):
 
 
 SolutionT = TypeVar("SolutionT", bound=NodeSolution)
+ResultT = TypeVar("ResultT")
 
 
 #: A run of an actuator's rate of one sign travelling less than this share of the actuator's
@@ -387,6 +388,60 @@ def merge(signs: np.ndarray, run: tuple[float, int, int, int]) -> np.ndarray:
     N = signs.shape[0]
     out[s:e, c] = signs[s - 1, c] if s > 0 else signs[e, c] if e < N else signs[s, c]
     return out
+
+
+def resample_signs(signs: Any, intervals: int) -> Any:
+    """Rate signs held per actuator (a pair) as they are; per interval ``(N, 2)``: each of
+    ``intervals`` equal intervals takes the sign of the old interval holding its midpoint."""
+    arr = np.asarray(signs, float)
+    if arr.ndim == 1:
+        return signs
+    mid = (np.arange(int(intervals)) + 0.5) / int(intervals)
+    return arr[np.minimum((mid * arr.shape[0]).astype(int), arr.shape[0] - 1)]
+
+
+def finish_or_refine(req: PlanRequest, tr: Transcription, sol: SolutionT, signs: Any,
+                     tried: list[dict[str, Any]],
+                     finish: Callable[[Transcription, Any, Any, list[dict[str, Any]],
+                                       dict[str, Any]], ResultT],
+                     solve: Callable[[Transcription, Any, np.ndarray], Any],
+                     check: Callable[[], None]) -> ResultT:
+    """``finish(tr, sol, signs, tried, diagnostics)``: the rung's answer finished (corrected
+    onto the goal of the exact model, re-integrated, verified); where that fails on a rung
+    below the ladder's last, the next rung solved from the answer's path and finished instead.
+
+    The rung's model (RK4 on its intervals) may end off the goal in a direction the Newton
+    correction cannot reach (the end map's weakest singular value; a 5-joint goal near the
+    region's edge: 1.5e-6 rad along a direction of singular value 5e-8), or the original
+    model's path may leave the region where the rung's nodes stay inside (a 6-joint goal with
+    th2 near pi/2: th5 at -0.1 rad; an :class:`InfeasibleError` with the path's ``margin``).
+    The next rung, a finer model, then starts from this path (``solve(finer, signs, nodes)``),
+    its rates held to the same signs, else free (that 5-joint goal's finer NLP did not converge
+    held in 60 iterations; free, it did at once); ``check()`` between the solve and the
+    finishing (the deadline's). The finer answer's diagnostics say
+    ``refined_from_intervals``.
+    """
+    try:
+        return finish(tr, sol, signs, tried, {})
+    except (NumericalError, InfeasibleError) as exc:
+        steps = ladder(req.n)
+        if tr not in steps[:-1] or (isinstance(exc, InfeasibleError)
+                                    and "margin" not in exc.diagnostics):
+            raise
+    finer = steps[steps.index(tr) + 1]
+    nodes = resample_nodes(sol.nodes, finer.intervals)
+    held = None if signs is None else resample_signs(signs, finer.intervals)
+    again = None
+    if held is not None:
+        try:
+            again = solve(finer, held, nodes)
+        except InfeasibleError:
+            held = None
+    if again is None:
+        again = solve(finer, None, nodes)
+    check()
+    return finish(finer, again, held, tried + list(getattr(sol, "tried", ())),
+                  {"refined_from_intervals": tr.intervals})
 
 
 def resample_nodes(nodes: np.ndarray, intervals: int) -> np.ndarray:

@@ -86,7 +86,7 @@ from .correction import CORRECTION_TARGET, correct_rates, finish_solution
 from .nlp import (D_A_WEIGHT, DEVIATION_WEIGHT, LADDER, LADDER_3_JOINTS, MARGIN,
                   SIGN_SLACK_TOL, MultipleShootingNLP, Transcription, ladder,
                   multiple_shooting_nlp, nlp_for, node_bounds, objective_weights)
-from .rungs import LIGHT_SHARE, resample_nodes, solve_rungs
+from .rungs import LIGHT_SHARE, finish_or_refine, solve_rungs
 from .attempts import Attempt, MissedGoal, first_converged
 from .base import Capabilities, Method
 from .context import PlanContext
@@ -250,48 +250,20 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
         merge_runs=True, time_left=lambda: float(deadline.remaining))
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
-    try:
-        return finish_solution(req, "shooting", nlp_for(req, tr, free=mono is None), sol, tr,
-                               mono, tried, timing, {})
-    except (NumericalError, InfeasibleError) as exc:
-        steps = ladder(req.n)
-        if tr not in steps[:-1] or (isinstance(exc, InfeasibleError)
-                                    and "margin" not in exc.diagnostics):
-            raise
-    # the rung's model (RK4 on its intervals) ends off the goal in a direction the Newton
-    # correction cannot reach (the end map's weakest singular value; a 5-joint goal near the
-    # region's edge: 1.5e-6 rad along a direction of singular value 5e-8), or the original
-    # model's path leaves the region where the rung's nodes stay inside (a 6-joint goal with
-    # th2 near pi/2: th5 at -0.1 rad; an InfeasibleError with the path's margin): the next
-    # rung, a finer model, from this path, its rates held to the same signs, else free (that
-    # 5-joint goal's finer NLP did not converge held in 60 iterations; free, it did at once)
-    finer = steps[steps.index(tr) + 1]
-    nodes = resample_nodes(sol.nodes, finer.intervals)
-    signs = None if mono is None else resample_signs(mono, finer.intervals)
-    t1 = time.perf_counter()
-    again = None
-    if signs is not None:
+    def finish(tr: Transcription, sol: Any, signs: Any, tried: list[dict[str, Any]],
+               diagnostics: dict[str, Any]) -> Plan:
+        return finish_solution(req, "shooting", nlp_for(req, tr, free=signs is None), sol, tr,
+                               signs, tried, timing, diagnostics)
+
+    def solve_finer(tr: Transcription, signs: Any, nodes: np.ndarray) -> Any:
+        t1 = time.perf_counter()
         try:
-            again = solve_shooting(req, deadline, finer, signs, nodes)
-        except InfeasibleError:
-            signs = None
-    if again is None:
-        again = solve_shooting(req, deadline, finer, None, nodes)
-    timing["nlp"] += time.perf_counter() - t1
-    deadline.check("the shooting NLP")
-    return finish_solution(req, "shooting", nlp_for(req, finer, free=signs is None), again,
-                           finer, signs, tried + list(getattr(sol, "tried", ())), timing,
-                           {"refined_from_intervals": tr.intervals})
+            return solve_shooting(req, deadline, tr, signs, nodes)
+        finally:
+            timing["nlp"] += time.perf_counter() - t1
 
-
-def resample_signs(signs: Any, intervals: int) -> Any:
-    """Rate signs held per actuator (a pair) as they are; per interval ``(N, 2)``: each of
-    ``intervals`` equal intervals takes the sign of the old interval holding its midpoint."""
-    arr = np.asarray(signs, float)
-    if arr.ndim == 1:
-        return signs
-    mid = (np.arange(int(intervals)) + 0.5) / int(intervals)
-    return arr[np.minimum((mid * arr.shape[0]).astype(int), arr.shape[0] - 1)]
+    return finish_or_refine(req, tr, sol, mono, tried, finish, solve_finer,
+                            lambda: deadline.check("the shooting NLP"))
 
 
 class ShootingMethod(Method):
