@@ -16,9 +16,9 @@ machine), in one process:
 * the **default plan** (``PlanRequest(start, goal, robot)``), timed (a warm-up call, then one
   timed call; every time here is CPU time, ``time.process_time``, as the machine is shared),
   re-integrated the same way;
-* on n <= :data:`BUDGET_JOINTS`: **``max_reversals`` = the min-max peer's reversal count**,
+* on n <= :data:`BUDGET_JOINTS` (``--budget-joints``): **``max_reversals`` = the min-max peer's reversal count**,
   re-integrated: is its deviation within :data:`DEVIATION_SLACK_DEG` of the peer's?
-* on n <= :data:`BUDGET_JOINTS`: **``pareto: true``**, timed: every member re-integrated and
+* on those n: **``pareto: true``**, timed: every member re-integrated and
   verified (terminal error < 1e-6 rad, every joint strictly inside (0, pi/2)); the front's time
   against the default plan's and against ``K + 1`` default plans (``K`` members), and where
   it went: its NLPs' count, iterations and share of its CPU (``diagnostics.budget.tried``).
@@ -119,14 +119,16 @@ def _plan(g: Goal, timed: bool = False, **extra: Any) -> tuple[Any, dict[str, An
     return p, out
 
 
-def run_goal(g: Goal, peers: dict[tuple[int, str], Any]) -> dict[str, Any]:
-    """Everything of the module docstring on one goal."""
+def run_goal(g: Goal, peers: dict[tuple[int, str], Any],
+             budget_joints: int = BUDGET_JOINTS) -> dict[str, Any]:
+    """Everything of the module docstring on one goal (the budget and the front up to
+    ``budget_joints`` joints)."""
     row: dict[str, Any] = {"name": g.name, "n": g.n, "kind": g.kind,
                            "start": list(g.start), "goal": list(g.goal)}
     row["minmax"] = _peer(g, peers, "min_max_deviation")
     row["energy"] = _peer(g, peers, "energy")
     _, row["default"] = _plan(g, timed=True)
-    if g.n > BUDGET_JOINTS:
+    if g.n > budget_joints:
         return row
     k = row["minmax"]["reversals"]
     if row["minmax"]["verified"] and k is not None:
@@ -188,7 +190,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         s["default_reversals_no_more_than_energy_peer"] = _share(no_more)
         s["default_worse_on_both"] = sum(worse_both)
         s["compared_with_energy_peer"] = len(no_more)
-        if n <= BUDGET_JOINTS:
+        if any("front" in r for r in rs):  # (measured up to the run's --budget-joints)
             s["budget_within_slack"] = _share(within)
             s["budget_compared"] = len(within)
             fronts = [r["front"] for r in rs if r.get("front", {}).get("members")]
@@ -260,14 +262,15 @@ def markdown(summary: dict[str, Any], meta: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def run(counts: dict[int, int], log: Callable[[str], None] = print) -> dict[str, Any]:
+def run(counts: dict[int, int], log: Callable[[str], None] = print,
+        budget_joints: int = BUDGET_JOINTS) -> dict[str, Any]:
     native = configure_native()
     peers: dict[tuple[int, str], Any] = {}
     rows = []
     for n, k in counts.items():
         for g in generate(n, k):
             t0 = time.perf_counter()
-            row = run_goal(g, peers)
+            row = run_goal(g, peers, budget_joints)
             rows.append(row)
             b, fr = row.get("budget"), row.get("front", {})
             log(f"  {g.name}: minmax {row['minmax']['reversals']} rev "
@@ -281,7 +284,8 @@ def run(counts: dict[int, int], log: Callable[[str], None] = print) -> dict[str,
                    if fr else "") + f" [{time.perf_counter() - t0:.1f} s]")
     meta = {"stamp": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
             "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
-            "counts": {str(n): k for n, k in counts.items()}, "native": native}
+            "counts": {str(n): k for n, k in counts.items()}, "native": native,
+            "budget_joints": budget_joints}
     summary = summarise(rows)
     return {"meta": meta, "summary": summary, "rows": rows,
             "markdown": markdown(summary, meta)}
@@ -331,6 +335,9 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--goals-counts", default=",".join(f"{n}:{k}" for n, k in COUNTS.items()),
                     help="goals per n, e.g. 3:20,4:20,5:20,6:20")
+    ap.add_argument("--budget-joints", type=int, default=BUDGET_JOINTS,
+                    help="measure the budget and the front up to this many joints (default "
+                         f"{BUDGET_JOINTS}, the issue's; beyond, the default against the peers)")
     ap.add_argument("--out", default=None, help="JSON results (default bench/results/...)")
     ap.add_argument("--md", default=str(PAGE), help="the results page (default "
                                                      "docs/benchmark-budget.md)")
@@ -342,7 +349,8 @@ def main(argv: list[str] | None = None) -> int:
         res["summary"] = summarise(res["rows"])
         res["markdown"] = markdown(res["summary"], res["meta"])
     else:
-        res = run(parse_counts(args.goals_counts), log=lambda s: print(s, flush=True))
+        res = run(parse_counts(args.goals_counts), log=lambda s: print(s, flush=True),
+                  budget_joints=args.budget_joints)
         out = Path(args.out) if args.out else ROOT / "bench" / "results" / (
             "budget_" + res["meta"]["stamp"].replace(":", "") + ".json")
         out.parent.mkdir(parents=True, exist_ok=True)
