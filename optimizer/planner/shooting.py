@@ -78,7 +78,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InfeasibleError, InvalidRequestError, NumericalError
+from ..errors import InfeasibleError, InvalidRequestError
 from ..problem import PlanRequest
 from ..results import Plan
 from . import nlp as nlp_layer
@@ -250,6 +250,7 @@ def plan_shooting(req: PlanRequest, deadline: Any) -> Plan:
         merge_runs=True, time_left=lambda: float(deadline.remaining))
     timing["nlp"] = time.perf_counter() - t0
     deadline.check("the shooting NLP")
+
     def finish(tr: Transcription, sol: Any, signs: Any, tried: list[dict[str, Any]],
                diagnostics: dict[str, Any]) -> Plan:
         return finish_solution(req, "shooting", nlp_for(req, tr, free=signs is None), sol, tr,
