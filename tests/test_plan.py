@@ -316,3 +316,24 @@ def test_under_the_papers_rule_a_goal_the_family_misses_goes_to_shooting_at_once
     assert [t["method"] for t in p.diagnostics["auto"]["tried"]] == ["polynomial", "shooting"]
     assert p.method == "shooting"
     _handed_out_th1_extrema(p, req)  # the handed-out path reaches the goal inside the region
+
+
+def test_a_method_asked_for_by_name_does_not_call_a_failed_search_a_proof(monkeypatch):
+    """As ``auto`` does: where the method's NLPs converged nowhere near a path, the answer is
+    ``infeasible`` and says it is a search that found none, not a proof (it said only "the
+    shooting NLP found no path from any start")."""
+    from optimizer.planner.registry import get
+
+    def found_nothing(self, req, ctx):
+        raise InfeasibleError("the NLP found no path from any start",
+                              diagnostics={"blocking": "nlp_failed", "tried": []})
+
+    monkeypatch.setattr(type(get("shooting")), "run", found_nothing)
+    with pytest.raises(InfeasibleError) as info:
+        plan(PlanRequest(start=(math.radians(10),) * 3, goal=(math.radians(30),) * 3,
+                         method="shooting"))
+    err = info.value
+    assert err.message.startswith("the NLP found no path from any start (shooting: a search "
+                                  "that found none, not a proof that none exists")
+    assert err.diagnostics["searched_without_proof"] == ["shooting"]
+    assert err.diagnostics["blocking"] == "nlp_failed"

@@ -45,6 +45,12 @@ log = logging.getLogger(__name__)
 
 #: Length (characters) of a failure's message kept in the diagnostics.
 MESSAGE_CHARS = 160
+#: What an answer says where an NLP converged nowhere near a path: a search that found none
+#: is no proof that none exists (an 8-joint goal of every joint +20 deg: every method
+#: exhausted in 10 s, where an NLP of other intervals or rates may still find one).
+NOT_A_PROOF = ("a search that found none, not a proof that none exists: the goal may be "
+               "reached by a path these NLPs do not find; planning to an intermediate goal "
+               "first may help")
 #: The paper's objectives (fewest extrema of th1, then d_a or ||J_R||). ``shooting`` runs
 #: beside the family under them: on the 22 goals of 3 to 5 joints the family reached (of 30
 #: generated per objective, seeds 77 and 78) its plan was the better by the paper's rule on
@@ -107,18 +113,13 @@ class _Run:
             # same (the request's, such as duration or controller_period)
             fields = {exc.field for _, exc in self.errors if exc.field is not None}
             full = {name: f"{exc.code}: {exc.message}" for name, exc in self.errors}
-            # an NLP that converged nowhere near a path is a search that found none, not a
-            # proof that none exists (an 8-joint goal of every joint +20 deg: every method
-            # exhausted in 10 s, where an NLP of other intervals or rates may still find one);
-            # the answer says which it is
+            # the answer says which failures were searches (NOT_A_PROOF)
             searched = [name for name, exc in self.errors
                         if exc.diagnostics.get("blocking") == "nlp_failed"]
             raise InfeasibleError(
                 "no method found a singularity-free path"
-                + (f" ({', '.join(searched)}: a search that found none, not a proof that none "
-                   "exists: the goal may be reached by a path these NLPs do not find; "
-                   "planning to an intermediate goal first may help)"
-                   if searched else "") + ": " + "; ".join(
+                + (f" ({', '.join(searched)}: {NOT_A_PROOF})" if searched else "")
+                + ": " + "; ".join(
                     f"{t['method']}: {full.get(t['method'], t['outcome'])}" for t in self.tried),
                 field=fields.pop() if len(fields) == 1 else None,
                 diagnostics={"auto": {"tried": self.tried, "searched_without_proof": searched}})
@@ -166,4 +167,4 @@ def plan_auto(req: PlanRequest, ctx: PlanContext) -> Plan:
     return run.finish()
 
 
-__all__ = ["plan_auto", "PAPER_OBJECTIVES"]
+__all__ = ["NOT_A_PROOF", "PAPER_OBJECTIVES", "plan_auto"]

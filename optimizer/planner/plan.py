@@ -15,7 +15,7 @@ from dataclasses import replace
 from ..errors import InfeasibleError, NumericalError
 from ..problem import DEFAULT_OBJECTIVE, PlanRequest
 from ..results import Plan
-from .auto import plan_auto
+from .auto import NOT_A_PROOF, plan_auto
 from .budget import check_budget_request, plan_with_budget
 from .context import Deadline, PlanContext
 from .registry import AUTO, get
@@ -62,8 +62,20 @@ def plan(req: PlanRequest) -> Plan:
 
 
 def _planned(req: PlanRequest, ctx: PlanContext) -> Plan:
-    """The plan of ``req``'s method (``auto`` or one method) under its objective."""
-    return plan_auto(req, ctx) if req.method == AUTO else get(req.method).plan(req, ctx)
+    """The plan of ``req``'s method (``auto`` or one method) under its objective. A method
+    asked for by name whose NLPs converged nowhere near a path says, as ``auto`` does, that
+    this is a search that found none (:data:`~.auto.NOT_A_PROOF`), in its message and in
+    ``diagnostics.searched_without_proof``."""
+    if req.method == AUTO:
+        return plan_auto(req, ctx)
+    try:
+        return get(req.method).plan(req, ctx)
+    except InfeasibleError as exc:
+        if exc.diagnostics.get("blocking") != "nlp_failed":
+            raise
+        raise InfeasibleError(f"{exc.message} ({req.method}: {NOT_A_PROOF})", field=exc.field,
+                              diagnostics={**exc.diagnostics,
+                                           "searched_without_proof": [req.method]}) from None
 
 
 def _fewest_reversals(req: PlanRequest, ctx: PlanContext) -> Plan | None:
