@@ -86,7 +86,14 @@ class RequestModel(BaseModel):
 
 # ---------------------------------------------------------------------- fixed request parts
 class Weights(RequestModel):
-    """Weights of the ``weighted`` objective: w_da d_a + w_s ||J_R||_F + w_e energy + w_tp t_p."""
+    """Weights of the ``weighted`` objective: w_da d_a + w_s ||J_R||_F + w_e energy + w_tp t_p.
+
+    The methods that plan actuator rates (``shooting``, ``penalty``) weigh their path by w_da
+    (on d_a and on the joint-space deviation) and w_e alone; every weight ranks the plans.
+    Their NLPs price no direction change (w_tp only ranks): with the defaults (w_da alone) a
+    plan may reverse 20 to 50 times on goals whose joints move both ways. For few reversals
+    ask for the default objective, or for a budget (``max_reversals``).
+    """
 
     d_a: Weight = Field(1.0, description="Weight of the approximation distance d_a.")  # type: ignore[valid-type]
     sensitivity: Weight = Field(0.0, description="Weight of ||J_R(T)||_F.")  # type: ignore[valid-type]
