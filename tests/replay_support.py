@@ -60,6 +60,19 @@ def replay_linear(robot: Robot, t: np.ndarray, u: np.ndarray,
     return _replay(robot, t, q0, lambda k, s: (1.0 - s) * u[k] + s * u[k + 1])
 
 
+def linear_integral(t: np.ndarray, v: np.ndarray, x0: float, per_interval: int = 8
+                    ) -> np.ndarray:
+    """``x0 + int v`` sampled ``per_interval`` times on every interval of ``t``, ``v`` linear
+    between its samples (so ``x`` is an exact quadratic there): an actuator's angle (``phi``
+    or ``th1``) under the handed-out rates ``u[:, 0]`` or ``u[:, 1]``, its turns countable."""
+    h = np.diff(t)[:, None]
+    s = np.linspace(0.0, 1.0, per_interval + 1)[None, :-1]
+    a, b = v[:-1, None], v[1:, None]
+    knots = x0 + np.concatenate([[0.0], np.cumsum(np.diff(t) * (v[1:] + v[:-1]) / 2.0)])
+    inner = knots[:-1, None] + h * (a * s + (b - a) * s * s / 2.0)
+    return np.append(inner.ravel(), knots[-1])
+
+
 def replay_zoh(robot: Robot, t: np.ndarray, u: np.ndarray,
                q0: np.ndarray) -> tuple[np.ndarray, float]:
     """The original model with ``u[k]`` held on ``[t_k, t_{k+1})``."""

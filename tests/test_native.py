@@ -158,11 +158,6 @@ def test_the_penalty_nlp_is_compiled_too_and_plans_the_same(tmp_path):
     assert np.all((q[:, 1:] > 0.0) & (q[:, 1:] < np.pi / 2))
 
 
-def _children() -> list:
-    import psutil
-    return psutil.Process().children(recursive=True)
-
-
 def _cmdline(proc) -> str:
     """A child's command line; "" for one that has exited since it was listed (a zombie not
     yet reaped: the launcher of a detached build, whose waiting thread reaps it next)."""
@@ -187,7 +182,9 @@ def test_background_build_is_loaded_when_ready_and_found_by_the_next_process(tmp
     builds = len(native._builds)
     assert builds == 1
     # a detached build: not a child of this process
-    assert not any("optimizer.native" in _cmdline(c) for c in _children())
+    import psutil
+    assert not any("optimizer.native" in _cmdline(c)
+                   for c in psutil.Process().children(recursive=True))
     assert len(wait_for("*.so", tmp_path, 300.0)) == builds
     assert not list(tmp_path.glob("*.c"))  # the source goes once its library is built
     assert not list(tmp_path.glob("*.lock")) and not list(tmp_path.glob("*.tmp"))

@@ -276,17 +276,12 @@ def _handed_out_th1_extrema(p, req) -> int:
     quadratic on every interval) is sampled densely and its turns counted."""
     from optimizer.indicators import REVERSAL_DEAD_BAND
     from reference import turns
-    from replay_support import replay_linear
+    from replay_support import linear_integral, replay_linear
 
     t, u = np.asarray(p.path.t, float), np.asarray(p.path.u, float)
     final, margin = replay_linear(req.robot, t, u, req.q_start())
     assert np.max(np.abs(final[1:] - np.array(req.goal))) < 1e-6 and margin > 0.0
-    h = np.diff(t)[:, None]
-    s = np.linspace(0.0, 1.0, 9)[None, :-1]
-    a, b = u[:-1, 1][:, None], u[1:, 1][:, None]
-    knots = req.start[0] + np.concatenate([[0.0], np.cumsum(np.diff(t) * (a + b)[:, 0] / 2.0)])
-    th1 = np.append((knots[:-1, None] + h * (a * s + (b - a) * s * s / 2.0)).ravel(), knots[-1])
-    return turns(th1, REVERSAL_DEAD_BAND)
+    return turns(linear_integral(t, u[:, 1], req.start[0]), REVERSAL_DEAD_BAND)
 
 
 def test_under_the_papers_rule_auto_keeps_shootings_plan_when_it_has_fewer_extrema():

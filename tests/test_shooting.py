@@ -757,7 +757,7 @@ def handed_out_reversals(g: Goal) -> int:
     those rates, whose integrals are exact quadratics on every interval."""
     from optimizer.indicators import ACTUATOR_DEAD_BAND
     from reference import turns
-    from replay_support import replay_linear
+    from replay_support import linear_integral, replay_linear
 
     robot = Robot.default(g.n)
     p = plan(PlanRequest(start=g.start, goal=g.goal, robot=robot))
@@ -765,14 +765,4 @@ def handed_out_reversals(g: Goal) -> int:
     q0 = np.array((0.0,) + tuple(g.start))
     final, margin = replay_linear(robot, t, u, q0)
     assert np.max(np.abs(final[1:] - np.array(g.goal))) < 1e-6 and margin > 0.0
-    s = np.linspace(0.0, 1.0, 9)[None, :-1]
-    h = np.diff(t)[:, None]
-    counted = 0
-    for c, x0 in ((0, q0[0]), (1, q0[1])):
-        a, b = u[:-1, c][:, None], u[1:, c][:, None]
-        at_knots = x0 + np.concatenate([[0.0], np.cumsum(np.diff(t) * (u[1:, c] + u[:-1, c])
-                                                          / 2.0)])
-        inner = at_knots[:-1, None] + h * (a * s + (b - a) * s * s / 2.0)
-        x = np.append(inner.ravel(), at_knots[-1])
-        counted += turns(x, ACTUATOR_DEAD_BAND)
-    return counted
+    return sum(turns(linear_integral(t, u[:, c], q0[c]), ACTUATOR_DEAD_BAND) for c in (0, 1))
