@@ -19,9 +19,13 @@ What runs (each method through :mod:`.registry`, its capabilities checked there)
   on the original model, where the family has one parameter, so the family is not waited for;
   it runs only when ``shooting`` fails (``weighted`` runs both, the weights decide), or when
   ``shooting``'s plan comes from its finer rung after the first rung's answer missed the goal
-  (then it is not the ladder's answer, and the family may beat it). ``penalty``
-  solves the same transcription with the region as an exact penalty: at equal objective it
-  cannot beat a converged ``shooting`` plan, so it runs only when ``shooting`` found none.
+  (then it is not the ladder's answer, and the family may beat it). Where ``shooting``'s
+  NLPs converged nowhere near the goal (a search that found none, not a proof) and neither
+  did the family, the same ``shooting`` plans the move in legs through intermediate goals on
+  the joint-space segment (:mod:`.legs`: a 5-joint move of every joint 10 -> 80 deg, 0.39
+  rad off in one NLP, plans in two legs), recorded as ``legs``. ``penalty`` solves the same
+  transcription with the region as an exact penalty: at equal objective it cannot beat a
+  converged ``shooting`` plan, so it runs only when neither found one.
 
 A method that fails (infeasible, numerical, or an unexpected exception: a bug in one method
 must not hide another's verified plan) is recorded and the next one runs; the deadline is
@@ -32,12 +36,13 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
+from typing import Any, Callable
 
 from ..errors import InfeasibleError, PlannerError, SolverTimeoutError
 from ..problem import PlanRequest
 from ..results import Plan
 from .context import PlanContext
+from .legs import LEG_METHOD, can_split, plan_in_legs
 from .ranking import RULES, best, rank_key
 from .registry import get
 from .rules import direction_conflict
@@ -78,12 +83,23 @@ class _Run:
         if (not method.can_plan(self.req) or self.timed_out is not None
                 or any(t["method"] == name for t in self.tried)):  # (a method runs once)
             return None
+        return self._record(name, lambda: method.plan(
+            self.req, PlanContext(self.ctx.deadline, warm_start=self.ctx.warm_start)))
+
+    def attempt_legs(self) -> Plan | None:
+        """``shooting`` through intermediate goals (:mod:`.legs`), recorded as ``legs``."""
+        if self.timed_out is not None:
+            return None
+        return self._record("legs", lambda: plan_in_legs(self.req, self.ctx,
+                                                         get(LEG_METHOD).plan))
+
+    def _record(self, name: str, run: Callable[[], Plan]) -> Plan | None:
+        """Run one attempt and record what came of it (a failure is that attempt's only)."""
         t0 = time.perf_counter()
         entry: dict[str, Any] = {"method": name}
         plan: Plan | None = None
         try:
-            plan = method.plan(self.req, PlanContext(self.ctx.deadline,
-                                                     warm_start=self.ctx.warm_start))
+            plan = run()
         except SolverTimeoutError as exc:
             self.timed_out = exc
             entry["outcome"] = "timeout"
@@ -101,6 +117,12 @@ class _Run:
             self.plans.append(plan)
         self.tried.append(entry)
         return plan
+
+    def searched(self, name: str) -> bool:
+        """Whether method ``name`` failed as a search (its NLPs converged nowhere near a path),
+        not by a proof or a refusal."""
+        return any(n == name and exc.diagnostics.get("blocking") == "nlp_failed"
+                   for n, exc in self.errors)
 
     def finish(self) -> Plan:
         req = self.req
@@ -163,6 +185,8 @@ def plan_auto(req: PlanRequest, ctx: PlanContext) -> Plan:
     if shot is None:
         if reachable and not run.plans:
             run.attempt("polynomial")
+        if not run.plans and run.searched("shooting") and can_split(req):
+            run.attempt_legs()
         if not run.plans:
             run.attempt("penalty")
     return run.finish()
