@@ -7,12 +7,16 @@ most by tens of degrees), and ``[10]*n -> [30]*n`` deg is planned too. Per ``n``
 are planned, the median and slowest times (wall clock, one process, after one warm-up plan),
 the reversals of the planned paths, and the typed answer of the others. Each planned path is
 the planner's verified one (scipy re-integration is the goals benchmark's job; here the
-question is whether a path is found, and when).
+question is whether a path is found, and when). ``--first-requests`` plans instead, per ``n``,
+the requests a user writes first (:func:`first_requests`: every joint by one large move, the
+last joint alone, joints moving in opposite directions) and says how many legs
+(:mod:`optimizer.planner.legs`) each answer took.
 
 Usage::
 
     .venv/bin/python -m bench.free_goals                       # seed 7: n = 3..8
     .venv/bin/python -m bench.free_goals --counts 3:10,4:10 --seed 11
+    .venv/bin/python -m bench.free_goals --first-requests --counts 5:1,6:1,7:1
 """
 
 from __future__ import annotations
@@ -58,7 +62,43 @@ def plan_one(start: np.ndarray, goal: np.ndarray) -> dict[str, Any]:
     except PlannerError as exc:
         return {"seconds": time.perf_counter() - t0, "answer": exc.code}
     return {"seconds": time.perf_counter() - t0, "answer": "success",
-            "reversals": p.indicators.reversals_phi + p.indicators.reversals_th1}
+            "reversals": p.indicators.reversals_phi + p.indicators.reversals_th1,
+            "legs": (p.diagnostics.get("legs") or {}).get("count", 1)}
+
+
+def first_requests(n: int) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """Requests a user writes first (deg): every joint by the same large move either way, one
+    joint alone, joints moving in opposite directions."""
+    alternating = [20.0 if i % 2 == 0 else 60.0 for i in range(n)]
+    return [(name, np.radians(a), np.radians(b)) for name, a, b in (
+        ("every joint 10 -> 80", [10.0] * n, [80.0] * n),
+        ("every joint 30 -> 60", [30.0] * n, [60.0] * n),
+        ("every joint 60 -> 30", [60.0] * n, [30.0] * n),
+        (f"th{n} +30 (all at 30)", [30.0] * n, [30.0] * (n - 1) + [60.0]),
+        ("20/60 alternating -> 60/20", alternating, [80.0 - x for x in alternating]))]
+
+
+def run_first_requests(ns: list[int]) -> list[dict[str, Any]]:
+    """One row per request of :func:`first_requests` per ``n``."""
+    rows = []
+    for n in ns:
+        prepare_native(n)
+        plan_one(np.radians([20.0] * n), np.radians([25.0] * n))      # warm-up
+        for name, a, b in first_requests(n):
+            rows.append({"n": n, "request": name, **plan_one(a, b)})
+    return rows
+
+
+def first_requests_markdown(rows: list[dict[str, Any]]) -> str:
+    """The rows of :func:`run_first_requests` as a Markdown table."""
+    lines = ["First requests (the default request, `time_limit` 10 s):", "",
+             "| n | request (deg) | answer | seconds | reversals (phi + th1) | legs |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        ok = r["answer"] == "success"
+        lines.append(f"| {r['n']} | {r['request']} | {r['answer']} | {r['seconds']:.2f} | "
+                     f"{r['reversals'] if ok else '-'} | {r['legs'] if ok else '-'} |")
+    return "\n".join(lines)
 
 
 def run(counts: dict[int, int], seed: int) -> list[dict[str, Any]]:
@@ -108,9 +148,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--counts", type=parse_counts, default=COUNTS,
                     help="n:count,... (default 3:10,4:10,5:10,6:8,7:6,8:6)")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--first-requests", action="store_true",
+                    help="plan the requests a user writes first (bench.free_goals."
+                         "first_requests) for each n of --counts instead of the free goals")
     args = ap.parse_args(argv)
     configure_native(False)
-    print(markdown(run(args.counts, args.seed), args.seed))
+    if args.first_requests:
+        print(first_requests_markdown(run_first_requests(list(args.counts))))
+    else:
+        print(markdown(run(args.counts, args.seed), args.seed))
     return 0
 
 

@@ -14,7 +14,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.free_goals import HIGH_DEG, LOW_DEG, free_pairs, markdown  # noqa: E402
+from bench.free_goals import (HIGH_DEG, LOW_DEG, first_requests,  # noqa: E402
+                              first_requests_markdown, free_pairs, markdown)
 
 
 def test_the_pairs_are_uniform_in_the_range_and_repeatable() -> None:
@@ -51,3 +52,35 @@ def test_the_documented_command_runs() -> None:
     # 3-joint free goals are planned (every one of 10 in the docs' run)
     assert row.startswith("| 3 | 2 of 2 |")
     assert "reversals |" in row
+
+
+def test_the_first_requests_are_the_documented_moves_inside_the_region() -> None:
+    reqs = first_requests(5)
+    assert [name for name, _, _ in reqs][0] == "every joint 10 -> 80"
+    for name, a, b in reqs:
+        assert a.shape == b.shape == (5,)
+        assert np.all((a > 0) & (a < math.pi / 2)) and np.all((b > 0) & (b < math.pi / 2))
+    _, a, b = reqs[-1]      # alternating: the joints move in opposite directions
+    assert np.all(np.sign(np.diff(np.sign(b - a))) != 0)
+    _, a, b = reqs[3]       # the last joint alone
+    assert np.count_nonzero(b - a) == 1 and b[-1] - a[-1] > 0
+
+
+def test_the_first_requests_table_says_answer_time_and_legs() -> None:
+    rows = [{"n": 5, "request": "every joint 10 -> 80", "seconds": 5.1, "answer": "success",
+             "reversals": 16, "legs": 2},
+            {"n": 7, "request": "every joint 10 -> 80", "seconds": 10.0, "answer": "timeout"}]
+    text = first_requests_markdown(rows)
+    assert "| 5 | every joint 10 -> 80 | success | 5.10 | 16 | 2 |" in text
+    assert "| 7 | every joint 10 -> 80 | timeout | 10.00 | - | - |" in text
+
+
+def test_the_first_requests_command_runs() -> None:
+    proc = subprocess.run([sys.executable, "-m", "bench.free_goals", "--first-requests",
+                           "--counts", "3:1"], cwd=ROOT, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = [line for line in proc.stdout.splitlines() if line.startswith("| 3 |")]
+    assert len(rows) == len(first_requests(3))
+    # every 3-joint first request is planned in one piece
+    assert all("| success |" in row and row.endswith("| 1 |") for row in rows)
