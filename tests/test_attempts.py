@@ -104,9 +104,53 @@ def test_every_attempt_failing_is_infeasible_with_the_record() -> None:
     nlp = ScriptedNLP({"ipopt": [("Infeasible_Problem_Detected", False),
                                  ("Maximum_Iterations_Exceeded", False)]})
     with pytest.raises(InfeasibleError) as info:
-        run(nlp, [Attempt("ipopt", "a", np.zeros(2)), Attempt("ipopt", "b", np.zeros(2))])
+        run(nlp, [Attempt("ipopt", "a", np.zeros(2)), Attempt("ipopt", "b", np.ones(2))])
     assert info.value.diagnostics["blocking"] == "nlp_failed"
     assert [t["guess"] for t in info.value.diagnostics["tried"]] == ["a", "b"]
+    assert nlp.calls == ["ipopt", "ipopt"]
+
+
+def test_a_solver_is_not_run_twice_from_the_same_guess() -> None:
+    """A solve is a function of its arguments: the same solver from the same guess (the
+    shooting NLP offers each solver once per direction of phi's guess, which a start from
+    nodes ignores) would answer the same again, so it is recorded as skipped, not run."""
+    from optimizer.planner.attempts import SKIPPED_REPEAT
+
+    nlp = ScriptedNLP({"fatrop": [("1", False), ("1", False)],
+                       "ipopt": [("Maximum_Iterations_Exceeded", False)] * 2})
+    same = np.array([0.5, -0.5])
+    with pytest.raises(InfeasibleError) as info:
+        run(nlp, [Attempt("fatrop", "nodes", same), Attempt("ipopt", "nodes", same),
+                  Attempt("fatrop", "nodes", same.copy()), Attempt("ipopt", "nodes", same.copy()),
+                  Attempt("fatrop", "other", same + 1e-12)])
+    assert nlp.calls == ["fatrop", "ipopt", "fatrop"]
+    statuses = [t["status"] for t in info.value.diagnostics["tried"]]
+    assert statuses[2:4] == [SKIPPED_REPEAT] * 2 and statuses[4] == "1"
+
+
+class FarNLP(ScriptedNLP):
+    """fatrop converges 0.3 rad off the elastic goal from any guess (its heavier round barely
+    moves: out of reach for it); IPOPT converges on the goal."""
+
+    def __init__(self) -> None:
+        super().__init__({"fatrop": [("Solve_Succeeded", True)] * 4,
+                          "ipopt": [("Solve_Succeeded", True)] * 2})
+
+    def goal_miss(self, x: np.ndarray, p: np.ndarray) -> float:
+        return 0.3 if self.calls[-1] == "fatrop" else 0.0
+
+
+def test_no_other_solver_starts_where_one_converged_off_the_goal() -> None:
+    """fatrop converged 0.3 rad off the goal from a guess, and a heavier penalty did not move
+    it: IPOPT is not run from that guess (recorded as skipped) but from the next one."""
+    from optimizer.planner.attempts import SKIPPED
+
+    nlp = FarNLP()
+    out = run(nlp, [Attempt("fatrop", "+", np.zeros(2)), Attempt("ipopt", "+", np.zeros(2)),
+                    Attempt("ipopt", "-", np.ones(2))])
+    assert nlp.calls == ["fatrop", "fatrop", "ipopt"]     # (two elastic rounds of fatrop)
+    assert [t["status"] for t in out.tried][1] == SKIPPED
+    assert out.solver == "ipopt" and out.guess == "-"
 
 
 class ElasticNLP(ScriptedNLP):

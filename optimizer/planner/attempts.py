@@ -26,6 +26,21 @@ class AttemptableNLP(SolvableNLP, Protocol):
 
 #: No attempt starts once less than this is left of the deadline (s).
 MIN_ATTEMPT_TIME = 1e-3
+#: The status of an attempt not run: another solver converged from the same guess to a point
+#: off the goal (an elastic goal's miss that stayed). That is a local solution of the same
+#: NLP, and the next solver from the same guess found the same or another miss: of 52 such
+#: IPOPT attempts after fatrop on free goals of 5 to 7 joints (seed 13) and generated ones
+#: (seed 44), 50 converged off the goal too, after 80-410 iterations, the costliest part of a
+#: failing ladder. Skipped, on 33 requests of 5 to 7 joints (free goals of seed 13 and
+#: ``bench.free_goals.first_requests``, ``time_limit`` 20 s, both runs side by side): none
+#: lost its plan, one more planned (a 6-joint free goal, where the time went to the legs),
+#: two planned with fewer reversals (18 -> 13, 25 -> 23), the legs' plans came 1.4-3.5 times
+#: sooner, and six timeouts became ``infeasible`` answers after 9-18 s.
+SKIPPED = "skipped: converged off the goal from this guess already"
+#: ... and of an attempt whose solver already ran from the same guess (``shooting`` from a
+#: previous solution's nodes offers each solver twice, once per direction of ``phi``'s guess,
+#: which a start from nodes does not use).
+SKIPPED_REPEAT = "skipped: this solver ran from this guess already"
 
 
 class MissedGoal(InfeasibleError):
@@ -68,7 +83,9 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
                     lbx: np.ndarray, ubx: np.ndarray, deadline: Any, what: str,
                     stage: str, *, accept_miss: float = ELASTIC_ACCEPT) -> Converged:
     """Run ``attempts`` in order (lazily: an iterable's guesses are built only when tried)
-    until one converges.
+    until one converges; an attempt from a guess from which a solver already converged off
+    the goal (:data:`SKIPPED`), or whose solver already ran from the same guess
+    (:data:`SKIPPED_REPEAT`), is not run.
 
     Parameters
     ----------
@@ -106,9 +123,22 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
             f"{what} did not converge within the time limit of {deadline.seconds:g} s",
             field="time_limit", diagnostics={"stage": stage, "tried": tried})
 
+    # guesses (their bytes) from which a solver converged off the goal: no other solver
+    # starts there; and (solver, guess) pairs run already: a solve is a function of its
+    # arguments (nlp.MultipleShootingNLP.solver_call), so it would answer the same again
+    converged_off: set[bytes] = set()
+    ran: set[tuple[str, bytes]] = set()
     for at in attempts:
         if at.solver not in names:
             continue
+        guess = np.ascontiguousarray(at.x0, float).tobytes()
+        skipped = (SKIPPED if guess in converged_off
+                   else SKIPPED_REPEAT if (at.solver, guess) in ran else None)
+        if skipped is not None:
+            tried.append({"solver": at.solver, "guess": at.guess, "status": skipped,
+                          "iterations": 0})
+            continue
+        ran.add((at.solver, guess))
         if deadline.remaining <= MIN_ATTEMPT_TIME:
             break
         out = run_solver(nlp, at.solver, at.x0, p, lbx, ubx, deadline.remaining,
@@ -120,6 +150,8 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
                              iterations=out.iterations, guess=at.guess, tried=tuple(tried))
         if out.kind == "timeout":
             raise timeout()
+        if out.converged_off_goal:
+            converged_off.add(guess)
         if out.kind == "infeasible" and out.x is not None and missed is None:
             missed = out.x
     if not tried or deadline.remaining <= MIN_ATTEMPT_TIME:
@@ -133,4 +165,4 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
 
 
 __all__ = ["Attempt", "AttemptableNLP", "Converged", "MIN_ATTEMPT_TIME", "MissedGoal",
-           "first_converged"]
+           "SKIPPED", "SKIPPED_REPEAT", "first_converged"]
