@@ -128,31 +128,6 @@ def test_a_solver_is_not_run_twice_from_the_same_guess() -> None:
     assert statuses[2:4] == [SKIPPED_REPEAT] * 2 and statuses[4] == "1"
 
 
-class FarNLP(ScriptedNLP):
-    """fatrop converges 0.3 rad off the elastic goal from any guess (its heavier round barely
-    moves: out of reach for it); IPOPT converges on the goal."""
-
-    def __init__(self) -> None:
-        super().__init__({"fatrop": [("Solve_Succeeded", True)] * 4,
-                          "ipopt": [("Solve_Succeeded", True)] * 2})
-
-    def goal_miss(self, x: np.ndarray, p: np.ndarray) -> float:
-        return 0.3 if self.calls[-1] == "fatrop" else 0.0
-
-
-def test_no_other_solver_starts_where_one_converged_off_the_goal() -> None:
-    """fatrop converged 0.3 rad off the goal from a guess, and a heavier penalty did not move
-    it: IPOPT is not run from that guess (recorded as skipped) but from the next one."""
-    from optimizer.planner.attempts import SKIPPED
-
-    nlp = FarNLP()
-    out = run(nlp, [Attempt("fatrop", "+", np.zeros(2)), Attempt("ipopt", "+", np.zeros(2)),
-                    Attempt("ipopt", "-", np.ones(2))])
-    assert nlp.calls == ["fatrop", "fatrop", "ipopt"]     # (two elastic rounds of fatrop)
-    assert [t["status"] for t in out.tried][1] == SKIPPED
-    assert out.solver == "ipopt" and out.guess == "-"
-
-
 class ElasticNLP(ScriptedNLP):
     """Every round converges; round ``k`` misses the goal by ``misses[k]`` (rad)."""
 

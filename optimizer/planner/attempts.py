@@ -26,20 +26,15 @@ class AttemptableNLP(SolvableNLP, Protocol):
 
 #: No attempt starts once less than this is left of the deadline (s).
 MIN_ATTEMPT_TIME = 1e-3
-#: The status of an attempt not run: another solver converged from the same guess to a point
-#: off the goal (an elastic goal's miss that stayed). That is a local solution of the same
-#: NLP, and the next solver from the same guess found the same or another miss: of 52 such
-#: IPOPT attempts after fatrop on free goals of 5 to 7 joints (seed 13) and generated ones
-#: (seed 44), 50 converged off the goal too, after 80-410 iterations, the costliest part of a
-#: failing ladder. Skipped, on 33 requests of 5 to 7 joints (free goals of seed 13 and
-#: ``bench.free_goals.first_requests``, ``time_limit`` 20 s, both runs side by side): none
-#: lost its plan, one more planned (a 6-joint free goal, where the time went to the legs),
-#: two planned with fewer reversals (18 -> 13, 25 -> 23), the legs' plans came 1.4-3.5 times
-#: sooner, and six timeouts became ``infeasible`` answers after 9-18 s.
-SKIPPED = "skipped: converged off the goal from this guess already"
-#: ... and of an attempt whose solver already ran from the same guess (``shooting`` from a
-#: previous solution's nodes offers each solver twice, once per direction of ``phi``'s guess,
-#: which a start from nodes does not use).
+#: The status of an attempt not run because its solver already ran from the same guess: a
+#: solve is a function of its arguments (nlp.MultipleShootingNLP.solver_call), so it would
+#: answer the same again. ``shooting`` from a previous solution's nodes offers each solver
+#: twice, once per direction of ``phi``'s guess, which a start from nodes does not use: on a
+#: failing 5-joint ladder (every joint 10 -> 80 deg) the repeats were 414 of its iterations.
+#: Skipping another solver where one converged off the goal was tried too: IPOPT then
+#: converged off the goal as well on 50 of 52 such tries, but one of the other two was a
+#: 6-joint goal (issue 25's) that IPOPT planned from a fatrop miss of 1.3e-4 rad, with 11
+#: reversals, where without it the legs answered with 15 and rates of 39 rad/s.
 SKIPPED_REPEAT = "skipped: this solver ran from this guess already"
 
 
@@ -83,9 +78,8 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
                     lbx: np.ndarray, ubx: np.ndarray, deadline: Any, what: str,
                     stage: str, *, accept_miss: float = ELASTIC_ACCEPT) -> Converged:
     """Run ``attempts`` in order (lazily: an iterable's guesses are built only when tried)
-    until one converges; an attempt from a guess from which a solver already converged off
-    the goal (:data:`SKIPPED`), or whose solver already ran from the same guess
-    (:data:`SKIPPED_REPEAT`), is not run.
+    until one converges; an attempt whose solver already ran from the same guess is not run
+    (:data:`SKIPPED_REPEAT`).
 
     Parameters
     ----------
@@ -123,22 +117,16 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
             f"{what} did not converge within the time limit of {deadline.seconds:g} s",
             field="time_limit", diagnostics={"stage": stage, "tried": tried})
 
-    # guesses (their bytes) from which a solver converged off the goal: no other solver
-    # starts there; and (solver, guess) pairs run already: a solve is a function of its
-    # arguments (nlp.MultipleShootingNLP.solver_call), so it would answer the same again
-    converged_off: set[bytes] = set()
-    ran: set[tuple[str, bytes]] = set()
+    ran: set[tuple[str, bytes]] = set()    # (solver, guess's bytes) of the attempts run
     for at in attempts:
         if at.solver not in names:
             continue
-        guess = np.ascontiguousarray(at.x0, float).tobytes()
-        skipped = (SKIPPED if guess in converged_off
-                   else SKIPPED_REPEAT if (at.solver, guess) in ran else None)
-        if skipped is not None:
-            tried.append({"solver": at.solver, "guess": at.guess, "status": skipped,
+        key = (at.solver, np.ascontiguousarray(at.x0, float).tobytes())
+        if key in ran:
+            tried.append({"solver": at.solver, "guess": at.guess, "status": SKIPPED_REPEAT,
                           "iterations": 0})
             continue
-        ran.add((at.solver, guess))
+        ran.add(key)
         if deadline.remaining <= MIN_ATTEMPT_TIME:
             break
         out = run_solver(nlp, at.solver, at.x0, p, lbx, ubx, deadline.remaining,
@@ -150,8 +138,6 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
                              iterations=out.iterations, guess=at.guess, tried=tuple(tried))
         if out.kind == "timeout":
             raise timeout()
-        if out.converged_off_goal:
-            converged_off.add(guess)
         if out.kind == "infeasible" and out.x is not None and missed is None:
             missed = out.x
     if not tried or deadline.remaining <= MIN_ATTEMPT_TIME:
@@ -165,4 +151,4 @@ def first_converged(nlp: AttemptableNLP, attempts: Iterable[Attempt], p: np.ndar
 
 
 __all__ = ["Attempt", "AttemptableNLP", "Converged", "MIN_ATTEMPT_TIME", "MissedGoal",
-           "SKIPPED", "SKIPPED_REPEAT", "first_converged"]
+           "SKIPPED_REPEAT", "first_converged"]

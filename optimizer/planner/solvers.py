@@ -356,9 +356,7 @@ class BufferedCall:
 
 @dataclass(frozen=True)
 class SolveOutcome:
-    """One solver run: its class (:func:`classify`), status, iterations, time and answer;
-    ``converged_off_goal``: it converged, away from the elastic goal, and a heavier penalty
-    barely moved it (a local solution that is no path, ``kind`` ``"infeasible"``)."""
+    """One solver run: its class (:func:`classify`), status, iterations, time and answer."""
 
     solver: str
     kind: str
@@ -366,7 +364,6 @@ class SolveOutcome:
     iterations: int
     seconds: float
     x: np.ndarray | None
-    converged_off_goal: bool = False
 
     @property
     def success(self) -> bool:
@@ -430,7 +427,6 @@ def run_solver(nlp: "SolvableNLP", name: str, x0: np.ndarray, p: np.ndarray,
     best: tuple[float, str, np.ndarray] | None = None  # (miss, status, x) of converged rounds
     pace: SolverPace | None = getattr(nlp, "pace", None)
     x: np.ndarray | None = None
-    off_goal = False
     for round_ in range(ELASTIC_ROUNDS + 1):
         if pace is not None and pace.too_slow(name, t0 + seconds - time.perf_counter()):
             kind, status = "timeout", (f"not started: {pace.caps[name]} iterations at its pace "
@@ -461,7 +457,6 @@ def run_solver(nlp: "SolvableNLP", name: str, x0: np.ndarray, p: np.ndarray,
             # fast rates for a far goal, comes closer as the penalty grows)
             kind, status = "infeasible", f"{status} (the goal missed by {miss:.2g} rad)"
             best = None
-            off_goal = True
             break
         stalled = best is not None and miss > 0.1 * best[0]
         if best is None or miss < best[0]:
@@ -479,5 +474,4 @@ def run_solver(nlp: "SolvableNLP", name: str, x0: np.ndarray, p: np.ndarray,
             kind, status = "failure", f"{status} (the goal missed by {miss:.2g} rad)"
     finite = x is not None and bool(np.all(np.isfinite(x)))
     return SolveOutcome(solver=name, kind=kind, status=status, iterations=iterations,
-                        seconds=time.perf_counter() - t0, x=x if finite else None,
-                        converged_off_goal=off_goal)
+                        seconds=time.perf_counter() - t0, x=x if finite else None)
