@@ -55,7 +55,7 @@ LEG_METHOD = "shooting"
 
 def can_split(req: PlanRequest) -> bool:
     """Whether a request may be planned in legs: nothing tied to the whole motion (a fixed
-    ``phi`` change, via or constraint points at times of the whole path, a warm start)."""
+    ``phi`` change, via or constraint points at times of the whole path), and a move."""
     return (req.phi_change is None and not req.via_points and not req.constraint_points
             and req.start != req.goal)
 
