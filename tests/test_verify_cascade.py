@@ -322,3 +322,23 @@ def test_rounding_noise_is_accepted_not_refined():
     assert rep.success and rep.integrator == CASCADE_NAME and rep.panels == CASCADE_INITIAL_PANELS
     assert 1e-11 < rep.error_estimate <= 1e-8 and "noise" in rep.message
     assert abs(rep.final[1] - (0.5 + math.sin(1.0))) <= rep.error_estimate
+
+
+def test_one_time_rates_are_those_of_the_piece_the_times_vector_finds():
+    """``ActuatorSchedule.u_scalar`` (the DOP853 replay's right-hand side, by bisection on
+    lists) gives the rates ``u`` (numpy's search) gives, at random times, at every break, a
+    rounding either side of it, and outside ``[0, T]``."""
+    from optimizer.actuation import ActuatorSchedule
+
+    rng = np.random.default_rng(5)
+    breaks = np.concatenate([[0.0], np.sort(rng.uniform(0.0, 3.0, 30)), [3.0]])
+    sched = ActuatorSchedule(breaks=breaks, rates=rng.normal(size=(31, 2)))
+    times = np.concatenate([rng.uniform(-1.0, 4.0, 500), breaks,
+                            np.nextafter(breaks, np.inf), np.nextafter(breaks, -np.inf)])
+    expected = sched.u(times)
+    got = np.array([sched.u_scalar(float(t)) for t in times])
+    assert np.array_equal(got, expected)
+    # a fresh array each call: the caller may write into it
+    first = sched.u_scalar(0.5)
+    first[:] = 99.0
+    assert not np.any(sched.u_scalar(0.5) == 99.0)
