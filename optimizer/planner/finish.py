@@ -393,7 +393,8 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
     goal = np.array(req.goal)
     t0 = time.perf_counter()
 
-    def replay(U: np.ndarray) -> tuple[ActuatorSchedule, TimeLaw, Replay, Grid | None]:
+    def replay(U: np.ndarray) -> tuple[ActuatorSchedule, TimeLaw, Replay, Grid | None,
+                                       tuple[np.ndarray, np.ndarray] | None]:
         sched = actuator_schedule(req, U)
         law = plan_time_law(req, sched.u, sched.breaks, True)
         t_eval = sched.breaks
@@ -405,17 +406,31 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
             t_eval = np.concatenate([sched.breaks, law.plan_time(grid[1])])
         rep = integrate_cascade(robot, sched.u, q0, sched.duration, t_eval,
                                 sched.breaks, nodes=REPLAY_NODES, initial_panels=1,
-                                fallback=sched.u_scalar, constant_pieces=True)
-        return sched, law, rep, grid
+                                fallback=None, constant_pieces=True)
+        dense = None
+        if not rep.success and not rep.singular:
+            # the quadrature not accepted (on a long path, such as legs', its estimate sums
+            # to over its target across the panels): one DOP853 run gives the replay and the
+            # indicators' grid, where two ran (seconds each on a 7-joint path of 150 pieces)
+            td = np.union1d(np.linspace(0.0, sched.duration, INDICATOR_SAMPLES), sched.breaks)
+            full = integrate(robot, sched.u_scalar, q0, sched.duration,
+                             np.concatenate([t_eval, td]))
+            k = t_eval.size
+            rep = dataclasses.replace(
+                full, t=t_eval, q=full.q[:k], evaluations=full.evaluations + rep.evaluations,
+                message=f"cascade quadrature not accepted ({rep.message}); DOP853: "
+                        f"{full.message}")
+            dense = (td, full.q[k:])
+        return sched, law, rep, grid, dense
 
     def miss(r: Replay) -> float:
         return float(np.max(np.abs(r.final[1:] - goal))) if r.success else math.inf
 
-    schedule, law, rep, grid = replay(rates)
+    schedule, law, rep, grid, dense = replay(rates)
     if refine is not None and rep.success and miss(rep) > CORRECTION_TARGET:
         again = replay(refine(rep.final))
         if miss(again[2]) < miss(rep):
-            schedule, law, rep, grid = again
+            schedule, law, rep, grid, dense = again
     T, breaks = schedule.duration, schedule.breaks
     if not rep.success:
         raise NumericalError(f"the re-integration failed: {rep.message}",
@@ -425,6 +440,8 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
     # breaks of a DOP853 replay when the quadrature was not accepted
     if rep.mesh_t is not None and rep.mesh_q is not None:
         td, qd = rep.mesh_t, rep.mesh_q
+    elif dense is not None:
+        td, qd = dense
     else:
         td = np.union1d(np.linspace(0.0, T, INDICATOR_SAMPLES), breaks)
         qd = integrate(robot, schedule.u_scalar, q0, T, td).q
