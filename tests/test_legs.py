@@ -30,9 +30,11 @@ def _replayed(p, req) -> None:
     assert margin > 0.0
 
 
-def _short_legs_only(longest: float, whole: PlanRequest, calls: list[PlanRequest]):
+def _short_legs_only(longest: float, whole: PlanRequest, calls: list[PlanRequest],
+                     plans: list | None = None):
     """A leg planner that finds no path (as a search: ``nlp_failed``) for a leg longer than
-    ``longest`` of the whole segment, and plans the others with ``shooting``."""
+    ``longest`` of the whole segment, and plans the others with ``shooting`` (appended to
+    ``plans``)."""
     span = np.max(np.abs(np.subtract(whole.goal, whole.start)))
 
     def plan_leg(leg: PlanRequest, ctx: PlanContext):
@@ -40,14 +42,19 @@ def _short_legs_only(longest: float, whole: PlanRequest, calls: list[PlanRequest
         if np.max(np.abs(np.subtract(leg.goal, leg.start))) > longest * span + 1e-9:
             raise InfeasibleError("the NLP found no path from any start",
                                   diagnostics={"blocking": "nlp_failed", "tried": []})
-        return get("shooting").plan(leg, ctx)
+        out = get("shooting").plan(leg, ctx)
+        if plans is not None:
+            plans.append(out)
+        return out
     return plan_leg
 
 
 def test_legs_are_halved_until_each_plans_and_the_whole_path_reaches_the_goal():
     req = PlanRequest(start=(D(10), D(20), D(30)), goal=(D(40), D(25), D(15)))
     calls: list[PlanRequest] = []
-    p = plan_in_legs(req, PlanContext(Deadline(60.0)), _short_legs_only(0.3, req, calls))
+    plans: list = []
+    p = plan_in_legs(req, PlanContext(Deadline(60.0)),
+                     _short_legs_only(0.3, req, calls, plans))
     legs = p.diagnostics["legs"]
     assert legs["count"] == 4 and legs["fractions"] == [0.25, 0.5, 0.75]
     # halves refused, then quarters: 0-0.5 (no), 0-0.25, 0.25-0.5, 0.5-1 (no), 0.5-0.75, 0.75-1
@@ -60,11 +67,12 @@ def test_legs_are_halved_until_each_plans_and_the_whole_path_reaches_the_goal():
     for k, leg in enumerate(planned[1:], start=1):
         point = start + 0.25 * k * (goal - start)
         assert np.max(np.abs(np.array(leg.start) - point)) < 1e-8
-        assert leg.phi_start != 0.0
+        assert (leg.phi_start,) + leg.start == plans[k - 1].verification.final
     assert planned[-1].goal == req.goal
     _replayed(p, req)
     # the proof is of the whole path: one schedule from the request's start
     assert p.verification.terminal_error < 1e-8 and p.margin > 0.0
+
 
 def test_a_leg_that_finds_nothing_at_the_smallest_split_ends_the_legs_with_the_search_named():
     req = PlanRequest(start=(D(10), D(20), D(30)), goal=(D(40), D(25), D(15)))

@@ -79,9 +79,8 @@ def _schedule(plan: Plan) -> ActuatorSchedule:
     return plan.inputs
 
 
-def _leg_nodes(leg: PlanRequest, plan: Plan) -> np.ndarray:
+def _leg_nodes(leg: PlanRequest, sched: ActuatorSchedule) -> np.ndarray:
     """The leg's states at its breaks (its schedule re-integrated from its start)."""
-    sched = _schedule(plan)
     rep = integrate_cascade(leg.robot, sched.u, leg.q_start(), sched.duration, sched.breaks,
                             sched.breaks, fallback=sched.u_scalar, constant_pieces=True)
     return np.asarray(rep.q[:sched.breaks.size], float)
@@ -97,7 +96,7 @@ def plan_in_legs(req: PlanRequest, ctx: PlanContext,
     t0 = time.perf_counter()
     start = np.array(req.start, float)
     goal = np.array(req.goal, float)
-    legs: list[tuple[PlanRequest, Plan, float, float]] = []
+    legs: list[tuple[PlanRequest, Plan, float]] = []    # (request, plan, fraction reached)
     record: list[dict[str, Any]] = []
     q_now = req.q_start()
 
@@ -123,7 +122,7 @@ def plan_in_legs(req: PlanRequest, ctx: PlanContext,
         record.append({"from": a, "to": b, "outcome": "plan",
                        "reversals": plan.indicators.reversals,
                        "seconds": round(time.perf_counter() - began, 6)})
-        legs.append((leg, plan, a, b))
+        legs.append((leg, plan, b))
         q_now = np.array(plan.verification.final, float)
 
     # the whole move already failed (the caller's attempt): two halves first
@@ -136,18 +135,18 @@ def plan_in_legs(req: PlanRequest, ctx: PlanContext,
             f"1/{MAX_LEGS} of it) found no path: {exc.message}",
             diagnostics={"blocking": "nlp_failed", "legs": record}) from None
     # one schedule: every leg's pieces in order, each on an equal share of normalised time
-    moves = [_schedule(plan).rates * np.diff(_schedule(plan).breaks)[:, None]
-             for _, plan, _, _ in legs]
-    pieces = int(sum(m.shape[0] for m in moves))
-    rates = np.vstack(moves) * pieces
-    nodes = [_leg_nodes(leg, plan) for leg, plan, _, _ in legs]
+    schedules = [_schedule(plan) for _, plan, _ in legs]
+    moves = np.vstack([s.rates * np.diff(s.breaks)[:, None] for s in schedules])
+    rates = moves * moves.shape[0]
+    nodes = [_leg_nodes(leg, s) for (leg, _, _), s in zip(legs, schedules)]
     planned = np.vstack([nodes[0]] + [n[1:] for n in nodes[1:]])
     timing: dict[str, float] = {"legs": time.perf_counter() - t0}
     diagnostics: dict[str, Any] = {
         "objective": req.objective, "singularity": req.singularity,
-        "legs": {"count": len(legs), "why": "one NLP found no path to the goal: planned "
-                 "through intermediate goals on the joint-space segment start -> goal", "fractions": [b for _, _, _, b in legs[:-1]],
-                 "tried": record}}
+        "legs": {"count": len(legs),
+                 "why": "one NLP found no path to the goal: planned through intermediate "
+                        "goals on the joint-space segment start -> goal",
+                 "fractions": [b for _, _, b in legs[:-1]], "tried": record}}
     return finish_actuator_plan(req, rates, LEG_METHOD, planned, timing, diagnostics)
 
 
