@@ -283,6 +283,8 @@ class GeometricPath:
         ``u_plan``: plan times (M,) -> (M, 2).
     constant : bool
         ``u_plan`` is constant on each piece.
+    piece_rates : ndarray (K, 2) or None
+        With ``constant``: ``u_plan`` on each piece (read at its middle).
     """
 
     sigma: np.ndarray
@@ -291,6 +293,7 @@ class GeometricPath:
     stop: np.ndarray
     rates: RatesOf
     constant: bool
+    piece_rates: np.ndarray | None = None
 
     def piece(self, lam: np.ndarray) -> np.ndarray:
         return np.clip(np.searchsorted(self.lam, lam, side="right") - 1, 0, self.slope.size - 1)
@@ -302,9 +305,20 @@ class GeometricPath:
         return self.sigma[k] + self.slope[k] * (lam - self.lam[k]), self.slope[k]
 
     def g(self, lam: np.ndarray) -> np.ndarray:
-        """Rates per unit ``lam``, shape (M, 2)."""
-        s, c = self.sigma_of(lam)
-        return np.asarray(self.rates(s), float) * c[:, None]
+        """Rates per unit ``lam``, shape (M, 2): piece ``k``'s plan rates times its slope."""
+        lam = np.atleast_1d(np.asarray(lam, float))
+        k = self.piece(lam)
+        # piece k's own rates: a lam within rounding of a knot maps to a plan time on the
+        # break or past it, where the rates are the next piece's. Where the knot is no stop
+        # (parallel pieces of different speeds, the slopes making g continuous) those rates
+        # times this piece's slope were a spike in g: a sample on it put the spike into a
+        # linear form that was taken to hold the plan's rates (a 4-joint front's plan handed
+        # out a path 6e-4 rad off its goal, its check 2e-12)
+        if self.piece_rates is not None:
+            return self.piece_rates[k] * self.slope[k][:, None]
+        s = self.sigma[k] + self.slope[k] * (lam - self.lam[k])
+        s = np.minimum(np.maximum(s, self.sigma[k]), np.nextafter(self.sigma[k + 1], -np.inf))
+        return np.asarray(self.rates(s), float) * self.slope[k][:, None]
 
     @property
     def segments(self) -> np.ndarray:
@@ -321,8 +335,10 @@ def geometric_path(rates: RatesOf, breaks: np.ndarray, *, constant: bool,
     sig = np.unique(np.concatenate([b, extra]))
     K = sig.size - 1
     h = np.diff(sig)
+    mid = None
     if constant:
         mid = np.asarray(rates(0.5 * (sig[:-1] + sig[1:])), float)
+        mid.setflags(write=False)
         left, right = mid[:-1], mid[1:]         # before and after each inner knot
     else:
         eps = 1e-9 * np.minimum(h[:-1], h[1:])
@@ -341,7 +357,7 @@ def geometric_path(rates: RatesOf, breaks: np.ndarray, *, constant: bool,
         if not stop[k]:
             slope[k] = slope[k - 1] * nl[k - 1] / nr[k - 1]
     lam = np.concatenate([[0.0], np.cumsum(h / slope)])
-    return GeometricPath(sig, lam, slope, stop, rates, constant)
+    return GeometricPath(sig, lam, slope, stop, rates, constant, mid)
 
 
 # ---------------------------------------------------------------------- the time law

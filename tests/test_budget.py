@@ -340,3 +340,25 @@ def test_six_joints_the_front_trades_reversals_for_straightness() -> None:
     for (r0, d0), (r1, d1) in zip(keys, keys[1:]):
         assert r1 > r0 and d1 < d0 + 2e-4
     assert keys[-1][1] < keys[0][1] - 1.0 * DEG
+
+
+def test_four_joints_every_front_member_reaches_its_goal_as_handed_out() -> None:
+    """A 4-joint front (a reachable goal of a seed no benchmark uses) whose main plan, merged
+    to no reversal, has pieces of one direction and different speeds: every member's linear
+    form, and the main plan's, replayed by scipy from the start, ends on the goal inside the
+    region (its linear form once ended 6e-4 rad off while its check said 2e-12)."""
+    from optimizer.model import Robot
+    from optimizer.reachable import generate
+    from replay_support import replay_linear
+
+    g = generate(4, 3, seed=4242)[2]
+    req = PlanRequest(start=g.start, goal=g.goal, robot=Robot.default(4), pareto=True,
+                      time_limit=60.0)
+    answer = plan(req).to_dict()
+    forms = [answer["path"]] + [m["path"] for m in answer["pareto"]]
+    assert len(forms) >= 3
+    for path in forms:
+        final, margin = replay_linear(req.robot, np.asarray(path["t"], float),
+                                      np.asarray(path["u"], float), req.q_start())
+        assert np.max(np.abs(final[1:] - np.array(g.goal))) < TERMINAL
+        assert margin > 0.0

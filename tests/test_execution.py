@@ -565,3 +565,35 @@ def test_motor_forms_on_a_robot_off_the_default(n, form):
         assert np.all(slope[:, 1] <= req.max_du2 * limit)
     assert float(np.max(np.abs(end[1:] - np.array(req.goal)))) < 1e-6
     assert margin > 0.0
+
+
+def test_the_plans_replay_is_the_linear_forms_only_where_the_rates_are_linear_between_samples():
+    """The shortcut that takes the plan's replay for the linear form's checks its premise
+    midway between the samples: rates linear there pass; a kink between two samples, or a
+    spike of the rates on a sample (which the form copies), fail, and the form is replayed
+    on its own."""
+    from optimizer.execution import _linear_between
+
+    times = np.linspace(0.0, 1.0, 11)
+
+    def ramps(t):  # kinks at 0.3 and 0.7, both samples
+        t = np.atleast_1d(t)
+        return np.column_stack([np.interp(t, [0, 0.3, 0.7, 1], [0, 2, 2, 0]), -0.5 * t])
+    assert _linear_between(times, ramps(times), ramps)
+
+    def step(t):  # a step of 1e-8 at the sample 0.5 (pieces parallel to rounding meet so)
+        t = np.atleast_1d(t)
+        return ramps(t) + np.where(t >= 0.5, 1e-8, 0.0)[:, None]
+    assert _linear_between(times, step(times), step)
+
+    def kink_between(t):  # a kink at 0.35, between the samples 0.3 and 0.4
+        t = np.atleast_1d(t)
+        return np.column_stack([np.interp(t, [0, 0.35, 1], [0, 2, 0]), 0 * t])
+    assert not _linear_between(times, kink_between(times), kink_between)
+
+    def spike(t):  # the value at the sample 0.5 alone is off
+        t = np.atleast_1d(t)
+        r = ramps(t)
+        r[t == 0.5, 0] *= 1.4
+        return r
+    assert not _linear_between(times, spike(times), spike)

@@ -375,3 +375,31 @@ def test_an_inaccurate_convex_retiming_warns_no_one(monkeypatch):
         p = plan(_request(3, "retimed", **LIMITS))
     assert calls  # the convex retiming ran
     assert np.abs(p.path.u).max() <= 1.0 * 1.01
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_rates_are_linear_between_the_laws_kinks_even_on_them(seed):
+    """Pieces of one direction and different speeds (no stop between them: the slopes keep
+    ``g`` continuous), as a plan whose ``th1`` rests while ``phi`` moves: the law's rates at
+    its kinks (the phases' starts, where the linear form samples them) and midway between
+    them lie on one line per interval, so the linear form holds them exactly. A ``lam`` within
+    rounding of a knot once took the next piece's rates with this piece's slope: a spike at
+    the sample (a 4-joint plan's linear form ended 6e-4 rad off its goal)."""
+    from optimizer.actuation import ActuatorSchedule
+
+    rng = np.random.default_rng(seed)
+    N = 30
+    speeds = rng.uniform(0.2, 3.0, N)
+    rates = np.column_stack([speeds, np.zeros(N)])
+    rates[N // 2:, 1] = -0.5 * speeds[N // 2:]          # one turn: a stop inside
+    breaks = np.linspace(0.0, 1.0, N + 1)
+    sched = ActuatorSchedule(breaks=breaks, rates=rates)
+    path = geometric_path(sched.u, breaks, constant=True)
+    assert not path.stop[1:N // 2].any()
+    law = time_law(path, Limits(), None, 1.0)
+    assert law.piecewise_linear
+    kinks = np.union1d(law.phases.start, law.stops)
+    at = law.rates(kinks)
+    mid = law.rates(0.5 * (kinks[:-1] + kinks[1:]))
+    peak = float(np.max(np.abs(at)))
+    assert np.max(np.abs(mid - 0.5 * (at[:-1] + at[1:]))) <= 1e-12 * peak
