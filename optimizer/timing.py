@@ -337,7 +337,7 @@ def geometric_path(rates: RatesOf, breaks: np.ndarray, *, constant: bool,
     h = np.diff(sig)
     mid = None
     if constant:
-        mid = np.asarray(rates(0.5 * (sig[:-1] + sig[1:])), float)
+        mid = np.array(rates(0.5 * (sig[:-1] + sig[1:])), dtype=float)   # (a copy: frozen)
         mid.setflags(write=False)
         left, right = mid[:-1], mid[1:]         # before and after each inner knot
     else:

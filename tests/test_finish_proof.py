@@ -85,3 +85,19 @@ def test_the_quadratures_estimate_counts_against_the_terminal_error(monkeypatch)
                                                             error_estimate=TERMINAL_TOLERANCE))
     with pytest.raises(NumericalError, match="estimate"):
         finish_actuator_plan(req, rates, "shooting", _reference(req, rates), {}, {})
+
+
+def test_a_margin_inside_the_quadratures_estimate_is_not_proved(monkeypatch):
+    """A path whose smallest distance from the region's boundary is within the quadrature's
+    estimate is not proved to stay inside: refused, the estimate named."""
+    from optimizer.errors import InfeasibleError
+
+    req, rates = _case()
+    ref = _reference(req, rates)
+    margin = float(np.min(np.minimum(ref[:, 1:], 0.5 * math.pi - ref[:, 1:])))
+    original = finish.integrate_cascade
+    monkeypatch.setattr(finish, "integrate_cascade",
+                        lambda *a, **k: dataclasses.replace(original(*a, **k),
+                                                            error_estimate=2.0 * margin))
+    with pytest.raises(InfeasibleError, match="error estimate"):
+        finish_actuator_plan(req, rates, "shooting", ref, {}, {})

@@ -468,7 +468,10 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
         k, j = np.unravel_index(int(np.argmin(margins)), margins.shape)
         raise InfeasibleError(
             f"the re-integrated path leaves the singularity-free region: th{j + 1} at "
-            f"t = {breaks[k]:.6g} s", diagnostics={"margin": margin})
+            f"t = {breaks[k]:.6g} s" + ("" if margin <= 0.0 or rep.singular else
+                                        f" (within the quadrature's error estimate "
+                                        f"{estimate:.2g} rad of its boundary)"),
+            diagnostics={"margin": margin})
     final = rep.final
     terminal = float(np.max(np.abs(final[1:] - np.array(req.goal))))
     if not terminal + estimate <= TERMINAL_TOLERANCE:
