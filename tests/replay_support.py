@@ -119,6 +119,26 @@ def quintic_rates(t: np.ndarray, x: np.ndarray, v: np.ndarray, a: np.ndarray):
     return rates
 
 
+def linear_states(robot: Robot, t: np.ndarray, u: np.ndarray, q0: np.ndarray,
+                  per: int = 8) -> np.ndarray:
+    """The original model under linear interpolation of ``u`` over ``t`` from ``q0``,
+    piece by piece: ``q0`` and the states at ``per`` points of every interval (after the
+    first), for indicators measured densely."""
+    out, q = [np.asarray(q0, float)], np.asarray(q0, float)
+    for k in range(t.size - 1):
+        a, b = t[k], t[k + 1]
+        if b <= a:
+            continue  # a repeated time: the jump between its two values
+        h = b - a
+        sol = solve_ivp(_rhs(robot, lambda tt, k=k, a=a, h=h: u[k] + (tt - a) / h
+                             * (u[k + 1] - u[k])), (a, b), q, method="DOP853", rtol=RTOL,
+                        atol=ATOL, t_eval=np.linspace(a, b, per + 1)[1:])
+        assert sol.success, sol.message
+        out.extend(sol.y.T)
+        q = sol.y[:, -1]
+    return np.array(out)
+
+
 def _replay(robot, t, q0, u_local):
     q = np.asarray(q0, float)
     margin = math.inf

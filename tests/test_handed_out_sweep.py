@@ -17,9 +17,10 @@ from optimizer.model import Robot
 from optimizer.planner.plan import plan
 from optimizer.problem import PlanRequest
 from optimizer.reachable import generate
-from replay_support import replay_linear, replay_zoh
+from replay_support import linear_states, replay_linear, replay_zoh
 
-#: A seed of optimizer.reachable.generate that no benchmark and no other test uses.
+#: The goals of n joints: optimizer.reachable.generate's seed SEED + n (4245, 4246: no
+#: benchmark and no other test uses them).
 SEED = 4242
 
 LIMITS = {"max_u1": 1.0, "max_u2": 1.0, "max_du1": 5.0, "max_du2": 5.0}
@@ -32,28 +33,6 @@ VARIANTS = {
     "front": {"pareto": True},
     "front_limits": {"pareto": True, **LIMITS},
 }
-
-
-def _dense_states(robot: Robot, t: np.ndarray, u: np.ndarray, q0: np.ndarray,
-                  per: int = 8) -> np.ndarray:
-    """The original model under the linear form, at ``per`` points of every interval."""
-    from scipy.integrate import solve_ivp
-
-    K = np.array(robot.gains)
-    m = np.array(robot.exponents, float)
-    out, q = [q0], q0
-    for k in range(t.size - 1):
-        a, b = t[k], t[k + 1]
-        u0, u1 = u[k], u[k + 1]
-
-        def f(s, y, a=a, b=b, u0=u0, u1=u1):
-            r = u0 + (s - a) / (b - a) * (u1 - u0)
-            return np.concatenate([r, K * np.cos(y[1:-1]) ** m * r[0]])
-        sol = solve_ivp(f, (a, b), q, method="DOP853", rtol=1e-11, atol=1e-12,
-                        t_eval=np.linspace(a, b, per + 1)[1:])
-        out.extend(sol.y.T)
-        q = sol.y[:, -1]
-    return np.array(out)
 
 
 @pytest.mark.slow
@@ -83,7 +62,7 @@ def test_every_handed_out_form_reaches_its_goal_as_it_says(n: int, variant: str)
             if "max_u1" in kw:
                 assert np.all(np.max(np.abs(u), axis=0) <= 1.0 + 1e-6)
             if path["rule"] == "linear":
-                Q = _dense_states(robot, t, u, req.q_start())
+                Q = linear_states(robot, t, u, req.q_start())
                 ind = m["indicators"]
                 assert (count_reversals(Q[:, 0], ACTUATOR_DEAD_BAND),
                         count_reversals(Q[:, 1], ACTUATOR_DEAD_BAND)) == (

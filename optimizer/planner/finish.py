@@ -442,7 +442,7 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
         again = replay(refine(rep.final))
         if miss(again[2]) < miss(rep):
             schedule, law, rep, grid, dense = again
-    T, breaks = schedule.duration, schedule.breaks
+    breaks = schedule.breaks
     if not rep.success:
         raise NumericalError(f"the re-integration failed: {rep.message}",
                              diagnostics={"method": method})
@@ -451,11 +451,9 @@ def finish_actuator_plan(req: PlanRequest, rates: np.ndarray, method: str,
     # breaks of a DOP853 replay when the quadrature was not accepted
     if rep.mesh_t is not None and rep.mesh_q is not None:
         td, qd = rep.mesh_t, rep.mesh_q
-    elif dense is not None:
+    else:   # (a replay is the quadrature's, with its mesh, or DOP853's, with its grid)
+        assert dense is not None
         td, qd = dense
-    else:
-        td = np.union1d(np.linspace(0.0, T, INDICATOR_SAMPLES), breaks)
-        qd = integrate(robot, schedule.u_scalar, q0, T, td).q
     timing["verification"] = time.perf_counter() - t0
     qb = rep.q[:breaks.size]
     lo, hi = joint_limits(req)
